@@ -1,0 +1,30 @@
+"""The whole-system config: one section per component, loaded from one YAML file.
+
+Components add their section here as they land. ``sigmaslam config --defaults`` prints every field
+with its default, unit and docstring.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+from shared.config import from_dict, load_yaml, merge, param, parse_override
+from transport.config import TransportConfig
+
+
+@dataclasses.dataclass
+class SystemConfig:
+    """Resolved configuration of a sigmaslam deployment."""
+
+    transport: TransportConfig = param(TransportConfig(), "Zenoh session, namespace and queueing")
+
+
+def load_system_config(path: str | Path | None = None, overrides: list[str] | None = None) -> SystemConfig:
+    """Load the system config from YAML (defaults if ``path`` is None), then apply ``key.path=value`` overrides."""
+    extra: dict = {}
+    for text in overrides or []:
+        extra = merge(extra, parse_override(text))
+    if path is None:
+        return from_dict(SystemConfig, extra)
+    return load_yaml(SystemConfig, path, extra)

@@ -1,0 +1,146 @@
+"""Message types exchanged between sigmaslam processes.
+
+Each is a frozen, keyword-only dataclass with a :class:`~shared.codec.Header`; array fields document
+shape and dtype (names such as ``"N"`` are shared within one message and checked on construction).
+Poses are 4x4 float64 homogeneous matrices ``T_AB`` (maps points from B to A). Times are int64 ns.
+Wire format: :mod:`shared.codec`. Type ids are stable: never reuse a retired id.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from shared.codec import Header, Message, array_field, register, scalar_field
+
+__all__ = [
+    "Header", "ImuSample", "MultiCameraFrame", "FeatureFrame", "EstimatorState", "Keyframes",
+    "DepthFrame", "SubmapMesh", "ServiceStats", "Heartbeat", "Control", "StreamEnd",
+]
+
+
+@register(1)
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class ImuSample(Message):
+    """One IMU reading in the IMU frame S (header.frame_id = 'S')."""
+
+    omega_S: object = array_field("angular rate [rad/s]", "float64", (3,))
+    acc_S: object = array_field("specific force (accelerometer reading) [m/s^2]", "float64", (3,))
+
+
+@register(2)
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class MultiCameraFrame(Message):
+    """Synchronised images of all cameras of the rig; header.stamp_ns is the frame time."""
+
+    images: tuple[object, ...] = array_field("one grayscale image per camera, (H_i, W_i) uint8", "uint8", ("H", "W"))
+    camera_names: tuple[str, ...] = scalar_field("camera names, e.g. ('cam0', 'cam1'), same order as images")
+    stamps_ns: object = array_field("exposure time of each camera [ns]", "int64", ("C",))
+
+
+@register(3)
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class FeatureFrame(Message):
+    """Frontend output for one multi-camera frame: tracked landmark observations."""
+
+    landmark_ids: object = array_field("landmark id of each observation", "int64", ("M",))
+    camera_index: object = array_field("index of the observing camera", "int16", ("M",))
+    uv: object = array_field("pixel coordinates (distorted image) [px]", "float32", ("M", 2))
+    p_W_init: object = array_field("frontend's initial landmark position guess in W [m] (NaN if none)", "float64", ("M", 3))
+    is_keyframe: bool = scalar_field("frontend selected this frame as a keyframe")
+
+
+@register(4)
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class EstimatorState(Message):
+    """Causal estimate for one camera frame (header.frame_id = 'W')."""
+
+    T_WS: object = array_field("body (IMU) pose in world", "float64", (4, 4))
+    v_W: object = array_field("body velocity in world [m/s]", "float64", (3,))
+    gyro_bias: object = array_field("gyroscope bias [rad/s]", "float64", (3,))
+    acc_bias: object = array_field("accelerometer bias [m/s^2]", "float64", (3,))
+    covariance: object = array_field(
+        "marginal covariance, order [rot_S(3) rad, p_W(3) m, v_W(3) m/s, gyro_bias(3), acc_bias(3)]", "float64", (15, 15))
+    status: str = scalar_field("'initialising', 'tracking', 'imu_only', 'lost' or 'reset'", default="tracking")
+
+
+@register(5)
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Keyframes(Message):
+    """Poses of recent (or all updated) keyframes after an optimisation."""
+
+    ids: object = array_field("keyframe ids", "int64", ("K",))
+    stamps_ns: object = array_field("keyframe times [ns]", "int64", ("K",))
+    T_WS: object = array_field("keyframe body poses in world", "float64", ("K", 4, 4))
+
+
+@register(6)
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class DepthFrame(Message):
+    """Depth with per-pixel standard deviation for one camera (header.frame_id = camera name)."""
+
+    depth: object = array_field("depth along the optical axis [m]; NaN where invalid", "float32", ("H", "W"))
+    sigma: object = array_field("depth standard deviation [m]; NaN where invalid", "float32", ("H", "W"))
+    K: object = array_field("pinhole intrinsics of the (undistorted) depth image [px]", "float64", (3, 3))
+    T_WC: object = array_field("camera pose in world used for integration (identity if unknown)", "float64", (4, 4))
+    source: str = scalar_field("'stereo', 'mvs', 'fused' or 'gt'")
+
+
+@register(7)
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class SubmapMesh(Message):
+    """Triangle mesh of one submap in its own frame M_j, with the submap's current pose."""
+
+    submap_id: int = scalar_field("submap id")
+    T_WM: object = array_field("submap pose in world", "float64", (4, 4))
+    vertices_M: object = array_field("vertex positions in the submap frame [m]", "float32", ("V", 3))
+    faces: object = array_field("vertex indices of each triangle", "int32", ("F", 3))
+    vertex_colors: object = array_field("RGB per vertex (empty: no colour)", "uint8", ("V_c", 3))
+
+
+@register(8)
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class ServiceStats(Message):
+    """Periodic statistics of one service: stage timings against budgets, queue drops."""
+
+    service: str = scalar_field("service name")
+    uptime_s: float = scalar_field("seconds since the service started [s]")
+    rss_mb: float = scalar_field("resident memory [MiB]")
+    stage_names: tuple[str, ...] = scalar_field("timed stages, order of the stage_* arrays")
+    stage_count: object = array_field("items processed since start", "int64", ("S",))
+    stage_rate_hz: object = array_field("items per second over the last window [Hz]", "float64", ("S",))
+    stage_p50_ms: object = array_field("median compute time over the last window [ms]", "float64", ("S",))
+    stage_p99_ms: object = array_field("99th percentile compute time over the last window [ms]", "float64", ("S",))
+    stage_budget_ms: object = array_field("configured budget, NaN if none [ms]", "float64", ("S",))
+    stage_overruns: object = array_field("items over budget since start", "int64", ("S",))
+    queue_names: tuple[str, ...] = scalar_field("subscription queues, order of the queue_* arrays")
+    queue_received: object = array_field("messages received since start", "int64", ("Q",))
+    queue_dropped: object = array_field("messages dropped (queue full or undecodable) since start", "int64", ("Q",))
+    queue_depth: object = array_field("messages waiting now", "int64", ("Q",))
+
+
+@register(9)
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Heartbeat(Message):
+    """Liveness of one service, published at a fixed rate."""
+
+    service: str = scalar_field("service name")
+    pid: int = scalar_field("OS process id")
+    state: str = scalar_field("'starting', 'running', 'stopping'")
+
+
+@register(10)
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Control(Message):
+    """A command to a service, e.g. to the player: 'pause', 'resume', 'stop'."""
+
+    target: str = scalar_field("service the command is for ('*' for all)")
+    command: str = scalar_field("command name")
+
+
+@register(11)
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class StreamEnd(Message):
+    """A source has no more data (e.g. the player reached the end of the dataset)."""
+
+    source: str = scalar_field("name of the source that ended")
+    frames_sent: int = scalar_field("frames published by the source")

@@ -1,0 +1,30 @@
+"""Transport configuration: how a process joins the Zenoh network and how it queues data."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from shared.config import param
+
+
+@dataclasses.dataclass
+class TransportConfig:
+    """Zenoh session settings shared by every sigmaslam process.
+
+    By default nothing listens beyond loopback: services are peers that connect to the router that
+    ``sigmaslam up`` (or ``sigmaslam router``) opens on ``tcp/127.0.0.1:7447``, then learn about each
+    other through gossip and talk directly. Multicast scouting is off.
+    """
+
+    namespace: str = param("sigmaslam/robot0", "key-expression prefix of every topic; one per robot")
+    mode: str = param("peer", "Zenoh mode of service sessions: 'peer' or 'client'")
+    connect: list[str] = param(["tcp/127.0.0.1:7447"], "endpoints to connect to (the router)")
+    listen: list[str] = param(["tcp/127.0.0.1:0"], "endpoints this session listens on (port 0: any free port)")
+    router_listen: list[str] = param(["tcp/127.0.0.1:7447"], "endpoints the router session listens on")
+    multicast_scouting: bool = param(False, "discover peers by UDP multicast (off: explicit endpoints only)")
+    shared_memory: bool = param(True, "use Zenoh shared memory for large payloads between processes on one host")
+    shm_threshold_bytes: int = param(65536, "payloads at least this large go through shared memory", "B")
+    shm_pool_bytes: int = param(64 * 1024 * 1024, "size of each publisher process's shared-memory pool", "B")
+    zenoh_json5: str = param("", "optional Zenoh JSON5 config file whose settings are applied first (TLS, auth, ACL)")
+    heartbeat_period_s: float = param(1.0, "period of each service's heartbeat", "s")
+    stats_period_s: float = param(1.0, "period of each service's stats message", "s")

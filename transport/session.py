@@ -1,0 +1,40 @@
+"""Opening Zenoh sessions from :class:`TransportConfig`."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import zenoh
+
+from transport.config import TransportConfig
+
+
+def zenoh_config(cfg: TransportConfig, role: str = "service") -> zenoh.Config:
+    """Zenoh config for a service session (``role='service'``) or the router (``role='router'``)."""
+    if cfg.zenoh_json5:
+        path = Path(cfg.zenoh_json5)
+        if not path.is_file():
+            raise FileNotFoundError(f"transport.zenoh_json5: file not found: {path}")
+        zc = zenoh.Config.from_file(str(path))
+    else:
+        zc = zenoh.Config()
+    if role == "router":
+        zc.insert_json5("mode", json.dumps("router"))
+        zc.insert_json5("listen/endpoints", json.dumps(list(cfg.router_listen)))
+        zc.insert_json5("connect/endpoints", json.dumps([]))
+    else:
+        if cfg.mode not in ("peer", "client"):
+            raise ValueError(f"transport.mode must be 'peer' or 'client', got {cfg.mode!r}")
+        zc.insert_json5("mode", json.dumps(cfg.mode))
+        zc.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
+        if cfg.mode == "peer":
+            zc.insert_json5("listen/endpoints", json.dumps(list(cfg.listen)))
+    zc.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
+    zc.insert_json5("transport/shared_memory/enabled", json.dumps(cfg.shared_memory))
+    return zc
+
+
+def open_session(cfg: TransportConfig, role: str = "service") -> zenoh.Session:
+    """Open a session; use it as a context manager (``with open_session(cfg) as s:``)."""
+    return zenoh.open(zenoh_config(cfg, role))
