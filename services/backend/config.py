@@ -1,0 +1,46 @@
+"""Configuration of the visual-inertial back end."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from shared.config import param
+
+
+@dataclasses.dataclass
+class BackendConfig:
+    """Windowed visual-inertial smoother (gtsam)."""
+
+    # --- window and optimisation ---
+    window_keyframes: int = param(8, "keyframes kept in the optimisation window (plus the latest frame)")
+    max_keyframe_interval_s: float = param(0.5, "a frame becomes a keyframe at the latest after this long", "s")
+    lm_max_iterations: int = param(6, "Levenberg-Marquardt iterations per frame")
+    lm_relative_error_tol: float = param(1e-4, "LM stops when the relative cost decrease falls below this")
+    # --- vision ---
+    sigma_px: float = param(1.0, "reprojection noise (1 sigma) of a feature observation", "px")
+    cauchy_k: float = param(2.0, "Cauchy robust-loss scale, in units of sigma (whitened residual)")
+    min_parallax_deg: float = param(1.0, "least ray angle between two observations to triangulate a landmark", "deg")
+    max_reproj_error_px: float = param(4.0, "largest reprojection error of a triangulated or optimised landmark", "px")
+    min_depth_m: float = param(0.1, "landmarks closer to a camera than this are rejected (cheirality)", "m")
+    max_depth_m: float = param(60.0, "landmarks farther than this from every observing camera are rejected", "m")
+    max_landmarks: int = param(400, "landmarks kept in the window at most (oldest dropped first)")
+    # --- IMU (continuous-time densities; an ImuCalib passed to the estimator overrides them) ---
+    gravity_m_s2: float = param(9.81, "magnitude of gravity along -z of W", "m/s^2")
+    gyro_noise_density: float = param(1.6968e-4 * 5, "gyro white-noise density (inflated over the datasheet)", "rad/s/sqrt(Hz)")
+    accel_noise_density: float = param(2.0e-3 * 5, "accelerometer white-noise density (inflated)", "m/s^2/sqrt(Hz)")
+    gyro_random_walk: float = param(1.9393e-5 * 5, "gyro bias random walk density", "rad/s^2/sqrt(Hz)")
+    accel_random_walk: float = param(3.0e-3 * 5, "accelerometer bias random walk density", "m/s^3/sqrt(Hz)")
+    integration_sigma: float = param(1e-4, "position integration noise density of the pre-integration", "m/s/sqrt(Hz)")
+    # --- priors and initialisation ---
+    prior_sigma_rot_rad: float = param(1e-3, "first state's roll/pitch/yaw prior after a static start", "rad")
+    prior_sigma_tilt_moving_rad: float = param(0.03, "first state's roll/pitch prior after a moving start", "rad")
+    prior_sigma_pos_m: float = param(1e-3, "first state's position prior", "m")
+    prior_sigma_vel_m_s: float = param(0.01, "first state's velocity prior after a static start", "m/s")
+    prior_sigma_vel_moving_m_s: float = param(1.0, "first state's velocity prior after a moving start", "m/s")
+    prior_sigma_gyro_bias: float = param(5e-3, "initial gyro bias prior", "rad/s")
+    prior_sigma_acc_bias: float = param(0.1, "initial accelerometer bias prior", "m/s^2")
+    min_landmarks_tracking: int = param(6, "fewer landmarks with factors in the window than this: status 'imu_only'")
+    static_window_s: float = param(0.5, "IMU span inspected for a static start", "s")
+    static_gyro_std: float = param(0.01, "a start is static when the gyro std stays below this", "rad/s")
+    static_acc_std: float = param(0.08, "... and the accelerometer std below this", "m/s^2")
+    compute_covariance: bool = param(True, "compute the 15x15 marginal covariance of the latest state every frame")

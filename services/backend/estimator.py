@@ -1,0 +1,386 @@
+"""Keyframe-window visual-inertial smoother (gtsam), causal output for every camera frame.
+
+Design choices:
+
+* **Window**: the last ``window_keyframes`` keyframes plus the latest frame. A non-keyframe frame is
+  optimised once (its IMU factor runs from the last keyframe) and then dropped, so the number of states is
+  bounded. The graph is rebuilt from cached factors and solved by Levenberg-Marquardt every frame.
+* **Marginalisation**: when the oldest keyframe leaves, the joint 15x15 marginal covariance of the next one's
+  (pose, velocity, bias), taken from the full window, becomes a Gaussian prior on it (a
+  ``LinearContainerFactor`` at the current estimate). This keeps all past information about that state but
+  drops its correlations with landmarks, so landmark observations still in the window are counted a second
+  time through the prior: slightly over-confident, never rank deficient; a standard simplification.
+* **Vision**: observations (distorted pixels) are undistorted by the camera model to normalised coordinates
+  and enter ``GenericProjectionFactorCal3_S2`` with an identity calibration and ``body_P_sensor = T_SC_i``,
+  noise sigma_px / f_i, wrapped in a Cauchy robust model (k in units of sigma). Normalised coordinates keep
+  the distortion model out of the optimisation (any model the camera class supports works unchanged).
+* **Landmarks** are added once seen in >= 2 window views (any cameras) with enough parallax, by linear
+  triangulation, rejected on cheirality, depth range and reprojection error; after every optimisation
+  observations with a reprojection error above the bound are removed.
+* **No features**: the window keeps its IMU chain (keyframes still come at ``max_keyframe_interval_s``),
+  the state is propagated by the IMU factors, status ``imu_only``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import B, L, V, X
+
+from services.backend import init as vio_init
+from services.backend.config import BackendConfig
+from services.backend.imu_factors import ImuBuffer, imu_factor, make_bias, make_params, predict
+from services.backend.triangulation import triangulate_checked
+
+
+class BackendInputError(ValueError):
+    """A frame whose arrays cannot be used (shape mismatch, unknown camera, time going backwards)."""
+
+
+@dataclass(frozen=True)
+class BackendCamera:
+    """What the back end needs of one camera: extrinsic, undistortion to normalised coordinates, focal length."""
+
+    T_SC: np.ndarray
+    undistort: Callable[[np.ndarray], np.ndarray]  # (M,2) distorted pixels -> (M,2) normalised (x/z, y/z)
+    focal_px: float
+
+
+def camera_from_calib(calib) -> BackendCamera:
+    """From a ``shared.calib.CameraCalib`` (``camera.unproject`` giving rays or normalised points, ``T_SC``)."""
+    cam = calib.camera
+
+    def undistort(uv: np.ndarray) -> np.ndarray:
+        r = np.asarray(cam.unproject(np.asarray(uv, float)), float)
+        return r[:, :2] / r[:, 2:3] if r.shape[1] == 3 else r
+
+    f = float(getattr(cam, "fx", None) or np.asarray(cam.K)[0, 0])
+    return BackendCamera(np.asarray(calib.T_SC, float), undistort, f)
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """Causal estimate for one frame, plus the window's keyframe poses after this optimisation."""
+
+    stamp_ns: int
+    T_WS: np.ndarray
+    v_W: np.ndarray
+    gyro_bias: np.ndarray
+    acc_bias: np.ndarray
+    covariance: np.ndarray  # (15,15), order [rot_S, p_W, v_W, b_g, b_a] as in shared.messages.EstimatorState
+    status: str
+    keyframe_ids: np.ndarray
+    keyframe_stamps_ns: np.ndarray
+    keyframe_T_WS: np.ndarray
+    num_landmarks: int
+
+
+def to_message_covariance(cov_gtsam: np.ndarray, R_WS: np.ndarray) -> np.ndarray:
+    """gtsam's [Pose3 (rot_S, t_S), v_W, bias (acc, gyro)] covariance to [rot_S, p_W, v_W, b_g, b_a]."""
+    J = np.zeros((15, 15))
+    J[0:3, 0:3] = np.eye(3)
+    J[3:6, 3:6] = R_WS  # Pose3 translation perturbation is in the body frame
+    J[6:9, 6:9] = np.eye(3)
+    J[9:12, 12:15] = np.eye(3)
+    J[12:15, 9:12] = np.eye(3)
+    return J @ cov_gtsam @ J.T
+
+
+def _state_keys(n: int) -> list[int]:
+    return [X(n), V(n), B(n)]
+
+
+class WindowedVioEstimator:
+    """Feed IMU with :meth:`add_imu` and frames with :meth:`process_frame` (in time order)."""
+
+    def __init__(self, cfg: BackendConfig, cameras: list[BackendCamera], imu_calib=None) -> None:
+        if not cameras:
+            raise ValueError("the back end needs at least one camera")
+        self.cfg = cfg
+        self.cameras = list(cameras)
+        kw = {}
+        if imu_calib is not None:
+            kw = {k: getattr(imu_calib, k) for k in ("gyro_noise_density", "accel_noise_density",
+                                                     "gyro_random_walk", "accel_random_walk")}
+        self.params = make_params(cfg, **kw)
+        self.imu = ImuBuffer()
+        self._cal = gtsam.Cal3_S2(1.0, 1.0, 0.0, 0.0, 0.0)
+        self._body_P_cam = [gtsam.Pose3(c.T_SC) for c in self.cameras]
+        self._T_SC = np.array([c.T_SC for c in self.cameras])
+        self._focal = np.array([c.focal_px for c in self.cameras])
+        self._noise = [gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.cauchy_k),
+                                                      gtsam.noiseModel.Isotropic.Sigma(2, cfg.sigma_px / c.focal_px))
+                       for c in self.cameras]
+        self.values = gtsam.Values()
+        self.keyframes: list[int] = []        # state indices of the window's keyframes, oldest first
+        self.stamps: dict[int, int] = {}
+        self._imu_factors: dict[int, gtsam.NonlinearFactor] = {}  # keyed by the later state
+        self._priors: list[gtsam.NonlinearFactor] = []
+        self._obs: dict[int, dict[int, list[tuple[int, np.ndarray]]]] = {}  # landmark -> state -> [(cam, xy)]
+        self._in_graph: set[int] = set()
+        self._proj_cache: dict[tuple[int, int, int], gtsam.NonlinearFactor] = {}
+        self._next = 0
+        self.initialised = False
+        self.dropped_observations = 0
+        self._marginals: gtsam.Marginals | None = None
+        self._first_frame_pending = False
+
+    # ---------------------------------------------------------------- input
+    def add_imu(self, stamp_ns: int, omega_S: np.ndarray, acc_S: np.ndarray) -> None:
+        self.imu.add(stamp_ns, omega_S, acc_S)
+
+    def initialise(self, stamp_ns: int, R_WS: np.ndarray, v_W: np.ndarray, gyro_bias: np.ndarray,
+                   acc_bias: np.ndarray, static: bool, p_W: np.ndarray | None = None) -> None:
+        """Start the window with one state at ``stamp_ns`` (called automatically from IMU data if not before)."""
+        c = self.cfg
+        n = self._new_state(stamp_ns)
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R_WS, np.zeros(3) if p_W is None else p_W
+        self.values.insert(X(n), gtsam.Pose3(T))
+        self.values.insert(V(n), np.asarray(v_W, float))
+        self.values.insert(B(n), make_bias(gyro_bias, acc_bias))
+        tilt = c.prior_sigma_rot_rad if static else c.prior_sigma_tilt_moving_rad
+        sv = c.prior_sigma_vel_m_s if static else c.prior_sigma_vel_moving_m_s
+        pose_sig = np.array([tilt, tilt, c.prior_sigma_rot_rad] + [c.prior_sigma_pos_m] * 3)
+        bias_sig = np.array([c.prior_sigma_acc_bias] * 3 + [c.prior_sigma_gyro_bias] * 3)
+        self._priors = [
+            gtsam.PriorFactorPose3(X(n), gtsam.Pose3(T), gtsam.noiseModel.Diagonal.Sigmas(pose_sig)),
+            gtsam.PriorFactorVector(V(n), np.asarray(v_W, float), gtsam.noiseModel.Isotropic.Sigma(3, sv)),
+            gtsam.PriorFactorConstantBias(B(n), make_bias(gyro_bias, acc_bias),
+                                          gtsam.noiseModel.Diagonal.Sigmas(bias_sig))]
+        self.keyframes = [n]
+        self.initialised = True
+        self._first_frame_pending = True  # the next frame at this stamp attaches to this state
+
+    def _auto_initialise(self, stamp_ns: int) -> bool:
+        t0 = stamp_ns - int(self.cfg.static_window_s * 1e9)
+        st = np.array(self.imu.stamps_ns, np.int64)
+        sel = (st >= t0) & (st <= stamp_ns)
+        if len(st) == 0 or st[0] > t0 or sel.sum() < 10:
+            return False
+        res = vio_init.initialise(st[sel], np.array(self.imu.omega)[sel], np.array(self.imu.acc)[sel],
+                                  self.cfg.static_gyro_std, self.cfg.static_acc_std)
+        self.initialise(stamp_ns, res.R_WS, res.v_W, res.gyro_bias, res.acc_bias, res.static)
+        return True
+
+    def _new_state(self, stamp_ns: int) -> int:
+        n = self._next
+        self._next += 1
+        self.stamps[n] = int(stamp_ns)
+        return n
+
+    # ---------------------------------------------------------------- per frame
+    def process_frame(self, stamp_ns: int, landmark_ids: np.ndarray, camera_index: np.ndarray, uv: np.ndarray,
+                      is_keyframe: bool = False) -> FrameResult | None:
+        """Add one frame's observations, optimise the window, return the causal estimate (None before init)."""
+        ids, cams, uv = self._validate(stamp_ns, landmark_ids, camera_index, uv)
+        if not self.initialised:
+            if not self._auto_initialise(stamp_ns):
+                return None
+            n = self.keyframes[-1]
+        elif self._first_frame_pending and stamp_ns == self.stamps[self.keyframes[-1]]:
+            n = self.keyframes[-1]
+        else:
+            n = self._add_state(stamp_ns)
+        self._first_frame_pending = False
+        self._add_observations(n, ids, cams, uv)
+        self._triangulate_new(n)
+        graph = self._build_graph(n)
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(self.cfg.lm_max_iterations)
+        params.setRelativeErrorTol(self.cfg.lm_relative_error_tol)
+        self.values = gtsam.LevenbergMarquardtOptimizer(graph, self.values, params).optimize()
+        self._reject_outliers()
+        graph = self._build_graph(n)
+        status = "tracking" if len(self._in_graph) >= self.cfg.min_landmarks_tracking else "imu_only"
+        try:
+            self._marginals = gtsam.Marginals(graph, self.values)
+            cov = self._marginals.jointMarginalCovariance(_state_keys(n)).fullMatrix()
+        except RuntimeError:
+            self._marginals = None
+            cov = np.full((15, 15), np.nan)
+        result = self._result(n, cov, status)
+        last_kf = self.keyframes[-1]
+        keyframe = (n == last_kf or is_keyframe
+                    or stamp_ns - self.stamps[last_kf] >= self.cfg.max_keyframe_interval_s * 1e9)
+        if n != last_kf:
+            if keyframe:
+                self.keyframes.append(n)
+                if len(self.keyframes) > self.cfg.window_keyframes:
+                    self._marginalise_oldest()
+            else:
+                self._remove_state(n)
+        self.imu.prune_before(self.stamps[self.keyframes[-1]])
+        return result
+
+    def _validate(self, stamp_ns, landmark_ids, camera_index, uv):
+        ids = np.asarray(landmark_ids, np.int64).reshape(-1)
+        cams = np.asarray(camera_index, np.int64).reshape(-1)
+        uv = np.asarray(uv, float)
+        if uv.shape != (len(ids), 2) or len(cams) != len(ids):
+            raise BackendInputError(f"observation arrays disagree: {len(ids)} ids, {len(cams)} camera indices, "
+                                    f"uv of shape {uv.shape}")
+        latest = max(self.stamps.values()) if self.stamps else None
+        if latest is not None and (stamp_ns < latest or (stamp_ns == latest and not self._first_frame_pending)):
+            raise BackendInputError(f"frame stamp {stamp_ns} ns is not after the previous frame")
+        ok = (cams >= 0) & (cams < len(self.cameras)) & np.all(np.isfinite(uv), axis=1)
+        self.dropped_observations += int((~ok).sum())
+        return ids[ok], cams[ok], uv[ok]
+
+    def _add_state(self, stamp_ns: int) -> int:
+        k = self.keyframes[-1]
+        bias = self.values.atConstantBias(B(k))
+        pim = self.imu.preintegrate(self.params, bias, self.stamps[k], stamp_ns)
+        n = self._new_state(stamp_ns)
+        T, v = predict(pim, self.values.atPose3(X(k)).matrix(), self.values.atVector(V(k)), bias)
+        self.values.insert(X(n), gtsam.Pose3(T))
+        self.values.insert(V(n), v)
+        self.values.insert(B(n), bias)
+        self._imu_factors[n] = imu_factor(pim, (X(k), V(k), B(k)), (X(n), V(n), B(n)))
+        return n
+
+    def _add_observations(self, n: int, ids, cams, uv) -> None:
+        for c in np.unique(cams):
+            m = cams == c
+            xy = self.cameras[c].undistort(uv[m])
+            for lm, p in zip(ids[m], xy):
+                self._obs.setdefault(int(lm), {}).setdefault(n, []).append((int(c), np.asarray(p, float)))
+
+    def _views(self, lm: int):
+        """(T_CW (K,4,4), xy (K,2), focal (K,)) of all window observations of a landmark."""
+        T_CW, xy, f = [], [], []
+        for n, obs in self._obs[lm].items():
+            T_WS = self.values.atPose3(X(n)).matrix()
+            for c, p in obs:
+                T_CW.append(np.linalg.inv(T_WS @ self._T_SC[c]))
+                xy.append(p)
+                f.append(self._focal[c])
+        return np.array(T_CW), np.array(xy), np.array(f)
+
+    def _triangulate_new(self, n: int) -> None:
+        c = self.cfg
+        for lm, by_state in self._obs.items():
+            if lm in self._in_graph or n not in by_state or len(self._in_graph) >= c.max_landmarks:
+                continue
+            if sum(len(o) for o in by_state.values()) < 2:
+                continue
+            T_CW, xy, f = self._views(lm)
+            p = triangulate_checked(T_CW, xy, f, np.deg2rad(c.min_parallax_deg), c.max_reproj_error_px,
+                                    c.min_depth_m, c.max_depth_m)
+            if p is not None:
+                if self.values.exists(L(lm)):
+                    self.values.update(L(lm), p)
+                else:
+                    self.values.insert(L(lm), p)
+                self._in_graph.add(lm)
+
+    def _projection(self, lm: int, n: int, j: int, c: int, xy: np.ndarray) -> gtsam.NonlinearFactor:
+        key = (lm, n, j)
+        f = self._proj_cache.get(key)
+        if f is None:
+            f = gtsam.GenericProjectionFactorCal3_S2(xy, self._noise[c], X(n), L(lm), self._cal, False, False,
+                                                    self._body_P_cam[c])
+            self._proj_cache[key] = f
+        return f
+
+    def _build_graph(self, n: int) -> gtsam.NonlinearFactorGraph:
+        g = gtsam.NonlinearFactorGraph()
+        for f in self._priors:
+            g.add(f)
+        for k in self.keyframes[1:]:
+            g.add(self._imu_factors[k])
+        if n != self.keyframes[-1]:
+            g.add(self._imu_factors[n])
+        for lm in self._in_graph:
+            for s, obs in self._obs[lm].items():
+                for j, (c, xy) in enumerate(obs):
+                    g.add(self._projection(lm, s, j, c, xy))
+        return g
+
+    def _reject_outliers(self) -> None:
+        c = self.cfg
+        for lm in list(self._in_graph):
+            p = self.values.atPoint3(L(lm))
+            for s in list(self._obs[lm]):
+                T_CS = np.linalg.inv(self.values.atPose3(X(s)).matrix()[None] @ self._T_SC)  # per camera
+                keep = []
+                for cam, xy in self._obs[lm][s]:
+                    p_C = T_CS[cam, :3, :3] @ p + T_CS[cam, :3, 3]
+                    err = np.linalg.norm(p_C[:2] / p_C[2] - xy) * self._focal[cam] if p_C[2] > c.min_depth_m \
+                        else np.inf
+                    if err <= c.max_reproj_error_px:
+                        keep.append((cam, xy))
+                if len(keep) != len(self._obs[lm][s]):
+                    self._set_obs(lm, s, keep)
+            if lm in self._in_graph and sum(len(o) for o in self._obs.get(lm, {}).values()) < 2:
+                self._drop_landmark(lm)
+
+    def _set_obs(self, lm: int, s: int, keep: list) -> None:
+        for j in range(len(self._obs[lm][s])):
+            self._proj_cache.pop((lm, s, j), None)
+        if keep:
+            self._obs[lm][s] = keep
+        else:
+            del self._obs[lm][s]
+
+    def _drop_landmark(self, lm: int) -> None:
+        self._in_graph.discard(lm)
+        if self.values.exists(L(lm)):
+            self.values.erase(L(lm))
+        if not self._obs.get(lm):
+            self._obs.pop(lm, None)
+
+    def _remove_state(self, n: int) -> None:
+        for lm in [lm for lm, by in self._obs.items() if n in by]:
+            self._set_obs(lm, n, [])
+            if sum(len(o) for o in self._obs[lm].values()) < 2:
+                self._drop_landmark(lm)
+        self._imu_factors.pop(n, None)
+        for key in _state_keys(n):
+            self.values.erase(key)
+        del self.stamps[n]
+
+    def _marginalise_oldest(self) -> None:
+        old, new = self.keyframes[0], self.keyframes[1]
+        keys = _state_keys(new)
+        lin = gtsam.Values()
+        lin.insert(X(new), self.values.atPose3(X(new)))
+        lin.insert(V(new), self.values.atVector(V(new)))
+        lin.insert(B(new), self.values.atConstantBias(B(new)))
+        cov = None
+        if self._marginals is not None:
+            try:
+                cov = self._marginals.jointMarginalCovariance(keys).fullMatrix()
+            except RuntimeError:
+                cov = None
+        if cov is None or not np.all(np.isfinite(cov)):
+            cov = np.diag([1e-2] * 3 + [1e-1] * 3 + [1.0] * 3 + [1e-2] * 3 + [1e-4] * 3)
+        info = np.linalg.inv(0.5 * (cov + cov.T))
+        R = np.linalg.cholesky(0.5 * (info + info.T)).T  # R^T R = information
+        jf = gtsam.JacobianFactor(X(new), R[:, 0:6], V(new), R[:, 6:9], B(new), R[:, 9:15], np.zeros(15),
+                                  gtsam.noiseModel.Unit.Create(15))
+        self._priors = [gtsam.LinearContainerFactor(jf, lin)]
+        self.keyframes.pop(0)
+        self._imu_factors.pop(new, None)
+        self._remove_state(old)
+
+    def _result(self, n: int, cov: np.ndarray, status: str) -> FrameResult:
+        T = self.values.atPose3(X(n)).matrix()
+        bias = self.values.atConstantBias(B(n))
+        kfs = list(self.keyframes)
+        return FrameResult(
+            stamp_ns=self.stamps[n], T_WS=T, v_W=np.asarray(self.values.atVector(V(n))),
+            gyro_bias=np.asarray(bias.gyroscope()), acc_bias=np.asarray(bias.accelerometer()),
+            covariance=to_message_covariance(cov, T[:3, :3]), status=status,
+            keyframe_ids=np.array(kfs, np.int64), keyframe_stamps_ns=np.array([self.stamps[k] for k in kfs], np.int64),
+            keyframe_T_WS=np.array([self.values.atPose3(X(k)).matrix() for k in kfs]),
+            num_landmarks=len(self._in_graph))
+
+    # ---------------------------------------------------------------- introspection
+    def window_counts(self) -> dict[str, int]:
+        """Sizes that bound the per-frame cost: states in the window, landmarks with factors, total variables."""
+        return {"keyframes": len(self.keyframes), "states": len(self.stamps), "landmarks": len(self._in_graph),
+                "variables": int(self.values.size()), "observed_landmarks": len(self._obs)}
