@@ -7,7 +7,7 @@ random walk sigma_rw [unit/s/sqrt(Hz)]). gtsam's pre-integration takes exactly t
 becomes sigma_rw^2 * Delta t (``CombinedImuFactor``). So no discretisation is done here.
 
 Integration: between consecutive samples the mean of the two readings is held over the interval
-(trapezoid); the interval is clipped to [t0, t1] with linear interpolation of the readings at the ends, so
+(trapezoid), the acceleration taken at the interval's mid attitude; the interval is clipped to [t0, t1] with linear interpolation of the readings at the ends, so
 a frame time that falls between two IMU samples is handled exactly to first order.
 """
 
@@ -124,8 +124,12 @@ class ImuBuffer:
     def preintegrate(self, params: gtsam.PreintegrationCombinedParams, bias: gtsam.imuBias.ConstantBias,
                      t0_ns: int, t1_ns: int) -> gtsam.PreintegratedCombinedMeasurements:
         pim = gtsam.PreintegratedCombinedMeasurements(params, bias)
+        bg = np.asarray(bias.gyroscope())
         for dt, w, a in self.segments(t0_ns, t1_ns):
-            pim.integrateMeasurement(a, w, dt)
+            # gtsam rotates the step's acceleration by the attitude at the step start; rotating it by half the
+            # step's own rotation first makes the velocity update midpoint-accurate (second order in dt)
+            a_mid = gtsam.Rot3.Expmap((w - bg) * (0.5 * dt)).rotate(a)
+            pim.integrateMeasurement(a_mid, w, dt)
         return pim
 
 
