@@ -195,7 +195,8 @@ class WindowedVioEstimator:
         self.values = gtsam.LevenbergMarquardtOptimizer(graph, self.values, params).optimize()
         self._reject_outliers()
         graph = self._build_graph(n)
-        status = "tracking" if len(self._in_graph) >= self.cfg.min_landmarks_tracking else "imu_only"
+        seen_now = sum(1 for lm in self._in_graph if n in self._obs[lm])
+        status = "tracking" if seen_now >= self.cfg.min_landmarks_tracking else "imu_only"
         try:
             self._marginals = gtsam.Marginals(graph, self.values)
             cov = self._marginals.jointMarginalCovariance(_state_keys(n)).fullMatrix()
