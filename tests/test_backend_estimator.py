@@ -68,8 +68,12 @@ def test_radtan_distortion_converges():
     cams = sim.rig(3, dist=(-0.28, 0.07, 2e-4, 1.8e-5))  # EuRoC cam0-like radial-tangential
     _, res, gt, _, _ = _run(4.0, cams)
     rmse = np.sqrt(np.mean(_pos_err(res, gt) ** 2))
-    assert rmse < 0.03, rmse
+    assert rmse < 0.02, rmse  # observed ~0.8 cm, as without distortion
     assert res[-1].num_landmarks > 30
+    # the undistortion the back end relies on inverts the model to well below a pixel
+    p_C = np.random.default_rng(0).uniform([-1.0, -0.7, 1.0], [1.0, 0.7, 1.0], (200, 3))
+    xy = cams[0].undistort(cams[0].project(p_C))
+    assert np.abs(xy - p_C[:, :2]).max() * cams[0].K[0, 0] < 1e-6
 
 
 def test_blank_frames_imu_only_then_recovery():

@@ -123,7 +123,17 @@ class SimCamera:
 
     def undistort(self, uv: np.ndarray) -> np.ndarray:
         """Normalised image coordinates (x/z, y/z) of distorted pixels."""
-        return cv2.undistortPoints(np.asarray(uv, float).reshape(-1, 1, 2), self.K, self.dist).reshape(-1, 2)
+        k1, k2, p1, p2 = self.dist
+        d = (np.asarray(uv, float) - self.K[:2, 2]) / np.diag(self.K)[:2]
+        xy = d.copy()
+        for _ in range(30):  # fixed-point inversion of the radial-tangential model
+            x, y = xy[:, 0], xy[:, 1]
+            r2 = x * x + y * y
+            radial = 1 + k1 * r2 + k2 * r2 * r2
+            dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+            dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+            xy = np.stack([(d[:, 0] - dx) / radial, (d[:, 1] - dy) / radial], axis=1)
+        return xy
 
 
 def rig(n_cams: int = 3, dist=(0.0, 0.0, 0.0, 0.0), f=400.0) -> list[SimCamera]:

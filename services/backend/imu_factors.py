@@ -124,11 +124,11 @@ class ImuBuffer:
     def preintegrate(self, params: gtsam.PreintegrationCombinedParams, bias: gtsam.imuBias.ConstantBias,
                      t0_ns: int, t1_ns: int) -> gtsam.PreintegratedCombinedMeasurements:
         pim = gtsam.PreintegratedCombinedMeasurements(params, bias)
-        bg = np.asarray(bias.gyroscope())
+        bg, ba = np.asarray(bias.gyroscope()), np.asarray(bias.accelerometer())
         for dt, w, a in self.segments(t0_ns, t1_ns):
             # gtsam rotates the step's acceleration by the attitude at the step start; rotating it by half the
             # step's own rotation first makes the velocity update midpoint-accurate (second order in dt)
-            a_mid = gtsam.Rot3.Expmap((w - bg) * (0.5 * dt)).rotate(a)
+            a_mid = gtsam.Rot3.Expmap((w - bg) * (0.5 * dt)).rotate(a - ba) + ba  # gtsam subtracts ba again
             pim.integrateMeasurement(a_mid, w, dt)
         return pim
 
