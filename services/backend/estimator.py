@@ -302,21 +302,34 @@ class WindowedVioEstimator:
         return g
 
     def _reject_outliers(self) -> None:
+        """Remove observations whose reprojection error exceeds the bound; drop landmarks left with < 2."""
         c = self.cfg
-        for lm in list(self._in_graph):
+        if not self._in_graph:
+            return
+        T_CW = {s: np.linalg.inv(self.values.atPose3(X(s)).matrix()[None] @ self._T_SC) for s in self.stamps}
+        rows, Ts, ps, xys, cams = [], [], [], [], []
+        for lm in self._in_graph:
             p = self.values.atPoint3(L(lm))
-            for s in list(self._obs[lm]):
-                T_CS = np.linalg.inv(self.values.atPose3(X(s)).matrix()[None] @ self._T_SC)  # per camera
-                keep = []
-                for cam, xy in self._obs[lm][s]:
-                    p_C = T_CS[cam, :3, :3] @ p + T_CS[cam, :3, 3]
-                    err = np.linalg.norm(p_C[:2] / p_C[2] - xy) * self._focal[cam] if p_C[2] > c.min_depth_m \
-                        else np.inf
-                    if err <= c.max_reproj_error_px:
-                        keep.append((cam, xy))
-                if len(keep) != len(self._obs[lm][s]):
-                    self._set_obs(lm, s, keep)
-            if lm in self._in_graph and sum(len(o) for o in self._obs.get(lm, {}).values()) < 2:
+            for s, obs in self._obs[lm].items():
+                for j, (cam, xy) in enumerate(obs):
+                    rows.append((lm, s, j))
+                    Ts.append(T_CW[s][cam])
+                    ps.append(p)
+                    xys.append(xy)
+                    cams.append(cam)
+        Ts, ps = np.array(Ts), np.array(ps)
+        p_C = np.einsum("nij,nj->ni", Ts[:, :3, :3], ps) + Ts[:, :3, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            err = np.linalg.norm(p_C[:, :2] / p_C[:, 2:3] - np.array(xys), axis=1) * self._focal[np.array(cams)]
+        bad = ~((p_C[:, 2] > c.min_depth_m) & (err <= c.max_reproj_error_px))
+        touched: dict[tuple[int, int], set[int]] = {}
+        for k in np.flatnonzero(bad):
+            lm, s, j = rows[k]
+            touched.setdefault((lm, s), set()).add(j)
+        for (lm, s), drop in touched.items():
+            self._set_obs(lm, s, [o for j, o in enumerate(self._obs[lm][s]) if j not in drop])
+        for lm in {lm for lm, _ in touched}:
+            if sum(len(o) for o in self._obs.get(lm, {}).values()) < 2:
                 self._drop_landmark(lm)
 
     def _set_obs(self, lm: int, s: int, keep: list) -> None:
