@@ -123,3 +123,16 @@ def test_bad_input_is_a_clear_error_or_a_counted_drop():
         est.process_frame(0, np.zeros(0), np.zeros(0), np.zeros((0, 2)))
     with pytest.raises(ValueError, match="at least one camera"):
         WindowedVioEstimator(BackendConfig(), [])
+
+
+def test_results_convert_to_messages():
+    from services.backend.outputs import keyframes_message, state_message
+    from shared.codec import decode, encode
+
+    _, res, _, _, _ = _run(1.6, sim.rig(2))
+    r = res[-1]
+    msg = decode(encode(state_message(r, seq=7)))
+    assert msg.header.stamp_ns == r.stamp_ns and msg.header.seq == 7 and msg.status == r.status
+    assert np.array_equal(msg.T_WS, r.T_WS) and np.array_equal(msg.covariance, r.covariance)
+    kf = decode(encode(keyframes_message(r, seq=7)))
+    assert np.array_equal(kf.ids, r.keyframe_ids) and kf.T_WS.shape == (len(r.keyframe_ids), 4, 4)
