@@ -13,7 +13,8 @@ GYRO_BIAS = np.array([0.002, -0.001, 0.003])
 ACC_BIAS = np.array([0.05, -0.03, 0.02])
 
 
-def _run(t_end, cams, cfg=None, t0=0.5, blank=(np.inf, np.inf), init_gt=True, seed=1, sigma_px=0.5, rate=10.0):
+def _run(t_end, cams, cfg=None, t0=0.5, blank=(np.inf, np.inf), init_gt=True, seed=1, sigma_px=0.5, rate=10.0,
+         outliers=0.0):
     """Feed IMU + frames of a procedural trajectory; returns (stamps, results, gt T_WS, estimator)."""
     rng = np.random.default_rng(seed)
     tr = sim.Trajectory()
@@ -36,6 +37,8 @@ def _run(t_end, cams, cfg=None, t0=0.5, blank=(np.inf, np.inf), init_gt=True, se
             ids, c, uv = np.zeros(0, np.int64), np.zeros(0, np.int16), np.zeros((0, 2))
         else:
             ids, c, uv = sim.observe(T, pts, cams, sigma_px, rng, 25)
+            bad = rng.random(len(ids)) < outliers  # gross mismatches anywhere in the image
+            uv[bad] = rng.uniform([0, 0], [640, 480], (bad.sum(), 2))
         results.append(est.process_frame(stamp, ids, c, uv, is_keyframe=(i % 2 == 0)))
         counts.append(est.window_counts())
     return times, results, gt, est, counts
@@ -74,6 +77,13 @@ def test_radtan_distortion_converges():
     p_C = np.random.default_rng(0).uniform([-1.0, -0.7, 1.0], [1.0, 0.7, 1.0], (200, 3))
     xy = cams[0].undistort(cams[0].project(p_C))
     assert np.abs(xy - p_C[:, :2]).max() * cams[0].K[0, 0] < 1e-6
+
+
+def test_cauchy_loss_and_rejection_survive_gross_outliers():
+    _, res, gt, est, _ = _run(4.0, sim.rig(3), outliers=0.1)
+    rmse = np.sqrt(np.mean(_pos_err(res, gt) ** 2))
+    assert rmse < 0.03, rmse
+    assert all(r.status == "tracking" for r in res[5:])
 
 
 def test_blank_frames_imu_only_then_recovery():

@@ -125,6 +125,8 @@ class WindowedVioEstimator:
         self._next = 0
         self.initialised = False
         self.dropped_observations = 0
+        self.failed_optimisations = 0
+        self.last_error = ""
         self._marginals: gtsam.Marginals | None = None
         self._first_frame_pending = False
 
@@ -192,7 +194,16 @@ class WindowedVioEstimator:
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(self.cfg.lm_max_iterations)
         params.setRelativeErrorTol(self.cfg.lm_relative_error_tol)
-        self.values = gtsam.LevenbergMarquardtOptimizer(graph, self.values, params).optimize()
+        try:
+            self.values = gtsam.LevenbergMarquardtOptimizer(graph, self.values, params).optimize()
+        except RuntimeError as exc:  # e.g. an indeterminant system: fall back to the IMU chain alone
+            self.failed_optimisations += 1
+            self.last_error = str(exc)
+            for lm in list(self._in_graph):
+                self._in_graph.discard(lm)
+                self.values.erase(L(lm))
+            graph = self._build_graph(n)
+            self.values = gtsam.LevenbergMarquardtOptimizer(graph, self.values, params).optimize()
         self._reject_outliers()
         graph = self._build_graph(n)
         seen_now = sum(1 for lm in self._in_graph if n in self._obs[lm])
