@@ -24,13 +24,12 @@ Design choices:
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
-
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, L, V, X
 
 from services.backend import init as vio_init
+from services.backend.cameras import BackendCamera, camera_from_calib  # noqa: F401 (re-exported)
 from services.backend.config import BackendConfig
 from services.backend.imu_factors import ImuBuffer, imu_factor, make_bias, make_params, predict
 from services.backend.triangulation import triangulate_checked
@@ -38,27 +37,6 @@ from services.backend.triangulation import triangulate_checked
 
 class BackendInputError(ValueError):
     """A frame whose arrays cannot be used (shape mismatch, unknown camera, time going backwards)."""
-
-
-@dataclass(frozen=True)
-class BackendCamera:
-    """What the back end needs of one camera: extrinsic, undistortion to normalised coordinates, focal length."""
-
-    T_SC: np.ndarray
-    undistort: Callable[[np.ndarray], np.ndarray]  # (M,2) distorted pixels -> (M,2) normalised (x/z, y/z)
-    focal_px: float
-
-
-def camera_from_calib(calib) -> BackendCamera:
-    """From a ``shared.calib.CameraCalib`` (``camera.unproject`` giving rays or normalised points, ``T_SC``)."""
-    cam = calib.camera
-
-    def undistort(uv: np.ndarray) -> np.ndarray:
-        r = np.asarray(cam.unproject(np.asarray(uv, float)), float)
-        return r[:, :2] / r[:, 2:3] if r.shape[1] == 3 else r
-
-    f = float(getattr(cam, "fx", None) or np.asarray(cam.K)[0, 0])
-    return BackendCamera(np.asarray(calib.T_SC, float), undistort, f)
 
 
 @dataclass(frozen=True)
