@@ -14,8 +14,6 @@ a frame time that falls between two IMU samples is handled exactly to first orde
 from __future__ import annotations
 
 import bisect
-from dataclasses import dataclass
-
 import gtsam
 import numpy as np
 
@@ -131,16 +129,6 @@ class ImuBuffer:
             a_mid = gtsam.Rot3.Expmap((w - bg) * (0.5 * dt)).rotate(a - ba) + ba  # gtsam subtracts ba again
             pim.integrateMeasurement(a_mid, w, dt)
         return pim
-
-
-@dataclass
-class NavState:
-    """Body pose, velocity and bias of one state, in plain numpy (T_WS 4x4, v_W (3,), biases (3,))."""
-
-    T_WS: np.ndarray
-    v_W: np.ndarray
-    gyro_bias: np.ndarray
-    acc_bias: np.ndarray
 
 
 def predict(pim: gtsam.PreintegratedCombinedMeasurements, T_WS: np.ndarray, v_W: np.ndarray,

@@ -21,9 +21,6 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-GRAVITY_DEFAULT = 9.81
-
-
 class InitialisationError(ValueError):
     """Not enough or unusable IMU data to initialise."""
 
