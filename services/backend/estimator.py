@@ -182,8 +182,8 @@ class WindowedVioEstimator:
                 self.values.erase(L(lm))
             graph = self._build_graph(n)
             self.values = gtsam.LevenbergMarquardtOptimizer(graph, self.values, params).optimize()
-        self._reject_outliers()
-        graph = self._build_graph(n)
+        if self._reject_outliers():
+            graph = self._build_graph(n)
         seen_now = sum(1 for lm in self._in_graph if n in self._obs[lm])
         status = "tracking" if seen_now >= self.cfg.min_landmarks_tracking else "imu_only"
         try:
@@ -290,11 +290,13 @@ class WindowedVioEstimator:
                     g.add(self._projection(lm, s, j, c, xy))
         return g
 
-    def _reject_outliers(self) -> None:
-        """Remove observations whose reprojection error exceeds the bound; drop landmarks left with < 2."""
+    def _reject_outliers(self) -> bool:
+        """Remove observations whose reprojection error exceeds the bound; drop landmarks left with < 2.
+
+        Returns True when anything was removed."""
         c = self.cfg
         if not self._in_graph:
-            return
+            return False
         T_CW = {s: np.linalg.inv(self.values.atPose3(X(s)).matrix()[None] @ self._T_SC) for s in self.stamps}
         rows, Ts, ps, xys, cams = [], [], [], [], []
         for lm in self._in_graph:
@@ -320,6 +322,7 @@ class WindowedVioEstimator:
         for lm in {lm for lm, _ in touched}:
             if sum(len(o) for o in self._obs.get(lm, {}).values()) < 2:
                 self._drop_landmark(lm)
+        return bool(touched)
 
     def _set_obs(self, lm: int, s: int, keep: list) -> None:
         for j in range(len(self._obs[lm][s])):
