@@ -113,8 +113,10 @@ def test_moving_start_refines_gravity():
 
 
 def test_window_size_stays_bounded():
-    cfg = BackendConfig(window_keyframes=5, max_landmarks=60)
-    _, res, _, _, counts = _run(4.0, sim.rig(3), cfg=cfg)
+    cfg = BackendConfig(window_keyframes=5, max_landmarks=60, compute_covariance=False)
+    _, res, gt, _, counts = _run(4.0, sim.rig(3), cfg=cfg)
+    assert np.sqrt(np.mean(_pos_err(res, gt) ** 2)) < 0.03
+    assert np.isnan(res[-1].covariance).all() or np.isfinite(res[-1].covariance).all()
     after = counts[12:]  # window filled after 5 keyframes (one every other frame)
     assert {c["keyframes"] for c in after} == {5} and {c["states"] for c in after} == {5}
     assert max(c["landmarks"] for c in after) <= 60

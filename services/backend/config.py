@@ -43,4 +43,5 @@ class BackendConfig:
     static_window_s: float = param(0.5, "IMU span inspected for a static start", "s")
     static_gyro_std: float = param(0.01, "a start is static when the gyro std stays below this", "rad/s")
     static_acc_std: float = param(0.08, "... and the accelerometer std below this", "m/s^2")
-    compute_covariance: bool = param(True, "compute the 15x15 marginal covariance of the latest state every frame")
+    compute_covariance: bool = param(True, "compute the 15x15 marginal covariance of every frame (else NaN except "
+                                     "when a keyframe is marginalised; saves ~5 ms per frame)")

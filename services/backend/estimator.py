@@ -188,16 +188,19 @@ class WindowedVioEstimator:
             graph = self._build_graph(n)
         seen_now = sum(1 for lm in self._in_graph if n in self._obs[lm])
         status = "tracking" if seen_now >= self.cfg.min_landmarks_tracking else "imu_only"
-        try:
-            self._marginals = gtsam.Marginals(graph, self.values)
-            cov = self._marginals.jointMarginalCovariance(_state_keys(n)).fullMatrix()
-        except RuntimeError:
-            self._marginals = None
-            cov = np.full((15, 15), np.nan)
-        result = self._result(n, cov, status)
         last_kf = self.keyframes[-1]
         keyframe = (n == last_kf or is_keyframe
                     or stamp_ns - self.stamps[last_kf] >= self.cfg.max_keyframe_interval_s * 1e9)
+        will_marginalise = n != last_kf and keyframe and len(self.keyframes) + 1 > self.cfg.window_keyframes
+        self._marginals = None
+        cov = np.full((15, 15), np.nan)
+        if self.cfg.compute_covariance or will_marginalise:
+            try:
+                self._marginals = gtsam.Marginals(graph, self.values)
+                cov = self._marginals.jointMarginalCovariance(_state_keys(n)).fullMatrix()
+            except RuntimeError:
+                self.failed_optimisations += 1
+        result = self._result(n, cov, status)
         if n != last_kf:
             if keyframe:
                 self.keyframes.append(n)
