@@ -51,3 +51,57 @@ def test_errors(tmp_path):
     p.write_text("\n".join(lines) + "\n")
     with pytest.raises(TrajectoryFileError, match="row 4"):
         read_euroc_csv(p)
+
+
+from shared.euroc_reader import DatasetError, EurocDataset  # noqa: E402
+from shared.euroc_writer import write_euroc  # noqa: E402
+from shared.messages import ImuSample, MultiCameraFrame  # noqa: E402
+
+CAM = {"T_BS": {"rows": 4, "cols": 4, "data": np.eye(4).ravel().tolist()}, "intrinsics": [450.0, 450.0, 16.0, 12.0],
+       "resolution": [32, 24], "rate_hz": 20}
+IMU = {"rate_hz": 200}
+
+
+def _write(tmp_path, ncam, nframes=4):
+    rng = np.random.default_rng(ncam)
+    stamps = 10**9 + np.arange(nframes, dtype=np.int64) * 50_000_000
+    frames = [(t, [rng.integers(0, 256, (24, 32), dtype=np.uint8) for _ in range(ncam)]) for t in stamps]
+    ti = 10**9 + np.arange(40, dtype=np.int64) * 5_000_000
+    imu = np.column_stack([ti, rng.normal(size=(40, 6))])
+    write_euroc(tmp_path, {f"cam{i}": CAM for i in range(ncam)}, iter(frames), imu, IMU, _series())
+    return frames, imu
+
+
+@pytest.mark.parametrize("ncam", [2, 3])
+def test_dataset_roundtrip(tmp_path, ncam):
+    frames, imu = _write(tmp_path, ncam)
+    ds = EurocDataset(tmp_path)
+    msgs = list(ds.messages())
+    got_f = [m for m in msgs if isinstance(m, MultiCameraFrame)]
+    got_i = [m for m in msgs if isinstance(m, ImuSample)]
+    assert len(got_f) == len(frames) and len(got_i) == len(imu)
+    for (t, imgs), m in zip(frames, got_f):
+        assert m.header.stamp_ns == t
+        for a, b in zip(imgs, m.images):
+            np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal([m.acc_S for m in got_i], imu[:, 4:])
+    stamps = [m.header.stamp_ns for m in msgs]
+    assert stamps == sorted(stamps)
+    assert len(read_euroc_csv(ds.groundtruth_path)) == 10
+
+
+def test_dataset_error_paths(tmp_path):
+    frames, _ = _write(tmp_path, 2)
+    root = tmp_path / "mav0"
+    (root / "cam0" / "data" / f"{frames[1][0]}.png").write_bytes(b"not a png")
+    (root / "cam1" / "data" / f"{frames[2][0]}.png").unlink()
+    with open(root / "imu0" / "data.csv", "a") as f:
+        f.write("1000000000,0,0,0,0,0,0\n")  # backwards
+    ds = EurocDataset(tmp_path)
+    n = sum(isinstance(m, MultiCameraFrame) for m in ds.messages())
+    assert n == 2 and ds.stats["unreadable_images"] == 2 and ds.stats["backwards_stamps"] == 1
+    (root / "cam1" / "sensor.yaml").write_text("%YAML:1.0\nrate_hz: 20\n")
+    with pytest.raises(DatasetError, match="missing key 'T_BS'"):
+        EurocDataset(tmp_path)
+    with pytest.raises(DatasetError, match="not found"):
+        EurocDataset(tmp_path / "nowhere")

@@ -1,0 +1,128 @@
+"""EuRoC ASL dataset folder reader (``mav0`` or its parent; cam0..camN, imu0, optional ground truth).
+
+Frames are synchronised across cameras by exact timestamp; a stamp missing in some camera is counted
+(``stats['frames_missing_camera']``) and skipped. Backward/duplicate timestamps are counted and skipped
+with a warning; unreadable images are counted and skipped when loaded. Missing files/keys -> DatasetError.
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+from shared.codec import Header
+from shared.messages import ImuSample, MultiCameraFrame
+
+log = logging.getLogger(__name__)
+
+
+class DatasetError(RuntimeError):
+    """Missing/malformed dataset file or key; the message names the path."""
+
+
+def read_sensor_yaml(path: Path, keys: tuple[str, ...] = ()) -> dict:
+    if not path.is_file():
+        raise DatasetError(f"{path}: sensor.yaml not found")
+    text = path.read_text()
+    if text.startswith("%YAML"):
+        text = text.split("\n", 1)[1]
+    d = yaml.safe_load(text) or {}
+    for k in keys:
+        if k not in d:
+            raise DatasetError(f"{path}: missing key {k!r}")
+    return d
+
+
+class EurocDataset:
+    def __init__(self, path: str | Path):
+        p = Path(path)
+        root = p / "mav0" if (p / "mav0").is_dir() else p
+        if not root.is_dir():
+            raise DatasetError(f"{p}: dataset folder not found")
+        self.root = root
+        self.stats = {"frames_missing_camera": 0, "backwards_stamps": 0, "unreadable_images": 0}
+        self.camera_names = sorted((d.name for d in root.glob("cam*") if d.is_dir()), key=lambda n: int(n[3:]))
+        if not self.camera_names:
+            raise DatasetError(f"{root}: no cam* folder")
+        self.camera_yaml = {c: read_sensor_yaml(root / c / "sensor.yaml", ("T_BS", "intrinsics", "resolution"))
+                            for c in self.camera_names}
+        self._cams = {c: self._read_cam(c) for c in self.camera_names}
+        self.imu_yaml = read_sensor_yaml(root / "imu0" / "sensor.yaml", ("rate_hz",))
+        self.imu_stamps_ns, self.imu_values = self._read_imu()
+        common = set.intersection(*(set(self._cams[c]) for c in self.camera_names))
+        union = set.union(*(set(self._cams[c]) for c in self.camera_names))
+        self.stats["frames_missing_camera"] = len(union - common)
+        self.frame_stamps_ns = np.array(sorted(common), dtype=np.int64)
+        gt = root / "state_groundtruth_estimate0" / "data.csv"
+        self.groundtruth_path = gt if gt.is_file() else None
+
+    def _csv(self, path: Path) -> list[list[str]]:
+        if not path.is_file():
+            raise DatasetError(f"{path}: data.csv not found")
+        return [[x.strip() for x in ln.split(",")] for ln in path.read_text().splitlines()
+                if ln.strip() and not ln.startswith("#")]
+
+    def _monotonic(self, path: Path, stamps: list[int]) -> np.ndarray:
+        keep, last = [], None
+        for i, t in enumerate(stamps):
+            if last is not None and t <= last:
+                self.stats["backwards_stamps"] += 1
+                log.warning("%s: data row %d timestamp %d not after %d; skipped", path, i, t, last)
+                continue
+            keep.append(i)
+            last = t
+        return np.asarray(keep, dtype=np.int64)
+
+    def _read_cam(self, cam: str) -> dict[int, Path]:
+        path = self.root / cam / "data.csv"
+        rows = self._csv(path)
+        try:
+            stamps = [int(r[0]) for r in rows]
+        except (ValueError, IndexError) as e:
+            raise DatasetError(f"{path}: bad row ({e})") from None
+        return {stamps[i]: self.root / cam / "data" / rows[i][1] for i in self._monotonic(path, stamps)}
+
+    def _read_imu(self):
+        path = self.root / "imu0" / "data.csv"
+        rows = self._csv(path)
+        if any(len(r) != 7 for r in rows):
+            raise DatasetError(f"{path}: expected 7 columns")
+        stamps = [int(r[0]) for r in rows]
+        keep = self._monotonic(path, stamps)
+        vals = np.array([[float(x) for x in r[1:]] for r in rows]).reshape(-1, 6)
+        return np.asarray(stamps, dtype=np.int64)[keep], vals[keep]
+
+    def load_frame(self, stamp_ns: int) -> list[np.ndarray] | None:
+        imgs = []
+        for c in self.camera_names:
+            f = self._cams[c][int(stamp_ns)]
+            img = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) if f.is_file() else None
+            if img is None:
+                self.stats["unreadable_images"] += 1
+                log.warning("%s: missing or unreadable image; frame %d skipped", f, stamp_ns)
+                return None
+            imgs.append(img)
+        return imgs
+
+    def messages(self):
+        """Yield ImuSample and MultiCameraFrame in time order (IMU first on ties)."""
+        i = j = seq_i = seq_f = 0
+        ti, tf = self.imu_stamps_ns, self.frame_stamps_ns
+        while i < len(ti) or j < len(tf):
+            if j >= len(tf) or (i < len(ti) and ti[i] <= tf[j]):
+                v = self.imu_values[i]
+                yield ImuSample(header=Header(stamp_ns=int(ti[i]), seq=seq_i, frame_id="S"),
+                                omega_S=v[:3].copy(), acc_S=v[3:].copy())
+                i += 1
+                seq_i += 1
+            else:
+                imgs = self.load_frame(tf[j])
+                if imgs is not None:
+                    yield MultiCameraFrame(header=Header(stamp_ns=int(tf[j]), seq=seq_f, frame_id="rig"),
+                                           images=tuple(imgs), camera_names=tuple(self.camera_names),
+                                           stamps_ns=np.full(len(imgs), tf[j], dtype=np.int64))
+                    seq_f += 1
+                j += 1
