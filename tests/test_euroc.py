@@ -105,3 +105,13 @@ def test_dataset_error_paths(tmp_path):
         EurocDataset(tmp_path)
     with pytest.raises(DatasetError, match="not found"):
         EurocDataset(tmp_path / "nowhere")
+
+
+def test_reader_accepts_real_sensor_yaml(tmp_path):
+    _write(tmp_path, 2)
+    root = tmp_path / "mav0"
+    for c in ("cam0", "cam1"):
+        (root / c / "sensor.yaml").write_text((DATA / "calib" / f"{c}_sensor.yaml").read_text())
+    (root / "imu0" / "sensor.yaml").write_text((DATA / "calib" / "imu0_sensor.yaml").read_text())
+    ds = EurocDataset(root)
+    assert ds.camera_yaml["cam0"]["resolution"] == [752, 480] and ds.imu_yaml["rate_hz"] == 200
