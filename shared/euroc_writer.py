@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import yaml
 
-from shared.euroc import PoseSeries
+from shared.euroc import PoseSeries, write_euroc_csv
 
 
 def _yaml(path: Path, d: dict) -> None:
@@ -41,7 +41,6 @@ def write_euroc(path: str | Path, camera_yaml: dict[str, dict], frames_iter, imu
         for r in np.asarray(imu_array):
             f.write(f"{int(r[0])}," + ",".join(repr(float(x)) for x in r[1:]) + "\n")
     if groundtruth is not None:
-        from shared.euroc import write_euroc_csv
         (root / "state_groundtruth_estimate0").mkdir(parents=True, exist_ok=True)
         write_euroc_csv(root / "state_groundtruth_estimate0" / "data.csv", groundtruth)
     return root
