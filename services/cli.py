@@ -14,6 +14,8 @@ import sys
 # name -> (module, one-line help)
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "config": ("services.config_cmd", "print the resolved config or the documented defaults"),
+    "router": ("services.router", "run the Zenoh router that services connect to"),
+    "bench": ("services.bench_cmd", "benchmarks: transport latency and throughput"),
 }
 
 

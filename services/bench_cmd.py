@@ -1,0 +1,26 @@
+"""``sigmaslam bench <name>``: benchmarks of the system, each in its own module under tools/.
+
+To add one, add a line to :data:`BENCHES`; the module provides ``add_arguments(parser)`` and ``main(args) -> int``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+
+# name -> (module, one-line help)
+BENCHES: dict[str, tuple[str, str]] = {
+    "transport": ("tools.bench_transport", "Zenoh round-trip latency and 786 KB frame latency/rate, SHM on and off"),
+}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    sub = p.add_subparsers(dest="bench", metavar="BENCH", required=True)
+    for name, (module, help_text) in BENCHES.items():
+        q = sub.add_parser(name, help=help_text, description=help_text)
+        q.set_defaults(_bench_module=module)
+        importlib.import_module(module).add_arguments(q)
+
+
+def main(args: argparse.Namespace) -> int:
+    return int(importlib.import_module(args._bench_module).main(args) or 0)
