@@ -56,10 +56,11 @@ def expected_depth(i):
     return d
 
 
-@pytest.mark.parametrize("shm", [True, False])
-def test_typed_messages_between_processes(shm):
+@pytest.mark.parametrize("shm,mode", [(True, "peer"), (False, "peer"), (True, "client")])
+def test_typed_messages_between_processes(shm, mode):
+    """Peers connect to the router and then to each other; clients go through the router. SHM works in both."""
     n = 200
-    with router(shared_memory=shm) as cfg, open_session(cfg) as s:
+    with router(shared_memory=shm, mode=mode) as cfg, open_session(cfg) as s:
         imu = Subscriber(s, cfg.namespace + "/imu", ImuSample, "all", 1000)
         depth = Subscriber(s, cfg.namespace + "/depth", DepthFrame, "all", 10)
         end = Subscriber(s, cfg.namespace + "/end", StreamEnd, "all", 2)
@@ -83,6 +84,12 @@ def test_typed_messages_between_processes(shm):
         assert imu.dropped == depth.dropped == 0
         for sub in (imu, depth, end):
             sub.close()
+
+
+def test_peers_connected_to_one_router_find_each_other():
+    with router() as cfg, open_session(cfg) as a, open_session(cfg) as b:
+        assert wait_for(lambda: str(b.info.zid()) in {str(z) for z in a.info.peers_zid()}, 5)
+        assert len(list(a.info.routers_zid())) == 1
 
 
 def test_bad_payloads_are_counted_and_delivery_continues():
