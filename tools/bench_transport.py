@@ -100,7 +100,7 @@ def role_pong(args: argparse.Namespace) -> int:
     done = threading.Event()
     with open_session(cfg) as session:
         raw_out = session.declare_publisher(f"{args.namespace}/bench/pong", express=True)
-        typed_out = Publisher(session, f"{args.namespace}/bench/pong_typed", ImuSample, cfg, express=True)
+        typed_out = Publisher(session, f"{args.namespace}/bench/pong_typed", ImuSample, cfg, express=True, prepare_shm=False)
 
         def on_raw(sample) -> None:
             payload = sample.payload.to_bytes()
@@ -220,7 +220,7 @@ def _ping_raw(session, ns: str, samples: int) -> dict:
 
 
 def _ping_typed(session, ns: str, cfg: TransportConfig, samples: int) -> dict:
-    pub = Publisher(session, f"{ns}/bench/ping_typed", ImuSample, cfg, express=True)
+    pub = Publisher(session, f"{ns}/bench/ping_typed", ImuSample, cfg, express=True, prepare_shm=False)
     msg = ImuSample(header=Header(stamp_ns=0, frame_id="S"), omega_S=np.zeros(3), acc_S=np.array([0, 0, 9.81]))
     started = threading.Event()
     rtts, done, on_pong, start = _chain(lambda: pub.publish(msg), samples, warmup=100)

@@ -32,7 +32,7 @@ from typing import Callable
 
 import zenoh
 
-from shared import topics
+from shared import messages, topics
 from shared.codec import Message
 from shared.topics import Topic
 from transport.config import TransportConfig
@@ -41,6 +41,9 @@ from transport.session import open_session
 from transport.stats import StageTimer, StatsCollector, heartbeat
 
 log = logging.getLogger(__name__)
+
+# message types whose payloads usually exceed the SHM threshold: their publishers prepare the SHM pool
+LARGE_TYPES = (messages.MultiCameraFrame, messages.DepthFrame, messages.SubmapMesh)
 
 
 class Node:
@@ -146,7 +149,8 @@ class Node:
         if key is None and "*" in topic.key:
             raise ValueError(f"topic {topic.key!r} is per-service: pass key=topics.per_service(topic, name)")
         block = topic.queue_policy == "all" if block is None else block
-        pub = Publisher(self.session, self.key_expr(topic, key), topic.msg_type, self.cfg, block=block)
+        pub = Publisher(self.session, self.key_expr(topic, key), topic.msg_type, self.cfg, block=block,
+                        prepare_shm=topic.msg_type in LARGE_TYPES)
         self._publishers.append(pub)
         return pub
 

@@ -97,11 +97,14 @@ class Publisher:
     """Publishes messages of one type on one key expression.
 
     ``block=True`` makes Zenoh block instead of dropping when its transmission queue is full
-    (use for topics that must not lose data, e.g. IMU).
+    (use for topics that must not lose data, e.g. IMU). ``prepare_shm=True`` creates (and pre-faults)
+    the process's SHM pool now rather than at the first large message (tens of ms, once per process);
+    use it for topics with large payloads.
     """
 
     def __init__(self, session: zenoh.Session, key_expr: str, msg_type: type[Message],
-                 cfg: TransportConfig | None = None, *, block: bool = False, express: bool = False) -> None:
+                 cfg: TransportConfig | None = None, *, block: bool = False, express: bool = False,
+                 prepare_shm: bool = True) -> None:
         self.cfg = cfg or TransportConfig()
         self.key_expr = key_expr
         self.msg_type = msg_type
@@ -115,7 +118,7 @@ class Publisher:
         self.shm_fallbacks = 0
         self.bytes_sent = 0
         self._shm_policy = None
-        if self.cfg.shared_memory:
+        if self.cfg.shared_memory and prepare_shm:
             shm_provider(self.cfg.shm_pool_bytes)
 
     @property
@@ -214,6 +217,12 @@ class Subscriber:
     def _on_sample(self, sample: zenoh.Sample) -> None:
         if self._closed:
             return
+        try:
+            self._deliver(sample)
+        except Exception as exc:  # e.g. a failing on_drop callback: log, never break the subscription
+            self._bad_log.warning("%s: error while delivering a sample: %s: %s", self.name, type(exc).__name__, exc)
+
+    def _deliver(self, sample: zenoh.Sample) -> None:
         payload = sample.payload
         shm_buf = payload.as_shm()
         if shm_buf is not None:
