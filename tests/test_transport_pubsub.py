@@ -2,12 +2,10 @@
 
 import dataclasses
 import json
-import threading
 import time
 
 import numpy as np
 import pytest
-import zenoh
 
 from helpers_zenoh import router, spawn_python, wait_for
 from shared import codec

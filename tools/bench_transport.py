@@ -18,7 +18,6 @@ Budget (BRIEF sec. 7): 786 KB with SHM p50 <= 1 ms, p99 <= 3 ms, no drops; 64 B 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import platform
