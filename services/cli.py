@@ -16,6 +16,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "config": ("services.config_cmd", "print the resolved config or the documented defaults"),
     "router": ("services.router", "run the Zenoh router that services connect to"),
     "bench": ("services.bench_cmd", "benchmarks: transport latency and throughput"),
+    "up": ("services.up_cmd", "run the router and all configured services, restarting failed ones"),
+    "record": ("services.recorder.service", "record topics to MCAP (with Foxglove mirrors); --recover a cut file"),
 }
 
 

@@ -10,6 +10,8 @@ import dataclasses
 from pathlib import Path
 
 from shared.config import from_dict, load_yaml, merge, param, parse_override
+from services.recorder.config import RecorderConfig
+from services.supervisor import SupervisorConfig
 from transport.config import TransportConfig
 
 
@@ -18,6 +20,8 @@ class SystemConfig:
     """Resolved configuration of a sigmaslam deployment."""
 
     transport: TransportConfig = param(TransportConfig(), "Zenoh session, namespace and queueing")
+    recorder: RecorderConfig = param(RecorderConfig(), "MCAP recorder (sigmaslam record)")
+    supervisor: SupervisorConfig = param(SupervisorConfig(), "processes started by sigmaslam up")
 
 
 def load_system_config(path: str | Path | None = None, overrides: list[str] | None = None) -> SystemConfig:

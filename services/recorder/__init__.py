@@ -1,0 +1,1 @@
+"""MCAP recording of every sigmaslam topic (``sigmaslam record``), recovery and reading back."""
