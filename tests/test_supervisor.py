@@ -1,0 +1,154 @@
+"""`sigmaslam up`: restart bookkeeping (pure), and real processes: a SIGKILLed child comes back with
+a new pid, a crashing child is given up on, SIGTERM (or SIGKILL of the supervisor) leaves no child."""
+
+from __future__ import annotations
+
+import re
+import signal
+import subprocess
+import sys
+import threading
+
+import psutil
+import pytest
+import yaml
+
+from helpers_zenoh import REPO, child_env, free_port, service_config, wait_for
+from services.recorder.mcap_reader import read_metadata
+from services.supervisor import RestartTracker, ServiceSpec, SupervisorConfig, describe_exit, validate
+from shared.config import ConfigError, to_dict
+
+
+# ----------------------------------------------------------------------------- bookkeeping, no processes
+
+def test_restart_backoff_doubles_then_gives_up():
+    tr = RestartTracker(ServiceSpec(name="a", argv=["x"], max_restarts=3, window_s=60.0, backoff_s=0.5, backoff_max_s=1.5))
+    delays = [tr.on_exit(-9, now=t) for t in (0.0, 1.0, 2.0)]
+    assert [d.restart for d in delays] == [True, True, True]
+    assert [d.delay_s for d in delays] == [0.5, 1.0, 1.5]  # doubling, capped at backoff_max_s
+    last = tr.on_exit(1, now=5.0)
+    assert not last.restart and tr.gave_up and "giving up" in last.reason
+    assert tr.total_restarts == 3
+
+
+def test_restarts_outside_the_window_do_not_count():
+    tr = RestartTracker(ServiceSpec(name="a", argv=["x"], max_restarts=2, window_s=10.0, backoff_s=0.0))
+    assert tr.on_exit(1, 0.0).restart and tr.on_exit(1, 1.0).restart
+    assert not tr.on_exit(1, 2.0).restart  # third failure within 10 s
+    tr2 = RestartTracker(ServiceSpec(name="b", argv=["x"], max_restarts=2, window_s=10.0, backoff_s=0.0))
+    assert tr2.on_exit(1, 0.0).restart and tr2.on_exit(1, 1.0).restart
+    assert tr2.on_exit(1, 10.5).restart  # the restart at 0 s left the window
+    assert not tr2.on_exit(1, 10.6).restart
+
+
+def test_policies():
+    on_failure = RestartTracker(ServiceSpec(name="a", argv=["x"]))
+    assert not on_failure.on_exit(0, 0.0).restart and not on_failure.gave_up
+    assert on_failure.on_exit(-signal.SIGKILL, 0.0).restart
+    assert RestartTracker(ServiceSpec(name="a", argv=["x"], restart="always")).on_exit(0, 0.0).restart
+    assert not RestartTracker(ServiceSpec(name="a", argv=["x"], restart="never")).on_exit(1, 0.0).restart
+    assert describe_exit(-9) == "killed by SIGKILL" and describe_exit(3) == "exit code 3"
+
+
+def test_validate_rejects_bad_specs():
+    ok = ServiceSpec(name="rec", argv=["record"])
+    validate(SupervisorConfig(services=[ok]), {"record": None})
+    for bad, word in [([ok, ok], "unique"), ([ServiceSpec(name="x", argv=[])], "argv"),
+                      ([ServiceSpec(name="x", argv=["nope"])], "not a sigmaslam subcommand"),
+                      ([ServiceSpec(name="x", argv=["record"], restart="sometimes")], "restart")]:
+        with pytest.raises(ConfigError, match=word):
+            validate(SupervisorConfig(services=bad), {"record": None})
+
+
+# ----------------------------------------------------------------------------- real processes
+
+class Up:
+    """`sigmaslam up CONFIG` in a subprocess, its output collected line by line."""
+
+    def __init__(self, tmp_path, services: list[dict], start_router: bool = True) -> None:
+        port = free_port()
+        self.tcfg = service_config(port)
+        cfg = {"transport": to_dict(self.tcfg),
+               "supervisor": {"services": services, "start_router": start_router, "router_startup_s": 0.2,
+                              "shutdown_timeout_s": 5.0, "run_dir": str(tmp_path / "runs")}}
+        path = tmp_path / "system.yaml"
+        path.write_text(yaml.safe_dump(cfg))
+        self.proc = subprocess.Popen([sys.executable, "-m", "services.cli", "up", str(path)], cwd=REPO, env=child_env(),
+                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self.lines: list[str] = []
+        threading.Thread(target=lambda: self.lines.extend(iter(self.proc.stdout.readline, "")), daemon=True).start()
+
+    def pids(self, name: str) -> list[int]:
+        pat = re.compile(rf"\[sigmaslam up\] {name}: started pid (\d+)")
+        return [int(m.group(1)) for line in list(self.lines) if (m := pat.search(line))]
+
+    def text(self) -> str:
+        return "".join(self.lines)
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+
+
+def gone(pid: int) -> bool:
+    try:
+        return psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return True
+
+
+def test_up_restarts_a_killed_child_and_stops_everything_on_sigterm(tmp_path):
+    out = tmp_path / "rec.mcap"
+    up = Up(tmp_path, [{"name": "rec", "argv": ["record", "--out", str(out)], "backoff_s": 0.1}])
+    try:
+        assert wait_for(lambda: len(up.pids("rec")) == 1 and len(up.pids("router")) == 1, 20.0), up.text()
+        first = up.pids("rec")[0]
+        child = psutil.Process(first)
+        assert child.ppid() == up.proc.pid and child.pid != up.proc.pid
+        cmd = child.cmdline()  # python -m services.cli record <run>/config.yaml --out rec.mcap
+        assert cmd[1:4] == ["-m", "services.cli", "record"] and cmd[4].endswith("config.yaml") and cmd[5:] == ["--out", str(out)]
+        assert wait_for(lambda: out.exists(), 20.0), up.text()  # the recorder got going
+        child.send_signal(signal.SIGKILL)
+        assert wait_for(lambda: len(up.pids("rec")) == 2, 20.0), up.text()
+        second = up.pids("rec")[1]
+        assert second != first and gone(first)
+        assert "killed by SIGKILL; restarting" in up.text()
+        children = [second, up.pids("router")[0]]
+        assert all(psutil.pid_exists(p) for p in children)
+        assert wait_for(lambda: "recording" in up.text().split(f"started pid {second}")[-1], 20.0), up.text()
+        up.proc.send_signal(signal.SIGTERM)
+        up.proc.wait(timeout=15)
+        assert up.proc.returncode == 0, up.text()
+        assert all(wait_for(lambda p=p: gone(p), 5.0) for p in children), up.text()
+    finally:
+        up.close()
+    # the recorder got SIGTERM and closed its file: it reads back, with the config the supervisor wrote
+    meta = read_metadata(out)
+    assert meta["supervisor"]["services"][0]["name"] == "rec"
+    assert meta["transport"]["namespace"] == up.tcfg.namespace
+
+
+def test_up_gives_up_after_max_restarts(tmp_path):
+    # `sigmaslam config --set no_such.key=1` fails at once with exit code 2
+    up = Up(tmp_path, [{"name": "bad", "argv": ["config", "--set", "no_such.key=1"], "max_restarts": 2,
+                        "backoff_s": 0.05}], start_router=False)
+    try:
+        up.proc.wait(timeout=30)
+    finally:
+        up.close()
+    assert up.proc.returncode == 1, up.text()
+    assert len(up.pids("bad")) == 3  # the first run plus max_restarts restarts
+    assert up.text().count("exit code 2; restarting") == 2 and "giving up" in up.text()
+
+
+def test_children_die_with_a_sigkilled_supervisor(tmp_path):
+    up = Up(tmp_path, [{"name": "rec", "argv": ["record", "--out", str(tmp_path / "r.mcap")]}])
+    try:
+        assert wait_for(lambda: len(up.pids("rec")) == 1 and len(up.pids("router")) == 1, 20.0), up.text()
+        children = up.pids("rec") + up.pids("router")
+        up.proc.kill()
+        up.proc.wait()
+        assert all(wait_for(lambda p=p: gone(p), 10.0) for p in children), up.text()
+    finally:
+        up.close()
