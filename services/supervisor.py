@@ -113,7 +113,7 @@ def validate(cfg: SupervisorConfig, known_commands: dict[str, object] | None = N
         seen.add(spec.name)
         if not spec.argv:
             raise ConfigError(f"{where}.argv: empty; give the sigmaslam subcommand and its arguments")
-        if known_commands is not None and spec.argv[0] not in known_commands:
+        if known_commands is not None and spec.enabled and spec.argv[0] not in known_commands:
             raise ConfigError(f"{where}.argv[0]: {spec.argv[0]!r} is not a sigmaslam subcommand ({sorted(known_commands)})")
         if spec.restart not in RESTART_POLICIES:
             raise ConfigError(f"{where}.restart: {spec.restart!r} is not one of {list(RESTART_POLICIES)}")
