@@ -18,7 +18,7 @@ class BackendCamera:
 
 
 def camera_from_calib(calib) -> BackendCamera:
-    """From a ``shared.calib.CameraCalib`` (``camera.unproject`` giving rays or normalised points, ``T_SC``)."""
+    """From a ``shared.camera.CameraCalib`` (``camera.unproject`` giving rays or normalised points, ``T_SC``)."""
     cam = calib.camera
 
     def undistort(uv: np.ndarray) -> np.ndarray:
