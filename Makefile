@@ -4,7 +4,15 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test
+.PHONY: setup system-deps demo test
+
+# Debian packages: libusb for `import open3d` (ray-casting renderer), chromium for the viewer's browser test.
+system-deps:
+	@if ! ldconfig -p | grep -q libusb-1.0 || ! command -v chromium >/dev/null; then \
+	  if command -v apt-get >/dev/null && [ "$$(id -u)" = 0 ]; then \
+	    (apt-get install -y -q libusb-1.0-0 chromium >/dev/null 2>&1 || \
+	     (apt-get update -q >/dev/null 2>&1 && apt-get install -y -q libusb-1.0-0 chromium >/dev/null)); \
+	  else echo "please install Debian packages libusb-1.0-0 and chromium"; fi; fi
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -12,10 +20,10 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install -q -e '.[dev]'
 	touch $(STAMP)
 
-setup: $(STAMP)
+setup: system-deps $(STAMP)
 
-demo: $(STAMP)
+demo: setup
 	$(BIN)/sigmaslam demo
 
-test: $(STAMP)
+test: setup
 	$(BIN)/python -m pytest -q
