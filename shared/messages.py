@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
+
 from shared.codec import Header, Message, array_field, register, scalar_field
 
 __all__ = [
@@ -82,6 +84,8 @@ class DepthFrame(Message):
     sigma: object = array_field("depth standard deviation [m]; NaN where invalid", "float32", ("H", "W"))
     K: object = array_field("pinhole intrinsics of the (undistorted) depth image [px]", "float64", (3, 3))
     T_WC: object = array_field("camera pose in world used for integration (identity if unknown)", "float64", (4, 4))
+    T_SC: object = array_field("pose of the (rectified) depth camera in the body frame S", "float64", (4, 4),
+                               default_factory=lambda: np.eye(4))
     source: str = scalar_field("'stereo', 'mvs', 'fused' or 'gt'")
 
 
