@@ -18,6 +18,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("services.bench_cmd", "benchmarks: transport latency and throughput"),
     "up": ("services.up_cmd", "run the router and all configured services, restarting failed ones"),
     "record": ("services.recorder.service", "record topics to MCAP (with Foxglove mirrors); --recover a cut file"),
+    "viewer": ("services.viewer.service", "web viewer (viser): submap meshes, trajectories, live images, stats"),
 }
 
 

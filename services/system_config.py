@@ -12,6 +12,7 @@ from pathlib import Path
 from shared.config import from_dict, load_yaml, merge, param, parse_override
 from services.recorder.config import RecorderConfig
 from services.supervisor import SupervisorConfig
+from services.viewer.config import ViewerConfig
 from transport.config import TransportConfig
 
 
@@ -22,6 +23,7 @@ class SystemConfig:
     transport: TransportConfig = param(TransportConfig(), "Zenoh session, namespace and queueing")
     recorder: RecorderConfig = param(RecorderConfig(), "MCAP recorder (sigmaslam record)")
     supervisor: SupervisorConfig = param(SupervisorConfig(), "processes started by sigmaslam up")
+    viewer: ViewerConfig = param(ViewerConfig(), "viser web viewer (sigmaslam viewer)")
 
 
 def load_system_config(path: str | Path | None = None, overrides: list[str] | None = None) -> SystemConfig:
