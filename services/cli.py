@@ -17,6 +17,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "router": ("services.router", "run the Zenoh router that services connect to"),
     "bench": ("services.bench_cmd", "benchmarks: transport latency and throughput"),
     "up": ("services.up_cmd", "run the router and all configured services, restarting failed ones"),
+    "health": ("services.health_cmd", "exit 0 when a service's heartbeat (or the router) is seen on the bus"),
     "record": ("services.recorder.service", "record topics to MCAP (with Foxglove mirrors); --recover a cut file"),
     "viewer": ("services.viewer.service", "web viewer (viser): submap meshes, trajectories, live images, stats"),
 }
