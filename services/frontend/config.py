@@ -1,0 +1,44 @@
+"""Configuration of the feature frontend."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from shared.config import param
+
+
+@dataclasses.dataclass
+class FrontendConfig:
+    """Multi-camera KLT frontend."""
+
+    # --- detection ---
+    max_features_per_camera: int = param(150, "features tracked per camera at most")
+    grid_cols: int = param(8, "detection grid columns (features are spread over the cells)")
+    grid_rows: int = param(6, "detection grid rows")
+    min_distance_px: float = param(15.0, "least distance between two features of one camera", "px")
+    fast_threshold: int = param(20, "FAST corner threshold (intensity difference; lowered once when too few corners)")
+    border_px: int = param(8, "no features closer than this to the image border", "px")
+    # --- KLT tracking ---
+    klt_window_px: int = param(21, "KLT window side", "px")
+    klt_levels: int = param(3, "KLT pyramid levels above the full image")
+    klt_iterations: int = param(20, "KLT iterations per level")
+    fb_max_error_px: float = param(0.7, "forward-backward tracking error above which a track is dropped", "px")
+    use_gyro_prior: bool = param(True, "start KLT at the position predicted by the gyro-integrated rotation")
+    # --- outlier rejection ---
+    ransac_threshold_px: float = param(1.0, "fundamental-matrix RANSAC inlier threshold (undistorted pixels)", "px")
+    ransac_confidence: float = param(0.995, "RANSAC confidence")
+    ransac_min_flow_px: float = param(0.7, "skip RANSAC when the rotation-compensated median flow is below this", "px")
+    # --- cross-camera matching ---
+    stereo_init_depth_m: float = param(4.0, "depth assumed for the initial KLT guess in the other camera", "m")
+    epipolar_max_px: float = param(1.5, "largest distance to the epipolar line of a cross-camera match", "px")
+    stereo_min_depth_m: float = param(0.2, "cross-camera matches triangulating closer than this are rejected", "m")
+    min_view_overlap_cos: float = param(0.5, "cameras are matched only when their optical axes' cosine exceeds this")
+    # --- keyframes ---
+    kf_min_track_ratio: float = param(0.6, "keyframe when fewer than this share of the last keyframe's landmarks "
+                                      "is still tracked")
+    kf_min_parallax_px: float = param(15.0, "keyframe when the rotation-compensated median parallax since the last "
+                                      "keyframe exceeds this", "px")
+    kf_max_interval_s: float = param(0.5, "keyframe at the latest after this long", "s")
+    # --- descriptors ---
+    orb_descriptors: bool = param(True, "compute ORB descriptors of the tracked features at every keyframe")
+    keyframe_store: int = param(2000, "keyframes whose descriptors are kept (oldest dropped first)")

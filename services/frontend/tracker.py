@@ -1,0 +1,276 @@
+"""Multi-camera KLT tracker: one landmark id per physical point across time and cameras.
+
+Per frame, for each camera: track the previous features with KLT (starting where the gyro-integrated
+rotation puts them), forward-backward check, fundamental-matrix RANSAC against the previous frame; then
+drop cross-camera observations of one landmark that violate the rig's epipolar geometry. New corners are
+detected in the free grid cells of each camera and matched into every overlapping camera (KLT from a
+guess at a nominal depth, forward-backward check, epipolar distance and positive depth from the
+extrinsics), so that a landmark seen by two cameras carries the same id. A frame is a keyframe when the
+share of the last keyframe's landmarks still tracked falls, the rotation-compensated parallax grows, or
+time passes; ORB descriptors of the tracked features are kept per keyframe (for loop closure).
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from services.frontend import klt
+from services.frontend.config import FrontendConfig
+from services.frontend.detection import detect_spread
+from services.frontend.undistort import LookupCamera
+from services.frontend.epipolar import cross_camera_check, overlapping_pairs, ransac_inliers
+from shared.camera import CameraCalib
+from shared.geometry import inv_T
+
+
+class FrontendInputError(ValueError):
+    """Images that do not fit the rig (count, size, type) or time going backwards."""
+
+
+@dataclass
+class _CameraState:
+    ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.float32))
+    image: np.ndarray | None = None
+
+    def keep(self, mask: np.ndarray) -> None:
+        self.ids, self.uv = self.ids[mask], self.uv[mask]
+
+    def append(self, ids: np.ndarray, uv: np.ndarray) -> None:
+        self.ids = np.concatenate([self.ids, ids.astype(np.int64)])
+        self.uv = np.concatenate([self.uv, uv.astype(np.float32)]).reshape(-1, 2)
+
+
+@dataclass(frozen=True)
+class KeyframeDescriptors:
+    """ORB descriptors of the features of one keyframe (for loop-closure detection)."""
+
+    keyframe_id: int
+    stamp_ns: int
+    landmark_ids: np.ndarray  # (K,) int64
+    camera_index: np.ndarray  # (K,) int16
+    uv: np.ndarray  # (K,2) float32, distorted pixels
+    descriptors: np.ndarray  # (K,32) uint8, ORB
+
+
+@dataclass(frozen=True)
+class TrackerOutput:
+    """Observations of one multi-camera frame (the fields of a FeatureFrame) and counters."""
+
+    stamp_ns: int
+    landmark_ids: np.ndarray  # (M,) int64
+    camera_index: np.ndarray  # (M,) int16
+    uv: np.ndarray  # (M,2) float32
+    is_keyframe: bool
+    keyframe_id: int  # -1 if not a keyframe
+    counts: dict[str, int]
+
+
+class MultiCameraTracker:
+    """Feed :meth:`process` with each frame's images (in rig order) and the body rotation since the last frame."""
+
+    def __init__(self, cfg: FrontendConfig, cameras: list[CameraCalib]) -> None:
+        if not cameras:
+            raise ValueError("the frontend needs at least one camera")
+        self.cfg = cfg
+        # the tracker works on copies whose unprojection is a table lookup
+        self.cameras = [dataclasses.replace(c, camera=LookupCamera(c.camera)) for c in cameras]
+        self._cams = [_CameraState() for _ in cameras]
+        self._pairs = overlapping_pairs(self.cameras, cfg.min_view_overlap_cos)
+        self._R_SC = [np.asarray(c.T_SC, float)[:3, :3] for c in cameras]
+        self._next_id = 0
+        self._last_stamp: int | None = None
+        self._kf_id = -1
+        self._kf_stamp: int | None = None
+        self._kf_obs: list[tuple[np.ndarray, np.ndarray]] = []  # per camera (ids, uv) at the last keyframe
+        self._R_S_kf_cur = np.eye(3)
+        self._orb = cv2.ORB_create(nfeatures=1, edgeThreshold=19, patchSize=31) if cfg.orb_descriptors else None
+        self.keyframe_descriptors: collections.deque[KeyframeDescriptors] = collections.deque(maxlen=cfg.keyframe_store)
+        self.totals: collections.Counter = collections.Counter()
+
+    # ------------------------------------------------------------------ helpers
+    def _check(self, stamp_ns: int, images) -> list[np.ndarray]:
+        if len(images) != len(self.cameras):
+            raise FrontendInputError(f"{len(images)} images for a rig of {len(self.cameras)} cameras")
+        out = []
+        for img, c in zip(images, self.cameras):
+            img = np.asarray(img)
+            if img.dtype != np.uint8 or img.shape != (c.camera.height, c.camera.width):
+                raise FrontendInputError(f"{c.name}: image {img.shape} {img.dtype}, expected "
+                                         f"({c.camera.height}, {c.camera.width}) uint8")
+            out.append(np.ascontiguousarray(img))
+        if self._last_stamp is not None and stamp_ns <= self._last_stamp:
+            raise FrontendInputError(f"frame stamp {stamp_ns} ns is not after the previous {self._last_stamp} ns")
+        return out
+
+    def _R_C1C0(self, i: int, R_S0S1: np.ndarray) -> np.ndarray:
+        """Rotation taking camera i's rays at the earlier time into camera i at the later time."""
+        R = self._R_SC[i]
+        return (R.T @ R_S0S1 @ R).T
+
+    def _new_ids(self, n: int) -> np.ndarray:
+        ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
+        self._next_id += n
+        return ids
+
+    # ------------------------------------------------------------------ per frame
+    def process(self, stamp_ns: int, images, R_S_prev_cur: np.ndarray | None = None) -> TrackerOutput:
+        """Track, reject, detect and match for one frame; ``R_S_prev_cur`` = R_S(prev)S(cur) from the gyro."""
+        images = self._check(stamp_ns, images)
+        cfg = self.cfg
+        counts: collections.Counter = collections.Counter()
+        use_prior = cfg.use_gyro_prior and R_S_prev_cur is not None
+        R_rel = np.asarray(R_S_prev_cur, float) if R_S_prev_cur is not None else np.eye(3)
+        for i, (cam, st) in enumerate(zip(self.cameras, self._cams)):
+            if st.image is not None and len(st.ids):
+                self._track_temporal(i, cam, st, images[i], R_rel if use_prior else None, counts)
+            st.image = images[i]
+        self._check_cross_camera(counts)
+        for i, (cam, st) in enumerate(zip(self.cameras, self._cams)):
+            new_uv = detect_spread(images[i], st.uv, cfg.max_features_per_camera, cfg.grid_cols, cfg.grid_rows,
+                                   cfg.min_distance_px, cfg.fast_threshold, cfg.border_px)
+            if len(new_uv):
+                ids = self._new_ids(len(new_uv))
+                st.append(ids, new_uv)
+                counts["detected"] += len(new_uv)
+                self._match_into_others(i, ids, new_uv, counts)
+        self._R_S_kf_cur = self._R_S_kf_cur @ R_rel
+        is_kf = self._keyframe_decision(stamp_ns, counts)
+        if is_kf:
+            self._start_keyframe(stamp_ns, images)
+        self._last_stamp = int(stamp_ns)
+        ids = np.concatenate([st.ids for st in self._cams])
+        cam_idx = np.concatenate([np.full(len(st.ids), i, np.int16) for i, st in enumerate(self._cams)])
+        uv = np.concatenate([st.uv for st in self._cams]).reshape(-1, 2).astype(np.float32)
+        counts["observations"] = len(ids)
+        counts["landmarks"] = len(np.unique(ids))
+        self.totals.update(counts)
+        return TrackerOutput(int(stamp_ns), ids, cam_idx, uv, is_kf, self._kf_id if is_kf else -1, dict(counts))
+
+    def _track_temporal(self, i: int, cam: CameraCalib, st: _CameraState, image, R_rel, counts) -> None:
+        cfg = self.cfg
+        model = cam.camera
+        guess = None if R_rel is None else klt.predict_rotated(model, st.uv, self._R_C1C0(i, R_rel))
+        uv1, ok = klt.track(st.image, image, st.uv, guess, cfg.klt_window_px, cfg.klt_levels, cfg.klt_iterations,
+                            cfg.fb_max_error_px, model.size)
+        counts["lost_klt"] += int((~ok).sum())
+        uv0 = st.uv[ok]
+        uv1 = uv1[ok]
+        st.ids = st.ids[ok]
+        # RANSAC only where the views differ by more than a rotation (else the epipolar geometry is degenerate):
+        # frame to frame, and against the last keyframe (more parallax, and slow independent motion adds up)
+        comp = uv0 if guess is None else guess[ok]
+        keep = self._ransac(model, uv0, uv1, comp)
+        if self._kf_obs and self._kf_stamp is not None:
+            kf_ids, kf_uv = self._kf_obs[i]
+            common, ia, ib = np.intersect1d(st.ids, kf_ids, assume_unique=True, return_indices=True)
+            if len(common) >= 8:
+                pred = klt.predict_rotated(model, kf_uv[ib], self._R_C1C0(i, self._R_S_kf_cur @ (
+                    R_rel if R_rel is not None else np.eye(3))))
+                keep[ia] &= self._ransac(model, kf_uv[ib], uv1[ia], pred)
+        counts["rejected_ransac"] += int((~keep).sum())
+        st.ids, uv1 = st.ids[keep], uv1[keep]
+        st.uv = uv1.astype(np.float32)
+        counts["tracked"] += len(st.ids)
+
+    def _ransac(self, model, uv0: np.ndarray, uv1: np.ndarray, uv0_rotated: np.ndarray) -> np.ndarray:
+        cfg = self.cfg
+        if len(uv1) < 8 or np.median(np.linalg.norm(uv1 - uv0_rotated, axis=1)) < cfg.ransac_min_flow_px:
+            return np.ones(len(uv1), bool)
+        return ransac_inliers(model, uv0, uv1, cfg.ransac_threshold_px, cfg.ransac_confidence)
+
+    def _check_cross_camera(self, counts) -> None:
+        """Drop the later camera's observation of a landmark whose two views violate the rig geometry."""
+        for i, j in self._pairs:
+            if i > j:
+                continue
+            a, b = self._cams[i], self._cams[j]
+            common, ia, ib = np.intersect1d(a.ids, b.ids, assume_unique=True, return_indices=True)
+            if len(common) == 0:
+                continue
+            ok = cross_camera_check(self.cameras[i], self.cameras[j], a.uv[ia], b.uv[ib], self.cfg.epipolar_max_px,
+                                    self.cfg.stereo_min_depth_m)
+            if not ok.all():
+                keep = np.ones(len(b.ids), bool)
+                keep[ib[~ok]] = False
+                b.keep(keep)
+                counts["rejected_epipolar"] += int((~ok).sum())
+
+    def _match_into_others(self, i: int, ids: np.ndarray, uv_i: np.ndarray, counts) -> None:
+        cfg = self.cfg
+        cam_i = self.cameras[i]
+        for a, j in self._pairs:
+            if a != i:
+                continue
+            cam_j, st_j = self.cameras[j], self._cams[j]
+            T_CjCi = inv_T(cam_j.T_SC) @ cam_i.T_SC
+            p_Cj = cam_i.camera.unproject(uv_i) * cfg.stereo_init_depth_m @ T_CjCi[:3, :3].T + T_CjCi[:3, 3]
+            guess, vis = cam_j.camera.project(p_Cj)
+            if not vis.any():
+                continue
+            sel = np.flatnonzero(vis)
+            uv_j, ok = klt.track(self._cams[i].image, st_j.image, uv_i[sel], guess[sel], cfg.klt_window_px,
+                                 cfg.klt_levels, cfg.klt_iterations, cfg.fb_max_error_px, cam_j.camera.size)
+            ok &= cross_camera_check(cam_i, cam_j, uv_i[sel], uv_j, cfg.epipolar_max_px, cfg.stereo_min_depth_m)
+            if len(st_j.uv) and ok.any():  # not on top of a feature camera j already tracks
+                d2 = np.min(((uv_j[:, None, :] - st_j.uv[None, :, :]) ** 2).sum(-1), axis=1)
+                ok &= d2 > (0.5 * cfg.min_distance_px) ** 2
+            ok &= ~np.isin(ids[sel], st_j.ids)
+            st_j.append(ids[sel][ok], uv_j[ok])
+            counts["cross_matched"] += int(ok.sum())
+
+    # ------------------------------------------------------------------ keyframes
+    def _keyframe_decision(self, stamp_ns: int, counts) -> bool:
+        cfg = self.cfg
+        if self._kf_stamp is None:
+            return True
+        if stamp_ns - self._kf_stamp >= cfg.kf_max_interval_s * 1e9:
+            counts["kf_time"] += 1
+            return True
+        kf_ids = np.unique(np.concatenate([ids for ids, _ in self._kf_obs])) if self._kf_obs else np.zeros(0, np.int64)
+        now_ids = np.unique(np.concatenate([st.ids for st in self._cams]))
+        if len(kf_ids) == 0:
+            return len(now_ids) > 0
+        if np.isin(kf_ids, now_ids).mean() < cfg.kf_min_track_ratio:
+            counts["kf_track_ratio"] += 1
+            return True
+        parallax = []
+        for i, (st, (ids0, uv0)) in enumerate(zip(self._cams, self._kf_obs)):
+            common, i0, i1 = np.intersect1d(ids0, st.ids, assume_unique=True, return_indices=True)
+            if len(common):
+                pred = klt.predict_rotated(self.cameras[i].camera, uv0[i0], self._R_C1C0(i, self._R_S_kf_cur))
+                parallax.append(np.linalg.norm(st.uv[i1] - pred, axis=1))
+        if parallax and np.median(np.concatenate(parallax)) > cfg.kf_min_parallax_px:
+            counts["kf_parallax"] += 1
+            return True
+        return False
+
+    def _start_keyframe(self, stamp_ns: int, images: list[np.ndarray]) -> None:
+        self._kf_id += 1
+        self._kf_stamp = int(stamp_ns)
+        self._kf_obs = [(st.ids.copy(), st.uv.copy()) for st in self._cams]
+        self._R_S_kf_cur = np.eye(3)
+        if self._orb is None:
+            return
+        ids_all, cams_all, uv_all, desc_all = [], [], [], []
+        for i, (st, img) in enumerate(zip(self._cams, images)):
+            kps = [cv2.KeyPoint(float(u), float(v), 31.0, -1.0, 0.0, 0, k) for k, (u, v) in enumerate(st.uv)]
+            if not kps:
+                continue
+            kps, desc = self._orb.compute(img, kps)
+            if desc is None or not kps:
+                continue
+            idx = np.array([kp.class_id for kp in kps], np.int64)
+            ids_all.append(st.ids[idx])
+            cams_all.append(np.full(len(idx), i, np.int16))
+            uv_all.append(st.uv[idx])
+            desc_all.append(desc)
+        if ids_all:
+            self.keyframe_descriptors.append(KeyframeDescriptors(
+                self._kf_id, int(stamp_ns), np.concatenate(ids_all), np.concatenate(cams_all),
+                np.concatenate(uv_all), np.concatenate(desc_all)))
