@@ -1,0 +1,63 @@
+"""Configuration of occupancy mapping: the inverse sensor model, submapping, meshing and the service."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from shared.config import param
+
+
+@dataclasses.dataclass
+class SensorModelConfig:
+    """Piecewise-linear inverse sensor model of eq. 3 and the running mean of eq. 4."""
+
+    voxel_size_m: float = param(0.025, "voxel edge length", "m")
+    l_min: float = param(-5.015, "log-odds of free space (eq. 3); the slope through the surface is -l_min / (3 sigma)")
+    w_max: int = param(100, "observation count at which the running mean of eq. 4 saturates (<= 65535)")
+    tau_k: float = param(0.05, "surface thickness tau as a fraction of the measured depth (eq. 3)")
+    tau_min_m: float = param(0.075, "lower bound on the surface thickness tau", "m")
+    tau_max_m: float = param(0.3, "upper bound on the surface thickness tau", "m")
+    sigma_model: str = param("input", "per-pixel sigma_d: 'input' (the DepthFrame's sigma), 'linear' (k_sigma*d) or 'quadratic' (k_sigma*d^2)")
+    k_sigma: float = param(0.01, "heuristic sigma gain for sigma_model linear [1] or quadratic [1/m]")
+    sigma_min_m: float = param(0.025, "lower bound on sigma_d (keeps the surface band at least a voxel wide)", "m")
+    sigma_max_m: float = param(0.5, "upper bound on sigma_d", "m")
+    near_m: float = param(0.1, "depths and voxels closer than this to the camera are ignored", "m")
+    max_depth_m: float = param(6.0, "depths beyond this are ignored", "m")
+    min_valid_fraction: float = param(0.5, "a block is carved as a whole only if at least this fraction of its footprint has depth")
+
+    def check(self) -> None:
+        if not (self.voxel_size_m > 0 and self.l_min < 0 and 1 <= self.w_max <= 65535):
+            raise ValueError("voxel_size_m > 0, l_min < 0 and 1 <= w_max <= 65535 are required")
+        if self.sigma_model not in ("input", "linear", "quadratic"):
+            raise ValueError(f"sigma_model must be 'input', 'linear' or 'quadratic', got {self.sigma_model!r}")
+        if not (0 < self.tau_min_m <= self.tau_max_m and 0 < self.sigma_min_m <= self.sigma_max_m):
+            raise ValueError("0 < tau_min_m <= tau_max_m and 0 < sigma_min_m <= sigma_max_m are required")
+
+
+@dataclasses.dataclass
+class SubmapConfig:
+    """When a new submap starts (sec. IV-E) and how submaps are meshed."""
+
+    eps_vol: float = param(0.2, "a new submap starts when the observed fraction of sampled frustum points falls below this")
+    overlap_samples: int = param(512, "points sampled in the depth frustum to estimate the overlap")
+    min_frames: int = param(3, "frames integrated into a submap before it may be closed")
+    mesh_chunk_blocks: int = param(4, "blocks per edge of a meshing chunk (only chunks with changed blocks are re-meshed)")
+    keyframe_bind_tolerance_s: float = param(1.0, "a submap follows the keyframe nearest its creation time if within this", "s")
+
+
+@dataclasses.dataclass
+class MappingConfig:
+    """The ``sigmaslam mapping`` service: inputs, poses, outputs."""
+
+    sensor: SensorModelConfig = param(SensorModelConfig(), "inverse sensor model and voxel size")
+    submaps: SubmapConfig = param(SubmapConfig(), "submap switching and meshing")
+    depth_topic: str = param("depth/fused", "depth input: 'depth/fused' or 'depth/stereo'")
+    pose_source: str = param("estimator", "'estimator': T_WS(stamp) from estimator/state; 'frame': the DepthFrame's T_WC (ground-truth-pose runs; falls back to the estimator when T_WC is identity)")
+    state_buffer: int = param(2000, "estimator states kept for pose look-up by stamp")
+    pose_tolerance_ms: float = param(1.0, "a state this close to the depth stamp is used as is; otherwise the pose is interpolated", "ms")
+    max_interp_gap_ms: float = param(250.0, "largest gap between two states to interpolate across", "ms")
+    pose_wait_s: float = param(1.0, "a depth frame waits this long for its state, then is dropped (counted)", "s")
+    integrate_budget_ms: float = param(50.0, "integration budget per depth frame (reported in stats)", "ms")
+    mesh_period_s: float = param(1.0, "changed submaps are re-meshed and published at most this often", "s")
+    mesh_budget_ms: float = param(40.0, "meshing work per loop iteration (the rest waits for the next one)", "ms")
+    output_dir: str = param("", "folder for mesh.ply, submaps/*.ply and map.npz at exit ('' = write nothing)")

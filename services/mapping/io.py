@@ -1,0 +1,101 @@
+"""Saving and loading a whole submap map (one .npz, written atomically) and writing PLY meshes."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from services.mapping.blocks import BlockStore
+from services.mapping.config import SensorModelConfig, SubmapConfig
+from services.mapping.submaps import SubmapMapper
+from shared.config import from_dict, to_dict
+
+FORMAT = "sigmaslam-occupancy-map/1"
+
+
+class MapFileError(ValueError):
+    """A map file that cannot be read."""
+
+
+def _atomic_write(path: Path, write) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "wb") as fh:
+            write(fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def save_map(mapper: SubmapMapper, path: str | Path) -> Path:
+    """Write every submap (fields, poses, keyframe binding) and the configs to ``path`` (.npz)."""
+    path = Path(path)
+    meta = {"format": FORMAT, "sensor": to_dict(mapper.sensor), "submaps_cfg": to_dict(mapper.cfg), "submaps": []}
+    arrays: dict[str, np.ndarray] = {}
+    for sm in mapper.submaps:
+        meta["submaps"].append({"id": sm.id, "anchor_stamp_ns": sm.anchor_stamp_ns, "n_frames": sm.n_frames,
+                                "keyframe_id": sm.keyframe_id})
+        arrays[f"s{sm.id}/T_WM"] = sm.T_WM
+        arrays[f"s{sm.id}/T_KM"] = sm.T_KM
+        for k, v in sm.store.arrays().items():
+            arrays[f"s{sm.id}/{k}"] = v
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    _atomic_write(path, lambda fh: np.savez(fh, **arrays))
+    return path
+
+
+def load_map(path: str | Path) -> SubmapMapper:
+    """Read a map written by :func:`save_map`; meshes are rebuilt on the next ``remesh()``."""
+    try:
+        with np.load(path) as z:
+            data = {k: z[k] for k in z.files}
+        meta = json.loads(bytes(data.pop("meta")).decode())
+    except (OSError, ValueError, KeyError) as exc:
+        raise MapFileError(f"{path}: not a readable map file ({exc})") from exc
+    if meta.get("format") != FORMAT:
+        raise MapFileError(f"{path}: unknown format {meta.get('format')!r}")
+    mapper = SubmapMapper(from_dict(SensorModelConfig, meta["sensor"]), from_dict(SubmapConfig, meta["submaps_cfg"]))
+    for info in meta["submaps"]:
+        p = f"s{info['id']}/"
+        sub = {k[len(p):]: v for k, v in data.items() if k.startswith(p)}
+        sm = mapper.new_submap(sub["T_WM"], info["anchor_stamp_ns"])
+        sm.store = BlockStore.from_arrays(sub)
+        sm.n_frames, sm.keyframe_id, sm.T_KM = info["n_frames"], info["keyframe_id"], sub["T_KM"]
+        sm.mesher.mark(sm.store, sm.store.refined_slots())
+    return mapper
+
+
+def write_ply(path: str | Path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None) -> Path:
+    """Binary little-endian PLY of a triangle mesh (optional uint8 RGB per vertex), written atomically."""
+    path = Path(path)
+    v = np.asarray(vertices, np.float32).reshape(-1, 3)
+    f = np.asarray(faces, np.int32).reshape(-1, 3)
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(v)}",
+              "property float x", "property float y", "property float z"]
+    vdt = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if colors is not None and len(colors):
+        header += ["property uchar red", "property uchar green", "property uchar blue"]
+        vdt += [("r", "u1"), ("g", "u1"), ("b", "u1")]
+    header += [f"element face {len(f)}", "property list uchar int vertex_indices", "end_header"]
+    vert = np.empty(len(v), vdt)
+    vert["x"], vert["y"], vert["z"] = v.T
+    if len(vdt) > 3:
+        c = np.asarray(colors, np.uint8).reshape(-1, 3)
+        vert["r"], vert["g"], vert["b"] = c.T
+    face = np.empty(len(f), [("n", "u1"), ("i", "<i4", (3,))])
+    face["n"], face["i"] = 3, f
+
+    def write(fh) -> None:
+        fh.write(("\n".join(header) + "\n").encode("ascii"))
+        fh.write(vert.tobytes())
+        fh.write(face.tobytes())
+
+    _atomic_write(path, write)
+    return path

@@ -1,0 +1,158 @@
+"""Occupancy submaps (sec. IV-E): integration into the current submap, a new submap when the depth
+frustum's overlap with it falls below eps_vol, and submap poses that follow keyframe updates.
+
+Submap j is anchored in M_j, the body frame S at its creation: ``T_WM = T_WS(creation)``. When the
+estimator reports keyframes, each submap binds to the keyframe nearest its creation time (within a
+tolerance) by the fixed offset ``T_KM = T_WK^-1 T_WM``; later keyframe updates then move it as
+``T_WM = T_WK T_KM``, which keeps the map consistent after loop closures.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from services.mapping.blocks import BlockStore
+from services.mapping.config import SensorModelConfig, SubmapConfig
+from services.mapping.integrate import IntegrationResult, integrate
+from services.mapping.mesh import ChunkMesher
+from services.mapping.query import UNKNOWN, BlockField, state
+from services.mapping.sensor_model import prepare_depth
+from shared.geometry import inv_T
+
+
+@dataclasses.dataclass
+class Submap:
+    id: int
+    T_WM: np.ndarray
+    anchor_stamp_ns: int
+    store: BlockStore
+    mesher: ChunkMesher
+    n_frames: int = 0
+    keyframe_id: int = -1  # keyframe this submap follows (-1: not bound yet)
+    T_KM: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
+    pose_version: int = 0  # incremented when T_WM changes
+
+    def field(self) -> BlockField:
+        return BlockField.of(self.store)
+
+
+@dataclasses.dataclass(frozen=True)
+class FrameReport:
+    submap_id: int
+    new_submap: bool
+    overlap: float  # observed fraction of the frustum samples in the previous current submap (NaN if none)
+    result: IntegrationResult
+
+
+class SubmapMapper:
+    """All submaps of one run; the algorithm behind the mapping service (no transport)."""
+
+    def __init__(self, sensor: SensorModelConfig | None = None, submaps: SubmapConfig | None = None, seed: int = 0) -> None:
+        self.sensor = sensor or SensorModelConfig()
+        self.sensor.check()
+        self.cfg = submaps or SubmapConfig()
+        self.submaps: list[Submap] = []
+        self._rng = np.random.default_rng(seed)
+
+    @property
+    def current(self) -> Submap | None:
+        return self.submaps[-1] if self.submaps else None
+
+    def new_submap(self, T_WM: np.ndarray, stamp_ns: int) -> Submap:
+        sm = Submap(len(self.submaps), np.array(T_WM, float), int(stamp_ns), BlockStore(self.sensor.voxel_size_m),
+                    ChunkMesher(self.cfg.mesh_chunk_blocks))
+        self.submaps.append(sm)
+        return sm
+
+    def overlap(self, submap: Submap, depth: np.ndarray, K: np.ndarray, T_WC: np.ndarray) -> float:
+        """Fraction of points sampled uniformly in the observed frustum (random valid pixel, random range
+        between near and its depth) that fall in observed voxels of ``submap``."""
+        v, u = np.nonzero(np.isfinite(depth))
+        if len(u) == 0:
+            return float("nan")
+        pick = self._rng.integers(0, len(u), self.cfg.overlap_samples)
+        u, v = u[pick], v[pick]
+        z = self.sensor.near_m + self._rng.random(len(u)) * (depth[v, u] - self.sensor.near_m)
+        p_C = np.column_stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z])
+        T_MC = inv_T(submap.T_WM) @ T_WC
+        p_M = p_C @ T_MC[:3, :3].T + T_MC[:3, 3]
+        return float(np.mean(state(submap.field(), p_M) != UNKNOWN))
+
+    def integrate(self, depth: np.ndarray, sigma: np.ndarray | None, K: np.ndarray, T_WC: np.ndarray,
+                  T_SC: np.ndarray, stamp_ns: int) -> FrameReport:
+        """Integrate one depth frame (raw depth/sigma: NaN invalid) seen from ``T_WC``; the body pose
+        ``T_WS = T_WC T_SC^-1`` anchors a new submap when one starts."""
+        d, s, _ = prepare_depth(depth, sigma, self.sensor)
+        K = np.asarray(K, float)
+        cur = self.current
+        ov = float("nan")
+        new = cur is None
+        if cur is not None and cur.n_frames >= self.cfg.min_frames:
+            ov = self.overlap(cur, d, K, T_WC)
+            new = bool(ov < self.cfg.eps_vol)
+        if new:
+            cur = self.new_submap(T_WC @ inv_T(T_SC), stamp_ns)
+        T_MC = inv_T(cur.T_WM) @ T_WC
+        res = integrate(cur.store, d, s, K, T_MC, self.sensor)
+        cur.mesher.mark(cur.store, res.updated_slots)
+        cur.n_frames += 1
+        return FrameReport(cur.id, new, ov, res)
+
+    def update_keyframes(self, ids: np.ndarray, stamps_ns: np.ndarray, T_WS: np.ndarray) -> list[int]:
+        """Apply an estimator keyframe update; returns the ids of submaps whose pose changed."""
+        ids = np.asarray(ids, np.int64)
+        stamps_ns = np.asarray(stamps_ns, np.int64)
+        if len(ids) == 0:
+            return []
+        index = {int(k): i for i, k in enumerate(ids)}
+        tol_ns = self.cfg.keyframe_bind_tolerance_s * 1e9
+        moved = []
+        for sm in self.submaps:  # a loop over submaps (tens), not voxels
+            if sm.keyframe_id < 0:
+                i = int(np.argmin(np.abs(stamps_ns - sm.anchor_stamp_ns)))
+                if abs(int(stamps_ns[i]) - sm.anchor_stamp_ns) <= tol_ns:
+                    sm.keyframe_id = int(ids[i])
+                    sm.T_KM = inv_T(T_WS[i]) @ sm.T_WM
+                continue
+            i = index.get(sm.keyframe_id)
+            if i is None:
+                continue
+            T_new = T_WS[i] @ sm.T_KM
+            if not np.allclose(T_new, sm.T_WM, atol=1e-9):
+                sm.T_WM = T_new
+                sm.pose_version += 1
+                moved.append(sm.id)
+        return moved
+
+    def remesh(self, budget_s: float | None = None) -> list[int]:
+        """Re-mesh changed chunks (all, or within a time budget); returns ids of submaps whose mesh changed."""
+        import time
+
+        t0 = time.perf_counter()
+        changed = []
+        for sm in sorted(self.submaps, key=lambda s: -s.id):  # newest first: that is where changes are
+            if len(sm.mesher.pending) == 0:
+                continue
+            left = None if budget_s is None else budget_s - (time.perf_counter() - t0)
+            if left is not None and left <= 0:
+                break
+            if sm.mesher.update(sm.store, left):
+                changed.append(sm.id)
+        return changed
+
+    def world_mesh(self) -> tuple[np.ndarray, np.ndarray]:
+        """All submap meshes in W (vertices float32 [m], faces int32), combined with the submap poses."""
+        verts, faces, off = [], [], 0
+        for sm in self.submaps:
+            v, f = sm.mesher.mesh()
+            verts.append((v @ sm.T_WM[:3, :3].T + sm.T_WM[:3, 3]).astype(np.float32))
+            faces.append(f + off)
+            off += len(v)
+        if not verts:
+            return np.empty((0, 3), np.float32), np.empty((0, 3), np.int32)
+        return np.concatenate(verts), np.concatenate(faces).astype(np.int32)
+
+    def nbytes(self) -> int:
+        return sum(sm.store.nbytes() for sm in self.submaps)
