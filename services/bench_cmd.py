@@ -11,6 +11,7 @@ import importlib
 # name -> (module, one-line help)
 BENCHES: dict[str, tuple[str, str]] = {
     "transport": ("tools.bench_transport", "Zenoh round-trip latency and 786 KB frame latency/rate, SHM on and off"),
+    "netns": ("tools.bench_netns", "estimator/state and depth/fused latency across network namespaces (via a router) vs one host"),
 }
 
 
