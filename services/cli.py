@@ -19,7 +19,15 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "up": ("services.up_cmd", "run the router and all configured services, restarting failed ones"),
     "health": ("services.health_cmd", "exit 0 when a service's heartbeat (or the router) is seen on the bus"),
     "record": ("services.recorder.service", "record topics to MCAP (with Foxglove mirrors); --recover a cut file"),
+    "synth": ("tools.synth.synth_cmd", "render a synthetic EuRoC replica (images, GT depth, mesh, IMU) of a real sequence"),
+    "frontend": ("services.frontend.service", "feature tracker: sensors/frame -> frontend/frame"),
+    "backend": ("services.backend.service", "visual-inertial estimator: frontend/frame + sensors/imu -> estimator/state"),
+    "player": ("services.player.service", "replay an EuRoC ASL folder onto the sensor topics (--lockstep, --realtime)"),
+    "run": ("services.run_cmd", "run the pipeline on a dataset; write the trajectory, stats and ATE to --out DIR"),
     "viewer": ("services.viewer.service", "web viewer (viser): submap meshes, trajectories, live images, stats"),
+    "depth": ("services.depth.service", "stereo + MVS depth with learned sigma, fused: sensors/frame -> depth/stereo, depth/fused"),
+    "mapping": ("services.mapping.service", "occupancy submapping: depth + estimator poses -> map/submap meshes"),
+    "eval": ("services.eval_cmd", "evaluation: mesh accuracy/completeness"),
 }
 
 
