@@ -58,7 +58,13 @@ class SceneDrawer:
         self._layers = {name: server.scene.add_frame(path, show_axes=False) for name, path in LAYERS.items()}
         self._body = server.scene.add_frame("/body/S", axes_length=0.3, axes_radius=0.015)
         self._build_gui(follow)
-        server.on_client_connect(lambda client: self._frame_view([client]))
+        self._to_frame: set[int] = set()  # clients to point at the scene once their camera has reported
+        self._camera_known: set[int] = set()  # clients whose camera state has arrived (before: no camera access)
+        server.on_client_connect(self._on_connect)
+
+    def _on_connect(self, client) -> None:
+        self._to_frame.add(client.client_id)
+        client.camera.on_update(lambda _cam, cid=client.client_id: self._camera_known.add(cid))
 
     # ------------------------------------------------------------------ GUI
 
@@ -70,7 +76,8 @@ class SceneDrawer:
             self.follow = gui.add_checkbox("Follow camera", initial_value=follow)
             color = gui.add_dropdown("Mesh colour", COLOR_MODES, initial_value=self.model.submaps.color_mode)
             color.on_update(lambda _: self.model.set_color_mode(color.value))
-            gui.add_button("Frame scene").on_click(lambda _: self._frame_view(list(self.server.get_clients().values())))
+            frame = gui.add_button("Frame scene")  # done by the drawing thread at its next tick
+            frame.on_click(lambda event: event.client is not None and self._to_frame.add(event.client.client_id))
         with gui.add_folder("Layers", expand_by_default=False):
             for name, handle in self._layers.items():
                 box = gui.add_checkbox(name, initial_value=True)
@@ -161,8 +168,15 @@ class SceneDrawer:
             self.stats.content = up.stats_md
         if up.status_md is not None:
             self.status.content = up.status_md
+        clients = self.server.get_clients()
         if not self._framed and self._bbox and not self.follow.value:
-            self._frame_view(list(self.server.get_clients().values()))
+            self._to_frame.update(clients)
+        ready = [c for cid, c in clients.items() if cid in self._to_frame and cid in self._camera_known]
+        if ready and (self._bbox or self._body_p is not None):
+            self._frame_view(ready)
+            self._to_frame.difference_update(c.client_id for c in ready)
+        self._to_frame.intersection_update(clients)  # forget disconnected clients
+        self._camera_known.intersection_update(clients)
 
     def _draw_mesh(self, sid: int, mesh: MeshData) -> None:
         wxyz, pos = _pose(mesh.T_WM)
@@ -194,13 +208,15 @@ class SceneDrawer:
     def _follow(self) -> None:
         if self._body_p is None:
             return
-        for client in self.server.get_clients().values():
+        for cid, client in self.server.get_clients().items():
+            if cid not in self._camera_known:
+                continue
             offset = np.asarray(client.camera.position) - np.asarray(client.camera.look_at)
             if np.linalg.norm(offset) < 1e-3 or np.linalg.norm(offset) > 20.0:
                 offset = np.array([-3.0, -3.0, 2.5])
             with client.atomic():
-                client.camera.look_at = self._body_p
                 client.camera.position = self._body_p + offset
+                client.camera.look_at = self._body_p
 
     def _frame_view(self, clients: list) -> None:
         """Point the given clients' cameras at the map (or the body) from above and aside."""
@@ -213,9 +229,9 @@ class SceneDrawer:
             return
         center = (lo + hi) / 2.0
         radius = max(float(np.linalg.norm(hi - lo)) / 2.0, 0.5)
-        eye = center + radius * np.array([-1.2, -1.2, 1.0])
+        eye = center + radius * np.array([-0.9, -0.9, 0.8])
         for client in clients:
-            with client.atomic():
-                client.camera.look_at = center
+            with client.atomic():  # position first: setting it shifts look_at along
                 client.camera.position = eye
-        self._framed = self._framed or (bool(self._bbox) and bool(clients))
+                client.camera.look_at = center
+        self._framed = self._framed or bool(self._bbox)
