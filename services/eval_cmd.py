@@ -1,0 +1,24 @@
+"""``sigmaslam eval <what>``: evaluations against ground truth. To add one, add a line to :data:`EVALS`;
+the module provides ``add_arguments(parser)`` and ``main(args) -> int``."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+
+# name -> (module, one-line help)
+EVALS: dict[str, tuple[str, str]] = {
+    "mesh": ("services.eval_mesh_cmd", "mesh accuracy (mean est->GT distance) and completeness (GT within 0.2 m), paper sec. V"),
+}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    sub = p.add_subparsers(dest="eval", metavar="WHAT", required=True)
+    for name, (module, help_text) in EVALS.items():
+        q = sub.add_parser(name, help=help_text, description=help_text)
+        q.set_defaults(_eval_module=module)
+        importlib.import_module(module).add_arguments(q)
+
+
+def main(args: argparse.Namespace) -> int:
+    return int(importlib.import_module(args._eval_module).main(args) or 0)

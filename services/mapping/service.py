@@ -1,0 +1,185 @@
+"""``sigmaslam mapping CONFIG``: occupancy submapping as a service.
+
+Subscribes ``mapping.depth_topic`` (depth/fused or depth/stereo), ``estimator/state`` (buffered by
+stamp) and ``estimator/keyframes`` (submap poses follow them). Each depth frame is integrated at
+``T_WC = T_WS(stamp) T_SC`` (or at its own T_WC when ``pose_source: frame`` and it is not identity);
+a frame whose state has not arrived waits up to ``pose_wait_s`` and is then dropped (counted).
+Changed submaps are re-meshed within a time budget at most every ``mesh_period_s`` and published on
+``map/submap``; a submap that moved is re-published with its new pose. At exit (SIGTERM/SIGINT) the
+map is meshed completely, published, and, if ``output_dir`` is set, written there: ``mesh.ply``
+(world), ``submaps/submap_NNN.ply`` (each in its own frame M), ``map.npz`` and ``mapping.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from services.mapping.config import MappingConfig
+from services.mapping.io import save_map, write_ply
+from services.mapping.poses import PoseBuffer
+from services.mapping.submaps import SubmapMapper
+from services.system_config import load_system_config
+from shared import messages, topics
+from shared.codec import Header
+
+log = logging.getLogger("sigmaslam.mapping")
+
+DEPTH_TOPICS = {topics.DEPTH_FUSED.key: topics.DEPTH_FUSED, topics.DEPTH_STEREO.key: topics.DEPTH_STEREO}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("config", nargs="?", help="YAML system config (default: built-in defaults)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config field")
+    p.add_argument("--out", metavar="DIR", help="write mesh.ply, submaps/, map.npz here at exit (overrides mapping.output_dir)")
+
+
+class MappingLoop:
+    """The service's state between messages; transport-free so that it reads as the algorithm's shell."""
+
+    def __init__(self, cfg: MappingConfig) -> None:
+        self.cfg = cfg
+        self.mapper = SubmapMapper(cfg.sensor, cfg.submaps)
+        self.poses = PoseBuffer(cfg.state_buffer)
+        self.waiting: collections.deque[tuple[float, messages.DepthFrame]] = collections.deque(maxlen=32)
+        self.counts = collections.Counter()
+        self.integrate_ms: list[float] = []
+        self.to_publish: set[int] = set()
+
+    def on_state(self, msg: messages.EstimatorState) -> None:
+        self.poses.add(msg.header.stamp_ns, msg.T_WS)
+
+    def on_keyframes(self, msg: messages.Keyframes) -> None:
+        self.to_publish.update(self.mapper.update_keyframes(msg.ids, msg.stamps_ns, msg.T_WS))
+
+    def on_depth(self, msg: messages.DepthFrame) -> None:
+        if len(self.waiting) == self.waiting.maxlen:
+            self.counts["dropped_waiting_full"] += 1
+        self.waiting.append((time.monotonic(), msg))
+
+    def _pose(self, msg: messages.DepthFrame) -> np.ndarray | None:
+        if self.cfg.pose_source == "frame" and not np.allclose(msg.T_WC, np.eye(4)):
+            return np.asarray(msg.T_WC, float)
+        T_WS = self.poses.lookup(msg.header.stamp_ns, int(self.cfg.pose_tolerance_ms * 1e6), int(self.cfg.max_interp_gap_ms * 1e6))
+        return None if T_WS is None else T_WS @ np.asarray(msg.T_SC, float)
+
+    def process_waiting(self, timer=None) -> int:
+        """Integrate every waiting frame whose pose is known; drop those that waited too long."""
+        done = 0
+        keep: collections.deque = collections.deque(maxlen=self.waiting.maxlen)
+        while self.waiting:
+            t_rx, msg = self.waiting.popleft()
+            T_WC = self._pose(msg)
+            if T_WC is None:
+                if time.monotonic() - t_rx > self.cfg.pose_wait_s:
+                    self.counts["dropped_no_pose"] += 1
+                    log.warning("depth frame %d dropped: no estimator state for its stamp", msg.header.stamp_ns)
+                else:
+                    keep.append((t_rx, msg))
+                continue
+            t0 = time.perf_counter()
+            try:
+                if timer is not None:
+                    with timer:
+                        rep = self.mapper.integrate(msg.depth, msg.sigma, msg.K, T_WC, msg.T_SC, msg.header.stamp_ns)
+                else:
+                    rep = self.mapper.integrate(msg.depth, msg.sigma, msg.K, T_WC, msg.T_SC, msg.header.stamp_ns)
+            except ValueError as exc:
+                self.counts["dropped_bad_frame"] += 1
+                log.warning("depth frame %d dropped: %s", msg.header.stamp_ns, exc)
+                continue
+            self.integrate_ms.append(1e3 * (time.perf_counter() - t0))
+            self.counts["integrated"] += 1
+            if rep.new_submap:
+                self.counts["submaps"] += 1
+                log.info("submap %d started (overlap %.2f)", rep.submap_id, rep.overlap)
+            done += 1
+        self.waiting = keep
+        return done
+
+    def remesh(self, budget_s: float | None) -> None:
+        self.to_publish.update(self.mapper.remesh(budget_s))
+
+    def submap_messages(self) -> list[messages.SubmapMesh]:
+        out = []
+        for sid in sorted(self.to_publish):
+            sm = self.mapper.submaps[sid]
+            v, f = sm.mesher.mesh()
+            out.append(messages.SubmapMesh(header=Header(stamp_ns=sm.anchor_stamp_ns, frame_id=f"M{sm.id}"), submap_id=sm.id,
+                                           T_WM=sm.T_WM, vertices_M=v, faces=f, vertex_colors=np.empty((0, 3), np.uint8)))
+        self.to_publish.clear()
+        return out
+
+    def write_outputs(self, out_dir: Path) -> None:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        v, f = self.mapper.world_mesh()
+        write_ply(out_dir / "mesh.ply", v, f)
+        for sm in self.mapper.submaps:
+            sv, sf = sm.mesher.mesh()
+            write_ply(out_dir / "submaps" / f"submap_{sm.id:03d}.ply", sv, sf)
+        save_map(self.mapper, out_dir / "map.npz")
+        ms = np.array(self.integrate_ms) if self.integrate_ms else np.array([np.nan])
+        report = {"counts": dict(self.counts), "integrate_ms_p50": float(np.median(ms)),
+                  "integrate_ms_p90": float(np.percentile(ms, 90)), "map_bytes": self.mapper.nbytes(),
+                  "submaps": [{"id": sm.id, "bytes": sm.store.nbytes(), "blocks": sm.store.n_blocks,
+                               "refined_blocks": sm.store.n_refined - len(sm.store.free_rows), "frames": sm.n_frames,
+                               "T_WM": sm.T_WM.tolist(), "keyframe_id": sm.keyframe_id} for sm in self.mapper.submaps]}
+        (out_dir / "mapping.json").write_text(json.dumps(report, indent=1))
+
+
+def main(args: argparse.Namespace) -> int:
+    from transport.node import Node
+    from transport.queues import Empty
+
+    sys_cfg = load_system_config(args.config, args.set)
+    cfg = sys_cfg.mapping
+    if cfg.depth_topic not in DEPTH_TOPICS:
+        print(f"sigmaslam mapping: mapping.depth_topic must be one of {sorted(DEPTH_TOPICS)}", flush=True)
+        return 2
+    if cfg.pose_source not in ("estimator", "frame"):
+        print("sigmaslam mapping: mapping.pose_source must be 'estimator' or 'frame'", flush=True)
+        return 2
+    out_dir = args.out or cfg.output_dir
+    loop = MappingLoop(cfg)
+    with Node("mapping", sys_cfg.transport) as node:
+        node.subscriber(topics.STATE, policy="all", depth=cfg.state_buffer, handler=loop.on_state)
+        kfs = node.subscriber(topics.KEYFRAMES)
+        depth = node.subscriber(DEPTH_TOPICS[cfg.depth_topic])
+        pub = node.publisher(topics.SUBMAP)
+        timer = node.timer("integrate", budget_ms=cfg.integrate_budget_ms)
+        mesh_timer = node.timer("mesh")
+        last_mesh = time.monotonic()
+        print(f"mapping: {cfg.depth_topic} -> {topics.SUBMAP.key}", flush=True)
+        while not node.stopped:
+            try:
+                loop.on_depth(depth.get(timeout=0.02))
+            except Empty:
+                pass
+            for msg in kfs.drain():
+                loop.on_keyframes(msg)
+            loop.process_waiting(timer)
+            if time.monotonic() - last_mesh >= cfg.mesh_period_s:
+                last_mesh = time.monotonic()
+                with mesh_timer:
+                    loop.remesh(cfg.mesh_budget_ms / 1e3)
+                for m in loop.submap_messages():
+                    pub.publish(m)
+        # drain: everything received is integrated and meshed before exit
+        for msg in depth.drain():
+            loop.on_depth(msg)
+        loop.process_waiting(timer)
+        loop.remesh(None)
+        loop.to_publish.update(sm.id for sm in loop.mapper.submaps)
+        for m in loop.submap_messages():
+            pub.publish(m)
+    if out_dir:
+        loop.write_outputs(Path(out_dir))
+        print(f"mapping: wrote {out_dir}/mesh.ply", flush=True)
+    log.info("mapping done: %s", dict(loop.counts))
+    return 0
