@@ -12,6 +12,7 @@ import importlib
 BENCHES: dict[str, tuple[str, str]] = {
     "transport": ("tools.bench_transport", "Zenoh round-trip latency and 786 KB frame latency/rate, SHM on and off"),
     "netns": ("tools.bench_netns", "estimator/state and depth/fused latency across network namespaces (via a router) vs one host"),
+    "mapping": ("tools.bench_mapping", "occupancy integration ms per 512x384 depth frame, memory, mesh accuracy on a replica"),
 }
 
 
