@@ -37,6 +37,7 @@ class ReplicaSpec:
     scene: str = param("vicon-a", "scene name (tools.synth.scene.SCENES)")
     sequence: str = param("V1_02", "EuRoC sequence whose real files are used ('' when all paths are given)")
     imu: str = param("real", "'real': the recorded imu0 data (time-aligned); 'sim': simulated from the trajectory")
+    imu_noise: bool = param(True, "simulated IMU: add white noise and bias random walks of the imu0 noise model")
     start_s: float = param(0.0, "skip this much from the first usable image", "s")
     duration_s: float = param(0.0, "length of the replica (0 = to the end)", "s")
     seed: int = param(0, "seed of scene, noise, exposure and simulated IMU")
@@ -177,7 +178,7 @@ def generate(spec: ReplicaSpec, out: str | Path, progress: bool = True) -> Path:
         imu = ImuData(imu_stamps, p["real"].omega_S[keep], p["real"].acc_S[keep])
         bg, ba = _groundtruth_biases(p["files"]["groundtruth"], imu_stamps + p["offset_ns"])
     else:
-        imu = simulate_imu(traj, imu_stamps, imu_noise_from_yaml(imu_yaml), seed=spec.seed)
+        imu = simulate_imu(traj, imu_stamps, imu_noise_from_yaml(imu_yaml) if spec.imu_noise else None, seed=spec.seed)
         bg, ba = imu.gyro_bias, imu.accel_bias
     scale = choose_scale(scene.max_range_m)
     mav0 = out / "mav0"
