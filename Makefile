@@ -6,13 +6,15 @@ STAMP := $(VENV)/.installed
 
 .PHONY: setup system-deps demo test
 
-# Debian packages: libusb for `import open3d` (ray-casting renderer), chromium for the viewer's browser test.
+# Debian packages: libusb for `import open3d` (ray-casting renderer), chromium for the viewer's browser test,
+# docker-compose to validate docker/compose.yaml (no engine needed), openssl and iproute2 for the deployment tests.
 system-deps:
-	@if ! ldconfig -p | grep -q libusb-1.0 || ! command -v chromium >/dev/null; then \
+	@if ! ldconfig -p | grep -q libusb-1.0 || ! command -v chromium >/dev/null || ! command -v docker-compose >/dev/null \
+	    || ! command -v openssl >/dev/null || ! command -v ip >/dev/null; then \
 	  if command -v apt-get >/dev/null && [ "$$(id -u)" = 0 ]; then \
-	    (apt-get install -y -q libusb-1.0-0 chromium >/dev/null 2>&1 || \
-	     (apt-get update -q >/dev/null 2>&1 && apt-get install -y -q libusb-1.0-0 chromium >/dev/null)); \
-	  else echo "please install Debian packages libusb-1.0-0 and chromium"; fi; fi
+	    (apt-get install -y -q libusb-1.0-0 chromium docker-compose openssl iproute2 >/dev/null 2>&1 || \
+	     (apt-get update -q >/dev/null 2>&1 && apt-get install -y -q libusb-1.0-0 chromium docker-compose openssl iproute2 >/dev/null)); \
+	  else echo "please install Debian packages libusb-1.0-0 chromium docker-compose openssl iproute2"; fi; fi
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)

@@ -1,0 +1,147 @@
+"""docker/compose.yaml: valid for docker-compose, every command a real sigmaslam CLI command, viewer on localhost.
+
+The compose file is validated with Debian's ``docker-compose config`` (no Docker engine needed);
+the command checks parse each command with the subcommand's own argument parser.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import shlex
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+import yaml
+
+from services.cli import SUBCOMMANDS
+from services.system_config import load_system_config
+from tests.helpers_zenoh import REPO
+
+COMPOSE = REPO / "docker" / "compose.yaml"
+GPU = REPO / "docker" / "compose.gpu.yaml"
+PIPELINE = ("router", "player", "frontend", "backend", "depth", "mapping", "viewer", "recorder")
+
+
+def _resolved(*files: Path) -> dict:
+    """The compose model after docker-compose's own merging and interpolation, or the raw YAML if absent."""
+    exe = shutil.which("docker-compose")
+    if exe is None:
+        pytest.skip("docker-compose is not installed (Debian package docker-compose; `make system-deps`)")
+    args = [exe]
+    for f in files:
+        args += ["-f", str(f)]
+    r = subprocess.run([*args, "config"], capture_output=True, text=True, cwd=REPO,
+                       env={k: v for k, v in os.environ.items() if not k.startswith("SIGMASLAM_")})
+    assert r.returncode == 0, f"docker-compose config failed:\n{r.stderr}"
+    return yaml.safe_load(r.stdout)
+
+
+@pytest.fixture(scope="module")
+def compose() -> dict:
+    return _resolved(COMPOSE)
+
+
+def _argv(command: object) -> list[str]:
+    return shlex.split(command) if isinstance(command, str) else list(command)
+
+
+def _commands(model: dict) -> list[tuple[str, list[str]]]:
+    out = []
+    for name, svc in model["services"].items():
+        out.append((name, _argv(svc["command"])))
+        test = svc.get("healthcheck", {}).get("test")
+        if test:
+            test = _argv(test)
+            assert test[0] in ("CMD", "CMD-SHELL"), (name, test)
+            out.append((f"{name} healthcheck", test[1:] if test[0] == "CMD" else shlex.split(test[1])))
+    return out
+
+
+def _parse(argv: list[str]) -> argparse.Namespace:
+    """Parse ``sigmaslam ...`` argv with the subcommand's own parser (as services.cli does)."""
+    assert argv[0] == "sigmaslam", f"not a sigmaslam command: {argv}"
+    assert argv[1] in SUBCOMMANDS, f"{argv[1]!r} is not a sigmaslam subcommand ({', '.join(SUBCOMMANDS)})"
+    p = argparse.ArgumentParser(prog=f"sigmaslam {argv[1]}", exit_on_error=False)
+    importlib.import_module(SUBCOMMANDS[argv[1]][0]).add_arguments(p)
+    return p.parse_args(argv[2:])
+
+
+def test_compose_validates_with_gpu_override() -> None:
+    model = _resolved(COMPOSE, GPU)
+    depth = model["services"]["depth"]
+    assert "Dockerfile.cuda" in depth["build"]["dockerfile"]
+    assert depth["deploy"]["resources"]["reservations"]["devices"][0]["capabilities"] == ["gpu"]
+    assert _parse(_argv(depth["command"])).set == ["depth.device=cuda"]
+
+
+def test_one_service_per_process(compose: dict) -> None:
+    assert sorted(compose["services"]) == sorted(PIPELINE)
+    for name, svc in compose["services"].items():
+        assert svc.get("restart") in ("unless-stopped", "on-failure", "always"), name
+        assert "healthcheck" in svc, name
+        if name != "router":
+            assert svc["depends_on"]["router"]["condition"] == "service_healthy", name
+
+
+def test_every_command_is_a_sigmaslam_cli_command(compose: dict) -> None:
+    for name, argv in _commands(compose):
+        args = _parse(argv)
+        config = getattr(args, "config", None) or next((a for a in argv if a.endswith(".yaml")), None)
+        assert config is not None, f"{name}: no config file in {argv}"
+        assert (REPO / config).is_file(), f"{name}: {config} is not in the repository (the image's /app)"
+        load_system_config(REPO / config)  # unknown keys would raise
+
+
+def test_healthchecks_ask_for_their_own_service(compose: dict) -> None:
+    for name, svc in compose["services"].items():
+        test = _argv(svc["healthcheck"]["test"])
+        assert test[1:4] == ["sigmaslam", "health", name], (name, test)
+
+
+def test_only_the_viewer_publishes_a_port_and_only_on_localhost(compose: dict) -> None:
+    for name, svc in compose["services"].items():
+        ports = svc.get("ports", [])
+        if name != "viewer":
+            assert not ports, f"{name} publishes {ports}"
+            continue
+        assert ports, "the viewer page is not published"
+        for port in ports:
+            host_ip = port.get("host_ip") if isinstance(port, dict) else str(port).split(":")[0]
+            assert host_ip == "127.0.0.1", f"viewer published on {port}"
+    cfg = load_system_config(REPO / "configs" / "docker.yaml")
+    target = compose["services"]["viewer"]["ports"][0]
+    assert str(cfg.viewer.port) in str(target)
+
+
+def test_docker_config_reaches_the_router_by_name() -> None:
+    cfg = load_system_config(REPO / "configs" / "docker.yaml").transport
+    assert cfg.mode == "client" and cfg.connect == ["tcp/router:7447"]
+    assert not cfg.shared_memory
+
+
+def test_volumes_for_datasets_outputs_and_recordings(compose: dict) -> None:
+    def targets(svc: dict) -> set[str]:
+        return {(v["target"] if isinstance(v, dict) else v.split(":")[1]) for v in svc.get("volumes", [])}
+
+    assert "/data/dataset" in targets(compose["services"]["player"])
+    assert "/recordings" in targets(compose["services"]["recorder"])
+    assert "/outputs" in targets(compose["services"]["mapping"])
+    cfg = load_system_config(REPO / "configs" / "docker.yaml")
+    assert cfg.recorder.output_dir == "/recordings" and cfg.mapping.output_dir.startswith("/outputs")
+
+
+def test_dockerfiles_install_torch_then_the_project() -> None:
+    cpu = (REPO / "docker" / "Dockerfile").read_text()
+    cuda = (REPO / "docker" / "Dockerfile.cuda").read_text()
+    assert "FROM python:3.11-slim-bookworm" in cpu and "libusb-1.0-0" in cpu
+    assert "ARG TORCH_INDEX=https://download.pytorch.org/whl/cpu" in cpu
+    assert "whl/cu" in cuda
+    for text in (cpu, cuda):
+        assert text.index("torch==") < text.index("COPY services"), "torch must come before the project"
+    # what the images copy is what the project is made of
+    for folder in ("services", "shared", "transport", "tools", "configs"):
+        assert f"COPY {folder} {folder}" in cpu and f"COPY {folder} {folder}" in cuda
