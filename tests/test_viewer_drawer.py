@@ -1,0 +1,69 @@
+"""SceneDrawer against a real viser server (no browser): what is re-sent, moved, exported."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+import viser
+
+from helpers_zenoh import free_port
+from services.viewer.config import ViewerConfig
+from services.viewer.drawer import SceneDrawer
+from services.viewer.scene_model import ViewerModel
+from services.viewer.tracks import CHUNK
+from tools.viewer_demo_publisher import demo_image, submap_messages
+from test_viewer_model import pose, state
+from shared import messages as m
+
+
+@pytest.fixture
+def drawer(tmp_path):
+    server = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
+    model = ViewerModel(ViewerConfig(image_rate_hz=1000.0))
+    sent: list[str] = []
+    d = SceneDrawer(server, model, publish_control=sent.append, export_dir=tmp_path)
+    d.sent = sent
+    try:
+        yield d
+    finally:
+        server.stop()
+
+
+def test_only_changed_submaps_are_sent_to_the_browser(drawer):
+    model = drawer.model
+    for msg in submap_messages(1):
+        model.apply(msg)
+    drawer.draw(model.take_update())
+    assert drawer.drawn_meshes == 4 and drawer.moved_meshes == 0
+    for msg in submap_messages(2):  # identical meshes and poses: nothing to send
+        model.apply(msg)
+    drawer.draw(model.take_update())
+    assert drawer.drawn_meshes == 4
+    for msg in submap_messages(3, shift_m=0.1):  # a loop closure moved every submap: move, don't re-send
+        model.apply(msg)
+    drawer.draw(model.take_update())
+    assert drawer.drawn_meshes == 4 and drawer.moved_meshes == 4
+    np.testing.assert_allclose(drawer._meshes[0].position, submap_messages(0, 0.1)[0].T_WM[:3, 3], atol=1e-6)
+    model.set_color_mode("uncertainty")  # vertex colours: the GLB path
+    drawer.draw(model.take_update())
+    assert drawer.drawn_meshes == 8
+
+
+def test_export_trajectory_chunks_images_and_controls(drawer, tmp_path):
+    model = drawer.model
+    for msg in submap_messages(1):
+        model.apply(msg)
+    for i in range(2 * CHUNK + 5):
+        model.apply(state(i + 1, pose(t=(0.01 * i, 0, 1))))
+    img = demo_image(0)
+    model.apply(m.MultiCameraFrame(header=m.Header(stamp_ns=1), images=(img,), camera_names=("cam0",),
+                                   stamps_ns=np.array([1], np.int64)))
+    drawer.draw(model.take_update())
+    assert sorted(drawer._chunks) == [0, 1, 2]
+    assert list(drawer._frusta) == ["cam0"] and drawer._frusta["cam0"].image is not None
+    path = drawer.export_mesh()
+    mesh = trimesh.load(path, process=False)
+    assert len(mesh.vertices) == 2 * 642 + 2 * 8
+    drawer._control("Pause")
+    assert drawer.sent == ["pause"]
