@@ -15,12 +15,16 @@ Two passes, both compiled with numba:
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import numba as nb
 import numpy as np
 
 from services.mapping.blocks import BlockStore, pack_keys
 from services.mapping.config import SensorModelConfig
+
+# the TBB layer numba finds here is too old; it falls back to another threading layer (harmless)
+warnings.filterwarnings("ignore", message=".*TBB threading layer.*")
 
 CLEAR, MIXED = 1, 2
 _LEVELS = 9  # pyramid levels: cells of 1 .. 256 pixels
