@@ -10,6 +10,7 @@ import dataclasses
 from pathlib import Path
 
 from shared.config import from_dict, load_yaml, merge, param, parse_override
+from services.depth.config import DepthConfig
 from services.recorder.config import RecorderConfig
 from services.supervisor import SupervisorConfig
 from services.viewer.config import ViewerConfig
@@ -24,6 +25,7 @@ class SystemConfig:
     recorder: RecorderConfig = param(RecorderConfig(), "MCAP recorder (sigmaslam record)")
     supervisor: SupervisorConfig = param(SupervisorConfig(), "processes started by sigmaslam up")
     viewer: ViewerConfig = param(ViewerConfig(), "viser web viewer (sigmaslam viewer)")
+    depth: DepthConfig = param(DepthConfig(), "stereo/MVS depth with learned uncertainty (sigmaslam depth)")
 
 
 def load_system_config(path: str | Path | None = None, overrides: list[str] | None = None) -> SystemConfig:

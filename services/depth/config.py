@@ -1,0 +1,50 @@
+"""Configuration of the depth service (``sigmaslam depth``): method, rate, rectification, networks, MVS views."""
+from __future__ import annotations
+
+import dataclasses
+
+from shared.config import param
+
+
+@dataclasses.dataclass
+class DepthConfig:
+    """Stereo (+ MVS) depth with per-pixel sigma, fused by inverse variance (paper sec. IV-D)."""
+
+    method: str = param("network", "'network' (stereo + MVS networks, fused) or 'sgbm' (OpenCV SGBM with "
+                        "heuristic sigma); 'network' falls back to 'sgbm' when the stereo weights are missing")
+    rate_hz: float = param(10.0, "processing rate; newer frames replace older ones waiting (drops counted)", "Hz")
+    left_camera: str = param("cam0", "rig camera used as the left (reference) camera")
+    right_camera: str = param("cam1", "rig camera used as the right camera")
+    width: int = param(512, "rectified image width (multiple of 16)", "px")
+    height: int = param(384, "rectified image height (multiple of 16)", "px")
+    fov_scale: float = param(1.0, "rectified focal length = left fx scaled to the new width / fov_scale")
+    stereo_weights: str = param("", "stereo network weights (.pt with .json beside); '' = services/depth/weights/stereo.pt")
+    mvs_weights: str = param("", "MVS network weights; '' = services/depth/weights/mvs.pt")
+    use_mvs: bool = param(True, "run the MVS network on posed keyframes and fuse it with stereo (method 'network')")
+    mvs_sources: int = param(4, "source views of the MVS network (1-7; 4 keeps the CPU time bounded)")
+    mvs_min_baseline_m: float = param(0.03, "least distance between any two MVS views", "m")
+    mvs_max_baseline_m: float = param(1.0, "largest distance of a source view from the reference", "m")
+    mvs_max_angle_deg: float = param(35.0, "largest angle between the optical axes of source and reference", "deg")
+    keyframe_views: int = param(12, "posed keyframe images kept as MVS source candidates")
+    frame_history: int = param(60, "recent raw left images kept to attach to keyframes announced later")
+    pose_wait_s: float = param(0.1, "how long a frame waits for its estimator state before going out unposed", "s")
+    sgbm_num_disparities: int = param(96, "SGBM disparity search range (multiple of 16)", "px")
+    sgbm_block_size: int = param(5, "SGBM block size (odd)", "px")
+    heuristic_sigma_model: str = param("quadratic", "SGBM sigma model: 'quadratic' (constant disparity sigma, "
+                                       "eq. 11) or 'linear' (relative depth sigma)")
+    heuristic_sigma_coeff: float = param(1.0, "disparity sigma [px] for 'quadratic'; relative sigma [-] for 'linear'")
+    device: str = param("auto", "'auto' (CUDA when present), 'cpu' or 'cuda'")
+    threads: int = param(2, "CPU threads of the networks")
+    budget_ms: float = param(100.0, "budget of one depth frame (networks + fusion), reported in stats", "ms")
+
+    def __post_init__(self) -> None:
+        if self.method not in ("network", "sgbm"):
+            raise ValueError(f"depth.method must be 'network' or 'sgbm', got {self.method!r}")
+        if self.heuristic_sigma_model not in ("quadratic", "linear"):
+            raise ValueError(f"depth.heuristic_sigma_model must be 'quadratic' or 'linear', got {self.heuristic_sigma_model!r}")
+        if self.width % 16 or self.height % 16 or self.width <= 0 or self.height <= 0:
+            raise ValueError(f"depth.width/height must be positive multiples of 16, got {self.width}x{self.height}")
+        if not 1 <= self.mvs_sources <= 7:
+            raise ValueError(f"depth.mvs_sources must be 1..7, got {self.mvs_sources}")
+        if self.rate_hz <= 0:
+            raise ValueError("depth.rate_hz must be positive")

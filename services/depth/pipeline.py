@@ -1,0 +1,171 @@
+"""The depth algorithm without transport: rectify a stereo frame, run stereo (network or SGBM), run MVS
+on posed keyframes when available, fuse (eq. 14).
+
+::
+
+    pipe = DepthPipeline(cfg, cam_left, cam_right)
+    pipe.remember_frame(stamp_ns, raw_left)              # every frame (cheap), for keyframes announced later
+    pipe.update_keyframes(stamps_ns, T_WS)               # after each optimisation
+    out = pipe.process(stamp_ns, raw_left, raw_right, T_WS)   # T_WS None when unknown
+    out.stereo, out.mvs, out.fused                       # (depth, sigma) float32 (H,W) [m], NaN invalid
+
+All depth maps live in the rectified left camera N0: intrinsics ``pipe.K``, pose in the body ``pipe.T_SC``.
+"""
+from __future__ import annotations
+
+import logging
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from services.depth.config import DepthConfig
+from services.depth.sgbm import SgbmParams, sgbm_depth
+from services.depth.uncertainty import disparity_to_depth, fuse, logdepth_to_depth
+from services.depth.views import select_sources
+from shared.camera import CameraCalib, stereo_rectification
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class DepthResult:
+    stereo: tuple[np.ndarray, np.ndarray]
+    mvs: tuple[np.ndarray, np.ndarray] | None
+    fused: tuple[np.ndarray, np.ndarray]
+    T_WC: np.ndarray | None
+    method: str
+    n_sources: int
+
+
+@dataclass
+class _View:
+    image: np.ndarray  # rectified left image (H,W) uint8
+    T_WC: np.ndarray | None
+    features: object = None  # cached MVS encoder features (torch tensor)
+
+
+class DepthPipeline:
+    def __init__(self, cfg: DepthConfig, cam_left: CameraCalib, cam_right: CameraCalib) -> None:
+        self.cfg = cfg
+        self.rect = stereo_rectification(cam_left, cam_right, (cfg.width, cfg.height), cfg.fov_scale)
+        self.raw_shapes = ((cam_left.camera.height, cam_left.camera.width), (cam_right.camera.height, cam_right.camera.width))
+        self.K = self.rect.K
+        self.T_SC = self.rect.T_SN0
+        self.f_px, self.baseline_m = float(self.K[0, 0]), self.rect.baseline_m
+        self.sgbm_params = SgbmParams(num_disparities=cfg.sgbm_num_disparities, block_size=cfg.sgbm_block_size)
+        self.method = cfg.method
+        self.stereo_net = self.mvs_net = None
+        self.stereo_gain = self.mvs_gain = 1.0
+        self._recent: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._views: OrderedDict[int, _View] = OrderedDict()
+        if self.method == "network":
+            self._load_networks()
+
+    # ------------------------------------------------------------------ setup
+    def _load_networks(self) -> None:
+        import torch
+
+        from services.depth import weights
+
+        device = self.cfg.device
+        self.device = ("cuda" if torch.cuda.is_available() else "cpu") if device == "auto" else device
+        torch.set_num_threads(max(1, self.cfg.threads))
+        stereo_path = Path(self.cfg.stereo_weights or weights.WEIGHTS_DIR / "stereo.pt")
+        try:
+            self.stereo_net, meta = weights.load(stereo_path, self.device)
+            self.stereo_gain = float(meta["gain"])
+        except weights.WeightsError as exc:
+            log.warning("depth: %s; falling back to SGBM with heuristic sigma", exc)
+            self.method = "sgbm"
+            return
+        if self.cfg.use_mvs:
+            try:
+                self.mvs_net, meta = weights.load(Path(self.cfg.mvs_weights or weights.WEIGHTS_DIR / "mvs.pt"), self.device)
+                self.mvs_gain = float(meta["gain"])
+            except weights.WeightsError as exc:
+                log.warning("depth: %s; running stereo only", exc)
+
+    # ------------------------------------------------------------------ keyframes
+    def remember_frame(self, stamp_ns: int, raw_left: np.ndarray) -> None:
+        """Keep a recent raw left image so that a keyframe announced later finds its image."""
+        if self.mvs_net is None:
+            return
+        self._recent[int(stamp_ns)] = raw_left
+        while len(self._recent) > self.cfg.frame_history:
+            self._recent.popitem(last=False)
+
+    def update_keyframes(self, stamps_ns: np.ndarray, T_WS: np.ndarray) -> None:
+        """New poses of keyframes; those with a remembered image become MVS source candidates."""
+        if self.mvs_net is None:
+            return
+        for t, T in zip(np.asarray(stamps_ns, np.int64).tolist(), np.asarray(T_WS).reshape(-1, 4, 4)):
+            T_WC = T @ self.T_SC
+            if t in self._views:
+                self._views[t].T_WC = T_WC
+            elif t in self._recent:
+                left, _ = self.rect.rectify(self._recent[t], self._recent[t])
+                self._views[t] = _View(left, T_WC)
+        while len(self._views) > self.cfg.keyframe_views:
+            self._views.popitem(last=False)
+
+    @property
+    def n_keyframe_views(self) -> int:
+        return len(self._views)
+
+    # ------------------------------------------------------------------ per frame
+    def stereo(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Depth and sigma [m] of a rectified pair, by the configured method."""
+        if self.method == "sgbm":
+            return sgbm_depth(left, right, self.f_px, self.baseline_m, self.cfg.heuristic_sigma_model,
+                              self.cfg.heuristic_sigma_coeff, self.sgbm_params)
+        import torch
+
+        with torch.inference_mode():
+            t = lambda a: torch.from_numpy(a).float()[None, None].to(self.device)
+            u, su = self.stereo_net(t(left), t(right))
+        return disparity_to_depth(u[0].cpu().numpy(), su[0].cpu().numpy() * self.stereo_gain, self.f_px, self.baseline_m)
+
+    def _features(self, view: _View):
+        if view.features is None:
+            import torch
+
+            with torch.inference_mode():
+                view.features = self.mvs_net.encoder(torch.from_numpy(view.image).float()[None, None].to(self.device))
+        return view.features
+
+    def mvs(self, left: np.ndarray, T_WC: np.ndarray, prior_depth: np.ndarray | None = None
+            ) -> tuple[tuple[np.ndarray, np.ndarray] | None, int]:
+        """MVS depth and sigma [m] of the rectified left image at pose T_WC from the keyframe views
+        (None when no source view qualifies), and the number of source views used."""
+        views = [v for v in self._views.values() if v.T_WC is not None]
+        if self.mvs_net is None or not views:
+            return None, 0
+        idx = select_sources(T_WC, np.stack([v.T_WC for v in views]), self.cfg.mvs_sources,
+                             self.cfg.mvs_min_baseline_m, self.cfg.mvs_max_baseline_m, self.cfg.mvs_max_angle_deg)
+        if len(idx) == 0:
+            return None, 0
+        import torch
+
+        with torch.inference_mode():
+            f_ref, ctx = self.mvs_net.encoder(torch.from_numpy(left).float()[None, None].to(self.device))
+            f_src = torch.stack([self._features(views[i])[0][0] for i in idx])[None]
+            T_src_ref = torch.from_numpy(np.stack([np.linalg.inv(views[i].T_WC) @ T_WC for i in idx])).float()[None]
+            K = torch.from_numpy(self.K).float()[None]
+            prior = None if prior_depth is None else torch.from_numpy(prior_depth).float()[None]
+            ld, sl = self.mvs_net.forward_features(f_ref, ctx, f_src.to(self.device), K.to(self.device),
+                                                   T_src_ref.to(self.device), prior, left.shape)
+        d, s = logdepth_to_depth(ld[0].cpu().numpy(), sl[0].cpu().numpy() * self.mvs_gain)
+        return (d, s), len(idx)
+
+    def process(self, stamp_ns: int, raw_left: np.ndarray, raw_right: np.ndarray,
+                T_WS: np.ndarray | None = None) -> DepthResult:
+        if raw_left.shape != self.raw_shapes[0] or raw_right.shape != self.raw_shapes[1]:
+            raise ValueError(f"images of shape {raw_left.shape}/{raw_right.shape}, calibration says {self.raw_shapes}")
+        left, right = self.rect.rectify(raw_left, raw_right)
+        stereo = self.stereo(left, right)
+        T_WC = None if T_WS is None else np.asarray(T_WS) @ self.T_SC
+        mvs, n_src = (None, 0) if T_WC is None else self.mvs(left, T_WC)
+        fused = stereo if mvs is None else fuse(*stereo, *mvs)
+        return DepthResult(stereo, mvs, fused, T_WC, self.method, n_src)

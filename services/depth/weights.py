@@ -1,0 +1,62 @@
+"""Network weights with their provenance: ``<name>.pt`` (a torch state dict) beside ``<name>.json``
+(architecture arguments, calibration gain, training command, data, seed, time, figures).
+
+Other weights load through the same interface as long as the state dict fits the architecture named in
+the JSON (``arch``: 'stereo' or 'mvs', ``arch_args``: constructor keyword arguments).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+
+from shared.paths import REPO_ROOT
+
+WEIGHTS_DIR = REPO_ROOT / "services" / "depth" / "weights"
+
+
+class WeightsError(RuntimeError):
+    """Missing or unusable weights; the message names the file."""
+
+
+def build(arch: str, arch_args: dict) -> torch.nn.Module:
+    if arch == "stereo":
+        from services.depth.stereo_net import StereoNet
+
+        return StereoNet(**arch_args)
+    if arch == "mvs":
+        from services.depth.mvs_net import MVSNet
+
+        return MVSNet(**arch_args)
+    raise WeightsError(f"unknown architecture {arch!r} (stereo, mvs)")
+
+
+def save(model: torch.nn.Module, path: str | Path, arch: str, arch_args: dict, meta: dict) -> Path:
+    path = Path(path).with_suffix(".pt")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(model.state_dict(), path)
+    path.with_suffix(".json").write_text(json.dumps({"arch": arch, "arch_args": arch_args, **meta}, indent=1))
+    return path
+
+
+def read_meta(path: str | Path) -> dict:
+    meta_path = Path(path).with_suffix(".json")
+    if not meta_path.is_file():
+        raise WeightsError(f"{meta_path}: provenance/architecture JSON not found")
+    return json.loads(meta_path.read_text())
+
+
+def load(path: str | Path, device: str = "cpu") -> tuple[torch.nn.Module, dict]:
+    """(model in eval mode, its JSON metadata incl. 'gain' (1.0 if uncalibrated))."""
+    path = Path(path).with_suffix(".pt")
+    if not path.is_file():
+        raise WeightsError(f"{path}: weights not found (train them: python -m tools.depth.train --help)")
+    meta = read_meta(path)
+    model = build(meta["arch"], meta.get("arch_args", {}))
+    try:
+        model.load_state_dict(torch.load(path, map_location=device, weights_only=True))
+    except RuntimeError as exc:
+        raise WeightsError(f"{path}: does not fit architecture {meta['arch']}: {exc}") from exc
+    meta.setdefault("gain", 1.0)
+    return model.to(device).eval(), meta

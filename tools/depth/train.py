@@ -1,0 +1,216 @@
+"""Train a depth network (stereo: eq. 8-10; MVS: eq. 12) on the rendered set, calibrate its sigma on the
+validation split (sec. V-A, one gain in the depth domain) and write weights + provenance JSON.
+
+    nice .venv/bin/python -m tools.depth.train --net stereo --minutes 20 --data data/depth_train \
+        --out services/depth/weights/stereo
+    nice .venv/bin/python -m tools.depth.train --net mvs --minutes 20 ...
+
+Training stops after ``--minutes`` of process CPU time or ``--max-wall-minutes`` of wall time, whichever
+comes first (the learning rate follows a cosine over that progress; on a shared machine CPU time is the
+reproducible measure, on a fast machine more steps fit). Runs on CUDA
+when present (``--device``). Curves go to ``<out>.curve.csv``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from services.depth import weights
+from services.depth.losses import mvs_loss, stereo_loss
+from services.depth.uncertainty import calibration_gain, depth_metrics, disparity_to_depth, logdepth_to_depth
+from services.depth.views import select_sources
+
+
+def load_split(root: Path, split: str) -> list[dict]:
+    files = sorted((root / split).glob("scene_*.npz"))
+    if not files:
+        raise SystemExit(f"{root / split}: no scene_*.npz (render them: python -m tools.depth.make_dataset)")
+    return [dict(np.load(f)) | {"name": f.stem} for f in files]
+
+
+def _crop_box(rng, H, W, ch, cw):
+    y = int(rng.integers(0, H - ch + 1)) // 4 * 4
+    x = int(rng.integers(0, W - cw + 1)) // 4 * 4
+    return y, x
+
+
+def _photometric(rng, img: np.ndarray) -> np.ndarray:
+    return np.clip(img.astype(np.float32) * rng.uniform(0.7, 1.3) + rng.uniform(-20, 20), 0, 255)
+
+
+def stereo_batch(scenes, rng, batch: int, crop: tuple[int, int]):
+    ch, cw = crop
+    L, R, U, V = [], [], [], []
+    for _ in range(batch):
+        s = scenes[rng.integers(len(scenes))]
+        i = rng.integers(len(s["left"]))
+        H, W = s["left"].shape[1:]
+        y, x = _crop_box(rng, H, W, ch, cw)
+        sl = np.s_[y:y + ch, x:x + cw]
+        gain = rng.uniform(0.9, 1.1)  # small left/right exposure difference
+        L.append(_photometric(rng, s["left"][i][sl]))
+        R.append(np.clip(_photometric(rng, s["right"][i][sl]) * gain, 0, 255))
+        d = s["depth"][i][sl]
+        U.append(float(s["K"][0, 0]) * float(s["baseline_m"]) / np.where(np.isfinite(d) & (d > 0), d, np.inf))
+    t = lambda a: torch.from_numpy(np.stack(a)).float()
+    return t(L)[:, None], t(R)[:, None], t(U)
+
+
+def prior_points(rng, depth: np.ndarray, n: int, rel_noise: float = 0.02) -> np.ndarray:
+    """Sparse depth prior like the estimator's landmarks: n random pixels of GT depth with relative noise."""
+    prior = np.zeros_like(depth)
+    if n <= 0:
+        return prior
+    ok = np.flatnonzero(np.isfinite(depth.ravel()))
+    idx = rng.choice(ok, size=min(n, len(ok)), replace=False)
+    prior.ravel()[idx] = depth.ravel()[idx] * (1 + rel_noise * rng.standard_normal(len(idx)))
+    return prior
+
+
+def mvs_sample(s, rng, i: int, n_src: int, crop=None, photometric=True, prior_n=None):
+    T = s["T_WC"]
+    others = np.array([j for j in range(len(T)) if j != i])
+    order = others[np.argsort(np.abs(others - i))[::-1]]  # farthest in time first, nearest last (= "newest")
+    chosen = order[select_sources(T[i], T[order], n_src, 0.03, 1.0, 40.0)]
+    if len(chosen) == 0:
+        chosen = order[-1:]
+    K = s["K"].copy()
+    H, W = s["left"].shape[1:]
+    sl = np.s_[:, :]
+    if crop is not None:
+        y, x = _crop_box(rng, H, W, *crop)
+        sl = np.s_[y:y + crop[0], x:x + crop[1]]
+        K[0, 2] -= x
+        K[1, 2] -= y
+    prep = (lambda a: _photometric(rng, a)) if photometric else (lambda a: a.astype(np.float32))
+    ref = prep(s["left"][i][sl])
+    src = np.stack([prep(s["left"][j][sl]) for j in chosen])
+    T_src_ref = np.stack([np.linalg.inv(T[j]) @ T[i] for j in chosen])
+    depth = s["depth"][i][sl]
+    n_prior = prior_n if prior_n is not None else (0 if rng.random() < 0.3 else int(rng.integers(20, 300)))
+    return ref, src, K, T_src_ref, prior_points(rng, depth, n_prior), depth
+
+
+def mvs_batch(scenes, rng, batch: int, crop, n_src: int):
+    items = []
+    for _ in range(batch):
+        s = scenes[rng.integers(len(scenes))]
+        items.append(mvs_sample(s, rng, int(rng.integers(len(s["left"]))), n_src, crop))
+    n = min(len(it[1]) for it in items)
+    t = lambda k, sl=None: torch.from_numpy(np.stack([it[k] if sl is None else it[k][:n] for it in items])).float()
+    return t(0)[:, None], t(1, True)[:, :, None], t(2), t(3, True), t(4), t(5)
+
+
+def predict(net, kind, s, i, rng, n_src, device):
+    """(depth, sigma) [m] of frame i of scene s at full resolution, uncalibrated."""
+    with torch.inference_mode():
+        if kind == "stereo":
+            u, su = net(torch.from_numpy(s["left"][i]).float()[None, None].to(device),
+                        torch.from_numpy(s["right"][i]).float()[None, None].to(device))
+            return disparity_to_depth(u[0].cpu().numpy(), su[0].cpu().numpy(), float(s["K"][0, 0]),
+                                      float(s["baseline_m"]))
+        ref, src, K, T, prior, _ = mvs_sample(s, rng, i, n_src, None, photometric=False, prior_n=150)
+        f = lambda a: torch.from_numpy(np.asarray(a)).float()[None].to(device)
+        ld, sl = net(f(ref)[:, None], f(src)[:, :, None], f(K), f(T), f(prior))
+        return logdepth_to_depth(ld[0].cpu().numpy(), sl[0].cpu().numpy())
+
+
+def evaluate(net, kind, scenes, n_src, device, gain=1.0, seed=7):
+    rng = np.random.default_rng(seed)
+    est, sig, gt = [], [], []
+    for s in scenes:
+        for i in range(0, len(s["left"]), 2):
+            d, sd = predict(net, kind, s, i, rng, n_src, device)
+            est.append(d)
+            sig.append(sd * gain)
+            gt.append(s["depth"][i])
+    return np.stack(est), np.stack(sig), np.stack(gt)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--net", choices=["stereo", "mvs"], required=True)
+    p.add_argument("--data", default="data/depth_train")
+    p.add_argument("--out", required=True, help="weights path without suffix, e.g. services/depth/weights/stereo")
+    p.add_argument("--minutes", type=float, default=20.0, help="CPU-time budget of the training loop (process time)")
+    p.add_argument("--max-wall-minutes", type=float, default=60.0, help="hard wall-time cap of the training loop")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--batch", type=int, default=4)
+    p.add_argument("--crop", type=int, nargs=2, default=[192, 320], metavar=("H", "W"))
+    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--sources", type=int, default=4, help="MVS source views per sample")
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    a = p.parse_args(argv)
+    torch.manual_seed(a.seed)
+    torch.set_num_threads(a.threads)
+    rng = np.random.default_rng(a.seed)
+    root = Path(a.data)
+    train = load_split(root, "train")
+    arch_args = {"max_disparity": 96} if a.net == "stereo" else {"n_planes": 32, "min_depth": 0.3, "max_depth": 15.0}
+    net = weights.build(a.net, arch_args).to(a.device).train()
+    opt = torch.optim.AdamW(net.parameters(), lr=a.lr, weight_decay=1e-4)
+    budget, wall_cap = a.minutes * 60.0, a.max_wall_minutes * 60.0
+    curve_path = Path(a.out).with_suffix(".curve.csv")
+    curve_path.parent.mkdir(parents=True, exist_ok=True)
+    curve = open(curve_path, "w")
+    curve.write("step,elapsed_s,lr,loss\n")
+    t0, c0, step, smooth = time.time(), time.process_time(), 0, None
+    # progress: the larger of CPU time over its budget and wall time over its cap (shared, busy machines)
+    while (progress := max((time.process_time() - c0) / budget, (time.time() - t0) / wall_cap)) < 1.0:
+        elapsed = time.time() - t0
+        lr = a.lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * progress)))
+        for g in opt.param_groups:
+            g["lr"] = lr
+        if a.net == "stereo":
+            left, right, u_gt = (x.to(a.device) for x in stereo_batch(train, rng, a.batch, tuple(a.crop)))
+            valid = torch.isfinite(u_gt) & (u_gt > 0.5) & (u_gt < net.max_disparity - 1)
+            u, su = net(left, right)
+            loss = stereo_loss(u, su, torch.nan_to_num(u_gt, posinf=0.0), valid)
+        else:
+            ref, src, K, T, prior, d_gt = (x.to(a.device) for x in mvs_batch(train, rng, a.batch, tuple(a.crop), a.sources))
+            valid = torch.isfinite(d_gt) & (d_gt > net.min_depth) & (d_gt < net.max_depth)
+            ld, sl = net(ref, src, K, T, prior)
+            loss = mvs_loss(ld, sl, torch.nan_to_num(d_gt, nan=1.0, posinf=1.0), valid)
+        opt.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), 5.0)
+        opt.step()
+        step += 1
+        if step % 200 == 0 and len(list((root / "train").glob("scene_*.npz"))) > len(train):
+            train = load_split(root, "train")  # scenes still rendering when training started join in
+        smooth = loss.item() if smooth is None else 0.95 * smooth + 0.05 * loss.item()
+        curve.write(f"{step},{elapsed:.1f},{lr:.3g},{loss.item():.5f}\n")
+        if step % 25 == 0:
+            curve.flush()
+            print(f"[{a.net}] step {step} wall {elapsed:.0f}s cpu {time.process_time() - c0:.0f}s lr {lr:.2g} "
+                  f"loss {smooth:.4f}", flush=True)
+    curve.close()
+    net.eval()
+    val = load_split(root, "val")  # loaded only now: it may still be rendering when training starts
+    est, sig, gt = evaluate(net, a.net, val, a.sources, a.device)
+    gain = calibration_gain(est, sig, gt)
+    val_raw = depth_metrics(est, sig, gt)
+    val_cal = depth_metrics(est, sig * gain, gt)
+    print(f"[{a.net}] {step} steps in {time.time() - t0:.0f}s; val gain {gain:.4f}; calibrated {val_cal}", flush=True)
+    data_meta = json.loads((root / "dataset.json").read_text()) if (root / "dataset.json").is_file() else {}
+    weights.save(net.cpu(), a.out, a.net, arch_args, {
+        "gain": gain, "gain_domain": "depth sigma [m] (mean |d - d_gt| / (gain sigma) = 1 on val)",
+        "command": "python -m tools.depth.train " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "seed": a.seed, "steps": step, "train_wall_s": round(time.time() - t0), "train_cpu_s": round(time.process_time() - c0), "device": a.device,
+        "threads": a.threads, "data": {"root": str(root), "train_scenes": [s["name"] for s in train],
+                                       "val_scenes": [s["name"] for s in val], **data_meta},
+        "val_uncalibrated": val_raw, "val_calibrated": val_cal, "curve": curve_path.name,
+        "torch": torch.__version__})
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
