@@ -40,6 +40,7 @@ class SubmapConfig:
 
     eps_vol: float = param(0.2, "a new submap starts when the observed fraction of sampled frustum points falls below this")
     overlap_samples: int = param(512, "points sampled in the depth frustum to estimate the overlap")
+    overlap_reference: str = param("anchor", "overlap with 'anchor' (the space seen by the submap's first frame) or 'submap' (everything integrated so far, which keeps growing under smooth motion and then rarely splits)")
     min_frames: int = param(3, "frames integrated into a submap before it may be closed")
     mesh_chunk_blocks: int = param(4, "blocks per edge of a meshing chunk (only chunks with changed blocks are re-meshed)")
     keyframe_bind_tolerance_s: float = param(1.0, "a submap follows the keyframe nearest its creation time if within this", "s")

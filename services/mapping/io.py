@@ -44,6 +44,9 @@ def save_map(mapper: SubmapMapper, path: str | Path) -> Path:
                                 "keyframe_id": sm.keyframe_id})
         arrays[f"s{sm.id}/T_WM"] = sm.T_WM
         arrays[f"s{sm.id}/T_KM"] = sm.T_KM
+        if sm.anchor_view is not None:
+            for k, v in zip(("anchor_depth", "anchor_K", "anchor_T_MC"), sm.anchor_view):
+                arrays[f"s{sm.id}/{k}"] = v
         for k, v in sm.store.arrays().items():
             arrays[f"s{sm.id}/{k}"] = v
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
@@ -68,6 +71,8 @@ def load_map(path: str | Path) -> SubmapMapper:
         sm = mapper.new_submap(sub["T_WM"], info["anchor_stamp_ns"])
         sm.store = BlockStore.from_arrays(sub)
         sm.n_frames, sm.keyframe_id, sm.T_KM = info["n_frames"], info["keyframe_id"], sub["T_KM"]
+        if "anchor_depth" in sub:
+            sm.anchor_view = (sub["anchor_depth"], sub["anchor_K"], sub["anchor_T_MC"])
         sm.mesher.mark(sm.store, sm.store.refined_slots())
     return mapper
 

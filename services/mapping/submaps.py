@@ -33,6 +33,7 @@ class Submap:
     keyframe_id: int = -1  # keyframe this submap follows (-1: not bound yet)
     T_KM: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
     pose_version: int = 0  # incremented when T_WM changes
+    anchor_view: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # first frame: (depth 1/4 size, K, T_MC)
 
     def field(self) -> BlockField:
         return BlockField.of(self.store)
@@ -53,6 +54,8 @@ class SubmapMapper:
         self.sensor = sensor or SensorModelConfig()
         self.sensor.check()
         self.cfg = submaps or SubmapConfig()
+        if self.cfg.overlap_reference not in ("anchor", "submap"):
+            raise ValueError(f"overlap_reference must be 'anchor' or 'submap', got {self.cfg.overlap_reference!r}")
         self.submaps: list[Submap] = []
         self._rng = np.random.default_rng(seed)
 
@@ -68,7 +71,8 @@ class SubmapMapper:
 
     def overlap(self, submap: Submap, depth: np.ndarray, K: np.ndarray, T_WC: np.ndarray) -> float:
         """Fraction of points sampled uniformly in the observed frustum (random valid pixel, random range
-        between near and its depth) that fall in observed voxels of ``submap``."""
+        between near and its depth) that lie in space the submap has observed: its observed voxels
+        (reference 'submap') or the free/surface space of its first frame (reference 'anchor')."""
         v, u = np.nonzero(np.isfinite(depth))
         if len(u) == 0:
             return float("nan")
@@ -78,7 +82,20 @@ class SubmapMapper:
         p_C = np.column_stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z])
         T_MC = inv_T(submap.T_WM) @ T_WC
         p_M = p_C @ T_MC[:3, :3].T + T_MC[:3, 3]
-        return float(np.mean(state(submap.field(), p_M) != UNKNOWN))
+        if self.cfg.overlap_reference == "submap" or submap.anchor_view is None:
+            return float(np.mean(state(submap.field(), p_M) != UNKNOWN))
+        d_a, K_a, T_MA = submap.anchor_view
+        T_AM = inv_T(T_MA)
+        p_A = p_M @ T_AM[:3, :3].T + T_AM[:3, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ua = np.floor(K_a[0, 0] * p_A[:, 0] / p_A[:, 2] + K_a[0, 2] + 0.5)
+            va = np.floor(K_a[1, 1] * p_A[:, 1] / p_A[:, 2] + K_a[1, 2] + 0.5)
+        h, w = d_a.shape
+        inside = (p_A[:, 2] > self.sensor.near_m) & (ua >= 0) & (ua < w) & (va >= 0) & (va < h)
+        seen = np.zeros(len(p_A), bool)
+        ui, vi = ua[inside].astype(np.int64), va[inside].astype(np.int64)
+        seen[inside] = p_A[inside, 2] <= d_a[vi, ui] + 3.0 * self.sensor.sigma_min_m  # NaN depth: not seen
+        return float(np.mean(seen))
 
     def integrate(self, depth: np.ndarray, sigma: np.ndarray | None, K: np.ndarray, T_WC: np.ndarray,
                   T_SC: np.ndarray, stamp_ns: int) -> FrameReport:
@@ -95,6 +112,11 @@ class SubmapMapper:
         if new:
             cur = self.new_submap(T_WC @ inv_T(T_SC), stamp_ns)
         T_MC = inv_T(cur.T_WM) @ T_WC
+        if cur.anchor_view is None:
+            K4 = K.copy()
+            K4[:2] /= 4.0
+            K4[:2, 2] = (K[:2, 2] - 1.0) / 4.0  # pixel 4 i + 1 of the full image is pixel i of the subsampled one
+            cur.anchor_view = (d[1::4, 1::4].copy(), K4, T_MC)
         res = integrate(cur.store, d, s, K, T_MC, self.sensor)
         cur.mesher.mark(cur.store, res.updated_slots)
         cur.n_frames += 1
