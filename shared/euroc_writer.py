@@ -15,8 +15,10 @@ def _yaml(path: Path, d: dict) -> None:
 
 
 def write_euroc(path: str | Path, camera_yaml: dict[str, dict], frames_iter, imu_array: np.ndarray,
-                imu_yaml: dict, groundtruth: PoseSeries | None = None) -> Path:
-    """frames_iter yields (stamp_ns, [img per camera]); imu_array (N, 7): t_ns, w xyz, a xyz. Returns mav0."""
+                imu_yaml: dict, groundtruth: PoseSeries | None = None, imu_stamps_ns: np.ndarray | None = None) -> Path:
+    """frames_iter yields (stamp_ns, [img per camera]); imu_array (N, 7): t_ns, w xyz, a xyz. Returns mav0.
+
+    ``imu_stamps_ns`` (N,) int64, when given, replaces column 0 (float64 cannot hold every ns stamp)."""
     root = Path(path) / "mav0"
     names = list(camera_yaml)
     files = {}
@@ -38,8 +40,10 @@ def write_euroc(path: str | Path, camera_yaml: dict[str, dict], frames_iter, imu
     with open(root / "imu0" / "data.csv", "w") as f:
         f.write("#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
                 "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]\n")
-        for r in np.asarray(imu_array):
-            f.write(f"{int(r[0])}," + ",".join(repr(float(x)) for x in r[1:]) + "\n")
+        rows = np.asarray(imu_array)
+        stamps = np.asarray(imu_stamps_ns, dtype=np.int64) if imu_stamps_ns is not None else rows[:, 0] if len(rows) else []
+        for t, r in zip(stamps, rows):
+            f.write(f"{int(t)}," + ",".join(repr(float(x)) for x in r[1:]) + "\n")
     if groundtruth is not None:
         (root / "state_groundtruth_estimate0").mkdir(parents=True, exist_ok=True)
         write_euroc_csv(root / "state_groundtruth_estimate0" / "data.csv", groundtruth)

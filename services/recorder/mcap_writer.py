@@ -161,6 +161,15 @@ class RecordingWriter:
                                    publish_time=max(int(msg.header.stamp_ns), 0), sequence=int(msg.header.seq) & 0xFFFFFFFF)
             self.mirror_messages += 1
 
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        """A named metadata record of string pairs (e.g. dataset calibration)."""
+        self._mcap.add_metadata(name, data)
+
+    def add_attachment(self, name: str, media_type: str, data: bytes, log_time_ns: int = 0) -> None:
+        """A file stored in the recording (e.g. ground truth, a mesh)."""
+        self._mcap.add_attachment(create_time=time.time_ns(), log_time=log_time_ns, name=name, media_type=media_type,
+                                  data=data)
+
     def flush(self) -> None:
         """Close the chunk in progress and hand it to the OS (it survives a SIGKILL from now on)."""
         self._mcap.flush()

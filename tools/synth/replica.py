@@ -209,7 +209,7 @@ def generate(spec: ReplicaSpec, out: str | Path, progress: bool = True) -> Path:
         for f in depth_csv.values():
             f.write("#timestamp [ns],filename\n")
         write_euroc(out, {c.name: y for c, y in zip(cams, cam_yamls)}, frames_iter(),
-                    np.column_stack([imu.stamps_ns, imu.omega_S, imu.acc_S]), imu_yaml)
+                    np.column_stack([imu.stamps_ns, imu.omega_S, imu.acc_S]), imu_yaml, imu_stamps_ns=imu.stamps_ns)
     finally:
         for f in depth_csv.values():
             f.close()
