@@ -5,7 +5,7 @@ headless Chromium (the system's /usr/bin/chromium, driven by Playwright) on the 
 Checks: the meshes are drawn (strongly coloured pixels in the 3D view that vanish when the 'meshes'
 layer is switched off), the Pause button publishes Control('pause') on `control` (seen by this test
 and by the publisher process), the export button writes the world mesh PLY with every submap, the
-viewer's subscriptions dropped nothing, and the page logged no errors. The screenshot is kept in
+stats panel lists the publisher's and the viewer's stages, the viewer's subscriptions dropped nothing, and the page logged no errors. The screenshot is kept in
 out/viewer/browser_test.png.
 """
 
@@ -161,6 +161,11 @@ def test_viewer_page_draws_meshes_and_controls_work(stack):
             mesh = trimesh.load(ply, process=False)
             assert (len(mesh.vertices), len(mesh.faces)) == (DEMO_VERTICES, DEMO_FACES)
             page.get_by_text("world_mesh-").wait_for(timeout=10_000)  # the page reports the written file
+
+            # stats panel: rows of the publisher process (stage 'publish') and of the viewer itself ('draw')
+            page.get_by_text("Stats", exact=True).click()
+            page.get_by_role("cell", name="publish", exact=True).wait_for(timeout=10_000)
+            page.get_by_role("cell", name="draw", exact=True).wait_for(timeout=10_000)
         finally:
             browser.close()
 
