@@ -126,3 +126,34 @@ def test_lab_cleans_up_after_an_error() -> None:
             assert len(lab.exists()) == 2
             raise RuntimeError("boom")
     assert lab.exists() == []
+
+
+def test_multihost_configs_router_per_host(tmp_path: Path) -> None:
+    """configs/multihost as shipped: a router per host linked to the hub's; 'hub' resolves to the hub host."""
+    out = tmp_path / "hub.mcap"
+    hub, robot, gpu = (f"configs/multihost/{h}.yaml" for h in ("hub", "robot", "gpu"))
+    with NetnsLab(("robot", "gpu")) as lab:
+        hub_router = _popen(lab, lab.router_ns, [*SIGMASLAM, "router", hub])
+        _wait_output(hub_router, "listening")
+        for host, cfg in (("robot", robot), ("gpu", gpu)):
+            _wait_output(_popen(lab, lab.ns[host], [*SIGMASLAM, "router", cfg]), "listening")
+        # the robot's router listens on its loopback only: not reachable from the hub host
+        assert _health(lab, lab.router_ns, "router", f"transport.connect=[tcp/{lab.host_ip('robot')}:7447]",
+                       timeout=3).returncode == 1
+        talker = _popen(lab, lab.ns["robot"], [sys.executable, "-c", TALKER, "sigmaslam/robot0", "tcp/127.0.0.1:7447"])
+        recorder = _popen(lab, lab.router_ns, [*SIGMASLAM, "record", hub, "--out", str(out)])
+        _wait_output(recorder, "recording")
+        h = subprocess.run(["ip", "netns", "exec", lab.ns["gpu"], *SIGMASLAM, "health", "talker", gpu, "--timeout", "8"],
+                           cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=60)
+        assert h.returncode == 0, h.stderr  # robot -> robot router -> hub -> gpu router -> gpu
+        h = subprocess.run(["ip", "netns", "exec", lab.ns["robot"], *SIGMASLAM, "health", "recorder", robot,
+                            "--timeout", "8"], cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=60)
+        assert h.returncode == 0, h.stderr
+        time.sleep(1.0)
+        recorder.terminate()
+        assert recorder.wait(15) == 0
+        assert talker.poll() is None
+    states = [m for k, _t, m in read_recording(out) if k == "sigmaslam/robot0/estimator/state"]
+    depths = [m for k, _t, m in read_recording(out) if k == "sigmaslam/robot0/depth/fused"]
+    assert len(states) >= 15 and isinstance(states[0], EstimatorState)
+    assert len(depths) >= 4 and depths[-1].depth.shape == (384, 512)

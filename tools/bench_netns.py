@@ -8,6 +8,8 @@ tools.bench_netns --role send|recv``). Cases:
 * ``netns client``: the router in its own network namespace, sender and receiver each in another
   one, linked to the router's by veth pairs (:mod:`tools.netns_lab`; needs root) -- the multi-host
   layout of configs/multihost, with the kernel's veth in place of a wire;
+* ``netns 3 routers``: the configs/multihost layout: a router per host, linked to the hub router,
+  sender and receiver clients of their own host's router (three router hops);
 * ``host peer+shm``: the default single-host deployment (peers talking directly, shared memory), for reference.
 
 Payloads: ``estimator/state`` (an EstimatorState, ~2.3 KB, at 30 Hz) and ``depth/fused`` (a
@@ -142,14 +144,21 @@ def _wait_line(proc: subprocess.Popen, needle: str, timeout: float = 20.0) -> No
     raise RuntimeError(f"child did not print {needle!r} (rc {proc.poll()}): {proc.stderr.read()[-1500:] if proc.poll() is not None else ''}")
 
 
-def run_case(args: argparse.Namespace, name: str, start, router_listen: str, send_connect: str,
+def _router_argv(listen: str, connect: str = "") -> list[str]:
+    argv = [sys.executable, "-m", "services.cli", "router", "--listen", listen]
+    return argv + (["--set", f"transport.router_connect=[{connect}]"] if connect else [])
+
+
+def run_case(args: argparse.Namespace, name: str, start, routers: list[tuple[object, list[str]]], send_connect: str,
              recv_connect: str, send_where, recv_where, mode: str, shm: bool) -> list[dict]:
-    """One router, then for each payload a receiver and a sender; ``start(where, argv)`` starts a process."""
+    """The routers, then for each payload a receiver and a sender; ``start(where, argv, popen_kw)`` starts a process."""
     pipe = dict(stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO, env=_env())
-    router = start(None, [sys.executable, "-m", "services.cli", "router", "--listen", router_listen], pipe)
+    started = []
     rows = []
     try:
-        _wait_line(router, "listening")
+        for where, argv in routers:
+            started.append(start(where, argv, pipe))
+            _wait_line(started[-1], "listening")
         for payload, (_topic, rate) in PAYLOADS.items():
             ns = f"sigmaslam/bench-{uuid.uuid4().hex[:8]}"
             common = dict(payload=payload, namespace=ns, mode=mode, shm=int(shm), rate=rate)
@@ -163,11 +172,12 @@ def run_case(args: argparse.Namespace, name: str, start, router_listen: str, sen
                              payload_bytes=sent["payload_bytes"], sent=sent["sent"], delivered=len(lat),
                              drops=sent["sent"] - len(lat)))
     finally:
-        router.terminate()
-        try:
-            router.wait(5.0)
-        except subprocess.TimeoutExpired:
-            router.kill()
+        for router in started:
+            router.terminate()
+            try:
+                router.wait(5.0)
+            except subprocess.TimeoutExpired:
+                router.kill()
     return rows
 
 
@@ -183,19 +193,27 @@ def benchmark(args: argparse.Namespace) -> dict:
         return subprocess.Popen(argv, **kw)
 
     result = {"duration_s": args.duration, "rows": []}
-    result["rows"] += run_case(args, "host client", start_local, local, local, local, None, None, "client", False)
+    result["rows"] += run_case(args, "host client", start_local, [(None, _router_argv(local))], local, local,
+                               None, None, "client", False)
     reason = unavailable_reason()
     if reason is None:
         with NetnsLab(("sender", "receiver")) as lab:
             def start_ns(where, argv, kw):
                 return lab.popen(lab.router_ns if where is None else lab.ns[where], argv, **kw)
 
-            result["rows"] += run_case(args, "netns client", start_ns, "tcp/0.0.0.0:7447", lab.endpoint("sender"),
+            hub = [(None, _router_argv("tcp/0.0.0.0:7447"))]
+            result["rows"] += run_case(args, "netns client", start_ns, hub, lab.endpoint("sender"),
                                        lab.endpoint("receiver"), "sender", "receiver", "client", False)
+            # configs/multihost: a router per host linked to the hub; services are clients of their own router
+            per_host = hub + [(h, _router_argv("tcp/127.0.0.1:7447", lab.endpoint(h))) for h in ("sender", "receiver")]
+            loop = "tcp/127.0.0.1:7447"
+            result["rows"] += run_case(args, "netns 3 routers", start_ns, per_host, loop, loop, "sender", "receiver",
+                                       "client", False)
     else:
         result["netns_skipped"] = reason
     if not args.skip_peer:
-        result["rows"] += run_case(args, "host peer+shm", start_local, local, local, local, None, None, "peer", True)
+        result["rows"] += run_case(args, "host peer+shm", start_local, [(None, _router_argv(local))], local, local,
+                                   None, None, "peer", True)
     return result
 
 
@@ -203,11 +221,11 @@ def format_table(result: dict) -> str:
     def f(v) -> str:
         return "    -  " if v is None else f"{v:7.3f}"
 
-    lines = [f"{'case':<15} {'topic':<16} {'bytes':>8} {'rate':>5} {'p50 ms':>7} {'p90 ms':>7} {'p99 ms':>7} "
+    lines = [f"{'case':<16} {'topic':<16} {'bytes':>8} {'rate':>5} {'p50 ms':>7} {'p90 ms':>7} {'p99 ms':>7} "
              f"{'max ms':>7} {'delivered':>10}"]
     for r in result["rows"]:
         topic = PAYLOADS[r["payload"]][0].key
-        lines.append(f"{r['case']:<15} {topic:<16} {r['payload_bytes']:>8} {r['rate_hz']:>5g} {f(r['p50_ms'])} "
+        lines.append(f"{r['case']:<16} {topic:<16} {r['payload_bytes']:>8} {r['rate_hz']:>5g} {f(r['p50_ms'])} "
                      f"{f(r['p90_ms'])} {f(r['p99_ms'])} {f(r['max_ms'])} {str(r['delivered']) + '/' + str(r['sent']):>10}")
     if "netns_skipped" in result:
         lines.append(f"netns case skipped: {result['netns_skipped']}")

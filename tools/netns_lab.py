@@ -19,6 +19,7 @@ import os
 import shutil
 import subprocess
 import uuid
+from pathlib import Path
 from typing import Sequence
 
 ROUTER_PORT = 7447
@@ -43,7 +44,9 @@ def unavailable_reason() -> str | None:
 class NetnsLab:
     """Router namespace plus one namespace per host, each host linked to the router by a veth pair."""
 
-    def __init__(self, hosts: Sequence[str] = ("a", "b")) -> None:
+    def __init__(self, hosts: Sequence[str] = ("a", "b"), router_names: Sequence[str] = ("hub", "router")) -> None:
+        """``router_names``: host names that resolve to the router host inside every host namespace
+        (through ``/etc/netns/<ns>/hosts``, which ``ip netns exec`` mounts over /etc/hosts)."""
         if not hosts or len(set(hosts)) != len(hosts):
             raise ValueError(f"hosts must be distinct names, got {hosts!r}")
         tag = uuid.uuid4().hex[:6]
@@ -52,6 +55,7 @@ class NetnsLab:
         self.ns = {h: f"ss{tag}h{i}" for i, h in enumerate(hosts)}
         self._links = {h: (f"ss{tag}r{i}", f"ss{tag}h{i}", f"10.77.{i + 1}.1", f"10.77.{i + 1}.2")
                        for i, h in enumerate(hosts)}
+        self.router_names = tuple(router_names)
         self._created: list[str] = []
         self._procs: list[subprocess.Popen] = []
 
@@ -103,6 +107,10 @@ class NetnsLab:
             self._ip("-n", ns, "addr", "add", f"{h_ip}/24", "dev", h_if)
             self._ip("-n", self.router_ns, "link", "set", r_if, "up")
             self._ip("-n", ns, "link", "set", h_if, "up")
+            if self.router_names:
+                etc = Path("/etc/netns") / ns
+                etc.mkdir(parents=True, exist_ok=True)
+                (etc / "hosts").write_text(f"127.0.0.1 localhost\n{r_ip} {' '.join(self.router_names)}\n")
 
     def popen(self, ns: str, argv: Sequence[str], **kwargs: object) -> subprocess.Popen:
         """Start ``argv`` inside namespace ``ns`` (``ip netns exec`` execs it: the pid is the command's).
@@ -131,6 +139,7 @@ class NetnsLab:
         self._procs.clear()
         for name in reversed(self._created):
             subprocess.run(["ip", "netns", "del", name], capture_output=True)
+            shutil.rmtree(Path("/etc/netns") / name, ignore_errors=True)
         self._created.clear()
 
     def exists(self) -> list[str]:

@@ -21,6 +21,7 @@ class TransportConfig:
     connect: list[str] = param(["tcp/127.0.0.1:7447"], "endpoints to connect to (the router)")
     listen: list[str] = param(["tcp/127.0.0.1:0"], "endpoints this session listens on (port 0: any free port)")
     router_listen: list[str] = param(["tcp/127.0.0.1:7447"], "endpoints the router session listens on")
+    router_connect: list[str] = param([], "other routers this router links to (multi-host: each host's router connects to the hub's)")
     multicast_scouting: bool = param(False, "discover peers by UDP multicast (off: explicit endpoints only)")
     shared_memory: bool = param(True, "use Zenoh shared memory for large payloads between processes on one host")
     shm_threshold_bytes: int = param(65536, "payloads at least this large go through shared memory", "B")
