@@ -11,6 +11,7 @@ from pathlib import Path
 
 from shared.config import from_dict, load_yaml, merge, param, parse_override
 from services.depth.config import DepthConfig
+from services.mapping.config import MappingConfig
 from services.recorder.config import RecorderConfig
 from services.supervisor import SupervisorConfig
 from services.viewer.config import ViewerConfig
@@ -26,6 +27,7 @@ class SystemConfig:
     supervisor: SupervisorConfig = param(SupervisorConfig(), "processes started by sigmaslam up")
     viewer: ViewerConfig = param(ViewerConfig(), "viser web viewer (sigmaslam viewer)")
     depth: DepthConfig = param(DepthConfig(), "stereo/MVS depth with learned uncertainty (sigmaslam depth)")
+    mapping: MappingConfig = param(MappingConfig(), "occupancy submapping (sigmaslam mapping)")
 
 
 def load_system_config(path: str | Path | None = None, overrides: list[str] | None = None) -> SystemConfig:
