@@ -157,3 +157,17 @@ def test_multihost_configs_router_per_host(tmp_path: Path) -> None:
     depths = [m for k, _t, m in read_recording(out) if k == "sigmaslam/robot0/depth/fused"]
     assert len(states) >= 15 and isinstance(states[0], EstimatorState)
     assert len(depths) >= 4 and depths[-1].depth.shape == (384, 512)
+
+
+def test_bench_netns_delivers_every_message_in_each_layout() -> None:
+    import argparse
+
+    from tools.bench_netns import benchmark, format_table
+
+    result = benchmark(argparse.Namespace(duration=0.5, skip_peer=True))
+    cases = {(r["case"], r["payload"]) for r in result["rows"]}
+    assert cases == {(c, p) for c in ("host client", "netns client", "netns 3 routers") for p in ("state", "depth")}
+    for r in result["rows"]:
+        assert r["sent"] > 0 and r["delivered"] == r["sent"], r
+        assert 0 < r["p50_ms"] < 1000.0
+    assert "netns 3 routers" in format_table(result)

@@ -229,7 +229,8 @@ def format_table(result: dict) -> str:
                      f"{f(r['p90_ms'])} {f(r['p99_ms'])} {f(r['max_ms'])} {str(r['delivered']) + '/' + str(r['sent']):>10}")
     if "netns_skipped" in result:
         lines.append(f"netns case skipped: {result['netns_skipped']}")
-    lines.append(f"one-way latency over {result['duration_s']:g} s per case; client cases route every message through the router")
+    lines.append(f"one-way latency over {result['duration_s']:g} s per case and topic; 'client' and 'routers' cases route "
+                 "every message through the router(s), no shared memory")
     return "\n".join(lines)
 
 
