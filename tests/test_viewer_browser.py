@@ -12,12 +12,10 @@ out/viewer/browser_test.png.
 from __future__ import annotations
 
 import os
-import shutil
 import signal
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 
 import cv2
@@ -31,14 +29,9 @@ from services.viewer.config import ViewerConfig
 from shared import messages as m, topics
 from shared.config import to_yaml
 from transport.pubsub import Subscriber
+from tools.viewer_screenshot import CHROMIUM, CHROMIUM_ARGS, VIEWPORT
 from transport.session import open_session
 
-CHROMIUM = "/usr/bin/chromium"
-# Software WebGL (SwiftShader through ANGLE): headless Chromium without a GPU needs both flags for WebGL.
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                 "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
-VIEWPORT = {"width": 1280, "height": 800}
 PANEL_X = VIEWPORT["width"] - 420  # the control panel is right of this; the 3D view is checked left of it
 FULL = os.environ.get("SIGMASLAM_E2E") == "full"
 SHOT = REPO / "out" / "viewer" / "browser_test.png"

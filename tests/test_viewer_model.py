@@ -17,7 +17,7 @@ from services.viewer.tracks import CHUNK, ChunkedTrajectory, GroundTruthOverlay,
 from shared import messages as m
 from shared.camera import CameraCalib, CameraModel
 from shared.euroc import PoseSeries
-from shared.geometry import R_to_quat_wxyz, make_T, so3_exp, transform_points
+from shared.geometry import make_T, so3_exp, transform_points
 
 
 def H(t: int = 0, frame: str = "W") -> m.Header:

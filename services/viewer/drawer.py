@@ -12,7 +12,6 @@ import numpy as np
 import trimesh
 import viser
 
-from services.viewer.colors import submap_color
 from services.viewer.scene_model import MeshData, SceneUpdate, ViewerModel
 from services.viewer.submaps import COLOR_MODES, write_ply
 from shared.geometry import R_to_quat_wxyz, transform_points
