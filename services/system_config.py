@@ -10,11 +10,15 @@ import dataclasses
 from pathlib import Path
 
 from shared.config import from_dict, load_yaml, merge, param, parse_override
+from services.backend.config import BackendConfig
 from services.depth.config import DepthConfig
+from services.frontend.config import FrontendConfig
 from services.mapping.config import MappingConfig
+from services.player.config import PlayerConfig
 from services.recorder.config import RecorderConfig
 from services.supervisor import SupervisorConfig
 from services.viewer.config import ViewerConfig
+from shared.rig import RigConfig
 from transport.config import TransportConfig
 
 
@@ -26,8 +30,12 @@ class SystemConfig:
     recorder: RecorderConfig = param(RecorderConfig(), "MCAP recorder (sigmaslam record)")
     supervisor: SupervisorConfig = param(SupervisorConfig(), "processes started by sigmaslam up")
     viewer: ViewerConfig = param(ViewerConfig(), "viser web viewer (sigmaslam viewer)")
+    rig: RigConfig = param(RigConfig(), "camera rig calibration used by the pipeline services")
+    frontend: FrontendConfig = param(FrontendConfig(), "multi-camera feature tracker (sigmaslam frontend)")
+    backend: BackendConfig = param(BackendConfig(), "visual-inertial estimator (sigmaslam backend)")
     depth: DepthConfig = param(DepthConfig(), "stereo/MVS depth with learned uncertainty (sigmaslam depth)")
     mapping: MappingConfig = param(MappingConfig(), "occupancy submapping (sigmaslam mapping)")
+    player: PlayerConfig = param(PlayerConfig(), "dataset player: pacing of sensors/imu and sensors/frame (sigmaslam player)")
 
 
 def load_system_config(path: str | Path | None = None, overrides: list[str] | None = None) -> SystemConfig:

@@ -43,26 +43,33 @@ class BoxRoom:
         tmin = t[np.arange(len(t)), axis]
         return origin[None] + tmin[:, None] * dirs, axis
 
-    def shade(self, p: np.ndarray, axis: np.ndarray) -> np.ndarray:
-        """Texture value at wall points p (N,3) of wall axis (N,)."""
+    def texcoords(self, p: np.ndarray, axis: np.ndarray) -> np.ndarray:
+        """Texture pixel coordinates (N,2) of wall points p (N,3) on walls of axis (N,); each wall its own offset."""
         other = np.array([[1, 2], [0, 2], [0, 1]])[axis]
-        uv = np.take_along_axis(p, other, axis=1) / TEXEL_M + 173.0 * axis[:, None] + 311.0 * (p[np.arange(len(p)), axis] > 0)[:, None]
+        side = (p[np.arange(len(p)), axis] > 0)[:, None]
+        return np.take_along_axis(p, other, axis=1) / TEXEL_M + 173.0 * axis[:, None] + 311.0 * side
+
+    def shade(self, p: np.ndarray, axis: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+        """Texture values (shape) at wall points p (N,3), N = prod(shape), sampled bilinearly (wrapping)."""
         n = self.tex.shape[0]
-        x0, y0 = np.floor(uv[:, 0]), np.floor(uv[:, 1])
-        fx, fy = uv[:, 0] - x0, uv[:, 1] - y0
-        x0, y0 = x0.astype(np.int64) % n, y0.astype(np.int64) % n
-        x1, y1 = (x0 + 1) % n, (y0 + 1) % n
-        t = self.tex
-        return ((1 - fy) * ((1 - fx) * t[y0, x0] + fx * t[y0, x1]) + fy * ((1 - fx) * t[y1, x0] + fx * t[y1, x1]))
+        uv = np.mod(self.texcoords(p, axis), n).astype(np.float32)
+        return cv2.remap(self.tex, uv[:, 0].reshape(shape), uv[:, 1].reshape(shape), cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_WRAP)
+
+
+_RAYS: dict = {}
 
 
 def render(room: BoxRoom, calib: CameraCalib, T_WS: np.ndarray) -> np.ndarray:
     """Grayscale image (H,W) uint8 of the room seen by ``calib`` on the body at ``T_WS``."""
     cam = calib.camera
+    key = (id(calib.camera), cam.width, cam.height)
+    if key not in _RAYS:  # unprojection of every pixel, once per camera
+        _RAYS[key] = (calib.camera, cam.unproject(cam.pixel_grid()))
     T_WC = T_WS @ calib.T_SC
-    rays = cam.unproject(cam.pixel_grid()) @ T_WC[:3, :3].T
+    rays = _RAYS[key][1] @ T_WC[:3, :3].T
     p, axis = room.hit(T_WC[:3, 3], rays)
-    img = room.shade(p, axis).reshape(cam.height, cam.width)
+    img = room.shade(p, axis, (cam.height, cam.width))
     return np.clip(np.round(img), 0, 255).astype(np.uint8)
 
 

@@ -45,3 +45,6 @@ class BackendConfig:
     static_acc_std: float = param(0.08, "... and the accelerometer std below this", "m/s^2")
     compute_covariance: bool = param(True, "compute the 15x15 marginal covariance of every frame (else NaN except "
                                      "when a keyframe is marginalised; saves ~5 ms per frame)")
+    # --- service ---
+    budget_ms: float = param(18.0, "per-frame budget of the optimisation stage (stats topic)", "ms")
+    imu_wait_s: float = param(0.5, "how long a feature frame waits for the IMU samples up to its time", "s")

@@ -42,3 +42,6 @@ class FrontendConfig:
     # --- descriptors ---
     orb_descriptors: bool = param(True, "compute ORB descriptors of the tracked features at every keyframe")
     keyframe_store: int = param(2000, "keyframes whose descriptors are kept (oldest dropped first)")
+    # --- service ---
+    budget_ms: float = param(15.0, "per-frame budget of the tracking stage (stats topic)", "ms")
+    imu_wait_s: float = param(0.05, "how long a frame waits for the gyro samples up to its time", "s")

@@ -1,0 +1,106 @@
+"""``sigmaslam backend [CONFIG]``: sensors/imu (keep-all) + frontend/frame -> estimator/state (every frame),
+estimator/keyframes (after each optimisation).
+
+Thin shell around :class:`services.backend.estimator.WindowedVioEstimator`. A feature frame waits up to
+``backend.imu_wait_s`` for the IMU samples up to its time (they travel on their own topic); a frame the
+estimator refuses (bad arrays, time going backwards, IMU gap) is dropped, counted and logged, never fatal.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+
+import numpy as np
+
+from services.backend.estimator import BackendInputError, WindowedVioEstimator, camera_from_calib
+from services.backend.imu_factors import ImuDataError
+from services.backend.outputs import keyframes_message, state_message
+from services.system_config import load_system_config
+from shared import topics
+from shared.camera import CalibrationError
+from shared.messages import EstimatorState, FeatureFrame, Header, Keyframes
+from shared.rig import load_rig_config
+from transport.node import Node
+from transport.queues import Empty
+
+log = logging.getLogger("sigmaslam.backend")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("config", nargs="?", help="YAML system config (default: built-in defaults)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config field")
+
+
+class BackendShell:
+    """Per-frame logic of the service without the transport."""
+
+    def __init__(self, cfg, cameras) -> None:
+        self.estimator = WindowedVioEstimator(cfg, [camera_from_calib(c) for c in cameras])
+        self.dropped = 0
+        self.seq = 0
+        self.newest_imu_ns = -1
+
+    def add_imu(self, sample) -> None:
+        self.estimator.add_imu(int(sample.header.stamp_ns), sample.omega_S, sample.acc_S)
+        self.newest_imu_ns = max(self.newest_imu_ns, int(sample.header.stamp_ns))
+
+    def process(self, frame: FeatureFrame) -> tuple[EstimatorState, Keyframes | None] | None:
+        stamp = int(frame.header.stamp_ns)
+        try:
+            res = self.estimator.process_frame(stamp, frame.landmark_ids, frame.camera_index, frame.uv,
+                                               bool(frame.is_keyframe))
+        except (BackendInputError, ImuDataError) as exc:
+            self.dropped += 1
+            log.warning("feature frame %d dropped (%d so far): %s", stamp, self.dropped, exc)
+            return None
+        if res is None:  # not initialised yet (needs IMU before the first frame): say so, for lockstep players
+            msg = EstimatorState(header=Header(stamp_ns=stamp, seq=self.seq, frame_id="W"), T_WS=np.eye(4),
+                                 v_W=np.zeros(3), gyro_bias=np.zeros(3), acc_bias=np.zeros(3),
+                                 covariance=np.full((15, 15), np.nan), status="initialising")
+            self.seq += 1
+            return msg, None
+        msgs = state_message(res, self.seq), keyframes_message(res, self.seq)
+        self.seq += 1
+        return msgs
+
+
+def main(args: argparse.Namespace) -> int:
+    cfg = load_system_config(args.config, args.set)
+    try:
+        cameras = load_rig_config(cfg.rig)
+    except (CalibrationError, FileNotFoundError) as exc:
+        print(f"sigmaslam backend: {exc}", flush=True)
+        return 2
+    bc = cfg.backend
+    shell = BackendShell(bc, cameras)
+    with Node("backend", cfg.transport) as node:
+        imu = node.subscriber(topics.IMU)
+        features = node.subscriber(topics.FEATURES)
+        state_pub = node.publisher(topics.STATE)
+        kf_pub = node.publisher(topics.KEYFRAMES)
+        timer = node.timer("optimise", budget_ms=bc.budget_ms)
+        log.info("backend: %d cameras", len(cameras))
+        while not node.stopped:
+            try:
+                frame = features.get(timeout=0.1)
+            except Empty:
+                for s in imu.drain():
+                    shell.add_imu(s)
+                continue
+            stamp = int(frame.header.stamp_ns)
+            deadline = time.monotonic() + bc.imu_wait_s
+            for s in imu.drain():
+                shell.add_imu(s)
+            while shell.newest_imu_ns < stamp and time.monotonic() < deadline and not node.stopped:
+                time.sleep(0.002)
+                for s in imu.drain():
+                    shell.add_imu(s)
+            with timer:
+                msgs = shell.process(frame)
+            if msgs is not None:
+                state_pub.publish(msgs[0])
+                if msgs[1] is not None:
+                    kf_pub.publish(msgs[1])
+    return 0
