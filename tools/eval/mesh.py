@@ -87,12 +87,12 @@ def evaluate_points(est: np.ndarray, gt: np.ndarray, voxel_m: float = 0.01, icp:
 
 
 def error_colors(d: np.ndarray, max_m: float = 0.1) -> np.ndarray:
-    """uint8 RGB per distance: blue (0) through green and yellow to red (>= max_m)."""
+    """uint8 RGB per distance: blue (0) through green (max_m / 2) to red (>= max_m)."""
     x = np.clip(np.asarray(d, float) / max_m, 0.0, 1.0)
-    r = np.clip(2 * x, 0, 1)
-    g = np.clip(2 - 2 * x, 0, 1) * np.clip(2 * x + 0.3, 0, 1)
+    r = np.clip(2 * x - 1, 0, 1)
+    g = 1 - np.abs(2 * x - 1)
     b = np.clip(1 - 2 * x, 0, 1)
-    return (np.stack([r, g, b], axis=1) * 255).astype(np.uint8)
+    return np.round(np.stack([r, g, b], axis=1) * 255).astype(np.uint8)
 
 
 def write_error_mesh(est_path: str | Path, gt_points: np.ndarray, T_gt_est: np.ndarray, out_ply: str | Path,

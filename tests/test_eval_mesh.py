@@ -1,0 +1,61 @@
+"""Mesh accuracy/completeness (paper sec. V protocol) on shapes with known answers, and the CLI."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from tests.helpers_zenoh import REPO, child_env
+from tools.eval.mesh import error_colors, evaluate_mesh_files, evaluate_points, load_points
+
+
+def sphere(r: float, res: int = 60) -> o3d.geometry.TriangleMesh:
+    return o3d.geometry.TriangleMesh.create_sphere(r, resolution=res)
+
+
+def test_scaled_sphere_accuracy_is_the_radius_gap():
+    gt = np.asarray(sphere(0.5).sample_points_uniformly(60000).points)
+    est = np.asarray(sphere(0.53).sample_points_uniformly(30000).points)
+    res = evaluate_points(est, gt, icp=True)
+    # ICP cannot remove a scale error: every estimated point is 3 cm off the surface
+    assert res.accuracy_m == pytest.approx(0.03, abs=0.004)
+    assert res.completeness == 1.0 and res.completeness_5cm == 1.0
+
+
+def test_partial_estimate_completeness_and_icp_removes_an_offset():
+    gt = np.asarray(sphere(0.5).sample_points_uniformly(60000).points)
+    half = gt[gt[:, 2] > 0.0][::2] + np.array([0.02, -0.01, 0.015])  # upper half, shifted 2.7 cm
+    res = evaluate_points(half, gt, icp=True)
+    # the lower half counts up to the elevation whose chord to the equator is 0.2 m: a band of area sin(theta) / 2
+    band = lambda t: np.sin(2 * np.arcsin(t / (2 * 0.5))) / 2  # noqa: E731
+    assert res.completeness == pytest.approx(0.5 + band(0.2), abs=0.02)
+    assert res.completeness_5cm == pytest.approx(0.5 + band(0.05), abs=0.02)
+    assert res.accuracy_m < 0.006  # after ICP the shift is gone (1 cm grid leaves a few mm)
+    no_icp = evaluate_points(half, gt, icp=False)
+    assert no_icp.accuracy_m > 0.01  # the shift, less its part along the surface
+
+
+def test_error_colours_ramp():
+    c = error_colors(np.array([0.0, 0.05, 0.2]), max_m=0.1)
+    assert c.tolist() == [[0, 0, 255], [0, 255, 0], [255, 0, 0]]
+
+
+def test_cli_and_outputs(tmp_path):
+    gt_path, est_path = tmp_path / "gt.ply", tmp_path / "est.ply"
+    o3d.io.write_triangle_mesh(str(gt_path), sphere(0.5))
+    o3d.io.write_triangle_mesh(str(est_path), sphere(0.51, 80))
+    res = evaluate_mesh_files(est_path, gt_path, out_dir=tmp_path / "ev")
+    assert res.accuracy_m == pytest.approx(0.01, abs=0.004)
+    assert (tmp_path / "ev" / "error_mesh.ply").is_file() and (tmp_path / "ev" / "error_top.png").is_file()
+    assert len(load_points(gt_path, 0.005)) > 10 * len(load_points(gt_path))  # surface sampling of the GT mesh
+    p = subprocess.run([sys.executable, "-m", "services.cli", "eval", "mesh", str(est_path), str(gt_path)], cwd=REPO,
+                       env=child_env(), capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.startswith("accuracy 0.01")
+    p = subprocess.run([sys.executable, "-m", "services.cli", "eval", "mesh", "--est", str(tmp_path / "nope.ply"),
+                        "--gt", str(gt_path)], cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=120)
+    assert p.returncode == 1 and "no such file" in p.stderr
