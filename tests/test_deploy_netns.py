@@ -171,3 +171,28 @@ def test_bench_netns_delivers_every_message_in_each_layout() -> None:
         assert r["sent"] > 0 and r["delivered"] == r["sent"], r
         assert 0 < r["p50_ms"] < 1000.0
     assert "netns 3 routers" in format_table(result)
+
+
+def test_compose_commands_run_as_written(tmp_path: Path) -> None:
+    """The router, recorder and their health checks from docker/compose.yaml, argv as written, each in
+    its own namespace where 'router' resolves to the router's, like containers on the compose network."""
+    import yaml
+
+    services = yaml.safe_load((REPO / "docker" / "compose.yaml").read_text())["services"]
+
+    def argv(service: str, key: str) -> list[str]:
+        cmd = services[service]["healthcheck"]["test"][1:] if key == "health" else services[service]["command"]
+        assert cmd[0] == "sigmaslam"
+        return [*SIGMASLAM, *cmd[1:]]
+
+    with NetnsLab(("recorder", "probe")) as lab:
+        _wait_output(_popen(lab, lab.router_ns, argv("router", "command")), "listening")
+        probe = lab.run(lab.ns["probe"], argv("router", "health"))
+        assert probe.returncode == 0, probe.stderr
+        # the recorder's container path /recordings is replaced by a temporary file
+        recorder = _popen(lab, lab.ns["recorder"], [*argv("recorder", "command"), "--out", str(tmp_path / "r.mcap")])
+        _wait_output(recorder, "recording")
+        probe = lab.run(lab.ns["probe"], argv("recorder", "health"))
+        assert probe.returncode == 0, probe.stderr
+        probe = lab.run(lab.ns["probe"], [*argv("frontend", "health"), "--timeout", "1"])
+        assert probe.returncode == 1, "no frontend is running"
