@@ -5,8 +5,9 @@ headless Chromium (the system's /usr/bin/chromium, driven by Playwright) on the 
 Checks: the meshes are drawn (strongly coloured pixels in the 3D view that vanish when the 'meshes'
 layer is switched off), the Pause button publishes Control('pause') on `control` (seen by this test
 and by the publisher process), the export button writes the world mesh PLY with every submap, the
-stats panel lists the publisher's and the viewer's stages, the viewer's subscriptions dropped nothing, and the page logged no errors. The screenshot is kept in
-out/viewer/browser_test.png.
+stats panel lists the publisher's and the viewer's stages, a malformed mesh is counted as a drop
+(nothing else is dropped, the viewer keeps running), and the page logged no errors. The screenshot is
+kept in out/viewer/browser_test.png.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from services.system_config import SystemConfig
 from services.viewer.config import ViewerConfig
 from shared import messages as m, topics
 from shared.config import to_yaml
-from transport.pubsub import Subscriber
+from transport.pubsub import Publisher, Subscriber
 from tools.viewer_screenshot import CHROMIUM, CHROMIUM_ARGS, VIEWPORT
 from transport.session import open_session
 
@@ -90,7 +91,8 @@ def stack(tmp_path):
         with open_session(tcfg) as session:
             ns = tcfg.namespace
             control = Subscriber(session, f"{ns}/{topics.CONTROL.key}", m.Control, "all", 64)
-            stats = Subscriber(session, f"{ns}/stats/viewer", m.ServiceStats, "latest", 4)
+            stats = Subscriber(session, f"{ns}/stats/viewer", m.ServiceStats, "latest", 1)
+            bad_pub = Publisher(session, f"{ns}/{topics.SUBMAP.key}", m.SubmapMesh, tcfg, prepare_shm=False)
             viewer = Proc(["-m", "services.cli", "viewer", str(path)])
             procs = [viewer]
             try:
@@ -100,11 +102,12 @@ def stack(tmp_path):
                 procs.append(pub)
                 assert wait_for(lambda: pub.has("demo: publishing"), 30), "\n".join(pub.lines)
                 yield dict(url=f"http://127.0.0.1:{port}/", viewer=viewer, pub=pub, control=control, stats=stats,
-                           export=tmp_path / "export")
+                           bad_pub=bad_pub, export=tmp_path / "export")
             finally:
                 codes = [p.stop() for p in reversed(procs)]
                 control.close()
                 stats.close()
+                bad_pub.close()
         assert codes[-1] == 0, "viewer did not exit cleanly on SIGTERM:\n" + "\n".join(viewer.lines[-30:])
 
 
@@ -162,9 +165,20 @@ def test_viewer_page_draws_meshes_and_controls_work(stack):
         finally:
             browser.close()
 
-    st = stack["stats"].get(timeout=5)
-    q = dict(zip(st.queue_names, zip(st.queue_received.tolist(), st.queue_dropped.tolist())))
-    assert q[topics.SUBMAP.key][0] >= 4 and q[topics.STATE.key][0] > 20, q
-    assert all(dropped == 0 for _, dropped in q.values()), q
-    assert "draw" in st.stage_names
+    # a mesh with a face index past its vertices: counted as a drop of map/submap, the viewer carries on
+    bad = m.SubmapMesh(header=m.Header(stamp_ns=1), submap_id=99, T_WM=np.eye(4),
+                       vertices_M=np.zeros((3, 3), np.float32), faces=np.array([[0, 1, 7]], np.int32),
+                       vertex_colors=np.zeros((0, 3), np.uint8))
+    stack["bad_pub"].publish(bad)
+
+    def viewer_queues() -> dict:
+        st = stack["stats"].get(timeout=5)
+        assert "draw" in st.stage_names
+        return dict(zip(st.queue_names, zip(st.queue_received.tolist(), st.queue_dropped.tolist())))
+
+    assert wait_for(lambda: viewer_queues()[topics.SUBMAP.key][1] == 1, 10, 0.2), viewer_queues()
+    q = viewer_queues()
+    assert q[topics.SUBMAP.key][0] >= 5 and q[topics.STATE.key][0] > 20, q
+    assert all(dropped == 0 for key, (_, dropped) in q.items() if key != topics.SUBMAP.key), q
+    assert stack["viewer"].p.poll() is None
     assert not errors, errors

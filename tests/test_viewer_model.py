@@ -67,6 +67,20 @@ def test_only_changed_submaps_are_resent_and_pose_updates_only_move():
     assert store.take_changes().removed == (0,)
 
 
+def test_malformed_meshes_are_rejected():
+    store = SubmapStore()
+    good = box_mesh(0, pose())
+    bad_faces = box_mesh(0, pose())
+    object.__setattr__(bad_faces, "faces", bad_faces.faces + 8)  # past the 8 vertices
+    bad_pose = box_mesh(0, np.full((4, 4), np.nan))
+    bad_verts = box_mesh(0, pose())
+    object.__setattr__(bad_verts, "vertices_M", np.where(bad_verts.vertices_M > 0, np.inf, 0).astype(np.float32))
+    for msg in (bad_faces, bad_pose, bad_verts):
+        with pytest.raises(ValueError):
+            store.apply(msg)
+    assert not store.entries and store.apply(good) == "mesh"
+
+
 def test_height_mode_recolours_only_after_a_real_height_change():
     store = SubmapStore("height", (-1.0, 3.0))
     store.apply(box_mesh(0, pose()))

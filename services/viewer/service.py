@@ -23,7 +23,7 @@ from shared.camera import CalibrationError, load_rig
 from shared.euroc import TrajectoryFileError, read_trajectory
 from transport.config import TransportConfig
 from transport.node import Node
-from transport.pubsub import RateLimitedLog
+from transport.pubsub import RateLimitedLog, Subscriber
 
 log = logging.getLogger("sigmaslam.viewer")
 
@@ -53,6 +53,24 @@ def main(args: argparse.Namespace) -> int:
     return run(cfg.viewer, cfg.transport, model)
 
 
+def _counting_handler(model: ViewerModel, bad_log: RateLimitedLog):
+    """model.apply for one subscription; a message the model rejects is counted as a drop of that
+    subscription (stats/viewer queue_dropped) and logged, never raised into Zenoh."""
+    holder: dict[str, Subscriber] = {}
+
+    def handle(msg: m.Message) -> None:
+        try:
+            model.apply(msg)
+        except ValueError as exc:
+            sub = holder.get("sub")
+            if sub is not None:
+                sub.queue.count_drop()
+            bad_log.warning("dropped a %s: %s", type(msg).__name__, exc)
+
+    handle.holder = holder  # type: ignore[attr-defined]
+    return handle
+
+
 def run(vcfg: ViewerConfig, tcfg: TransportConfig, model: ViewerModel) -> int:
     import viser  # imported here: `sigmaslam --help` stays fast
 
@@ -72,8 +90,10 @@ def run(vcfg: ViewerConfig, tcfg: TransportConfig, model: ViewerModel) -> int:
                                           target=vcfg.player_target, command=command))
                 log.info("sent %r to %r", command, vcfg.player_target)
 
+            bad_input = RateLimitedLog(log)
             for topic in SHOWN_TOPICS:
-                node.subscriber(topic, handler=model.apply)
+                handler = _counting_handler(model, bad_input)
+                handler.holder["sub"] = node.subscriber(topic, handler=handler)
             drawer = SceneDrawer(server, model, publish_control=publish_control, export_dir=vcfg.export_dir,
                                  follow=vcfg.follow, frustum_scale_m=vcfg.frustum_scale_m)
             draw_timer = node.timer("draw", budget_ms=1000.0 / max(vcfg.draw_rate_hz, 1e-3))

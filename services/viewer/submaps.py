@@ -80,6 +80,7 @@ class SubmapStore:
         sid = int(msg.submap_id)
         old = self.entries.get(sid)
         T = np.asarray(msg.T_WM, np.float64)
+        _check_mesh(msg)
         if old is not None and _same_mesh(old, msg):
             if np.array_equal(old.T_WM, T):
                 self.unchanged += 1
@@ -150,6 +151,16 @@ class SubmapStore:
         if not verts:
             return np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.uint8)
         return np.concatenate(verts), np.concatenate(faces), np.concatenate(cols)
+
+
+def _check_mesh(msg: SubmapMesh) -> None:
+    """Reject what the browser could not draw (ValueError: the caller counts and logs the drop)."""
+    if not np.isfinite(msg.T_WM).all() or not np.allclose(msg.T_WM[3], [0.0, 0.0, 0.0, 1.0]):
+        raise ValueError(f"submap {msg.submap_id}: T_WM is not a finite homogeneous transform")
+    if not np.isfinite(msg.vertices_M).all():
+        raise ValueError(f"submap {msg.submap_id}: non-finite vertices")
+    if len(msg.faces) and (msg.faces.min() < 0 or msg.faces.max() >= len(msg.vertices_M)):
+        raise ValueError(f"submap {msg.submap_id}: face index outside 0..{len(msg.vertices_M) - 1}")
 
 
 def _same_mesh(e: SubmapEntry, msg: SubmapMesh) -> bool:
