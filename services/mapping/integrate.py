@@ -28,6 +28,7 @@ warnings.filterwarnings("ignore", message=".*TBB threading layer.*")
 
 CLEAR, MIXED = 1, 2
 _LEVELS = 9  # pyramid levels: cells of 1 .. 256 pixels
+_FIRST_LEVEL = 2  # finer levels are not built: a block at 6 m spans > 16 px; a coarser cell is only conservative
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,31 +45,34 @@ def _pyramids(depth: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, ...]:
     c = 1 << (_LEVELS - 1)
     H, W = depth.shape
     Hp, Wp = -(-H // c) * c, -(-W // c) * c
-    meta = np.zeros((_LEVELS, 3), np.int64)
+    meta = np.zeros((_LEVELS - _FIRST_LEVEL, 3), np.int64)
     off = 0
-    for level in range(_LEVELS):
+    for i, level in enumerate(range(_FIRST_LEVEL, _LEVELS)):
         h, w = Hp >> level, Wp >> level
-        meta[level] = off, h, w
+        meta[i] = off, h, w
         off += h * w
     out = [np.empty(off, np.float32) for _ in range(5)]
-    _fill_pyramids(np.ascontiguousarray(depth, np.float32), np.ascontiguousarray(sigma, np.float32), meta, *out)
+    _fill_pyramids(np.ascontiguousarray(depth, np.float32), np.ascontiguousarray(sigma, np.float32), meta, _FIRST_LEVEL, *out)
     return (*out, meta)
 
 
 @nb.njit(cache=True)
-def _fill_pyramids(depth, sigma, meta, dmin, dmax, smax, nval, npix):
+def _fill_pyramids(depth, sigma, meta, first, dmin, dmax, smax, nval, npix):
     H, W = depth.shape
-    h0, w0 = meta[0, 1], meta[0, 2]
-    for y in range(h0):
-        for x in range(w0):
-            c = y * w0 + x
-            d = depth[y, x] if (y < H and x < W) else np.nan
-            ok = d == d
-            dmin[c] = d if ok else np.inf
-            dmax[c] = d if ok else -np.inf
-            smax[c] = sigma[y, x] if ok else 0.0
-            nval[c] = 1.0 if ok else 0.0
-            npix[c] = 1.0 if (y < H and x < W) else 0.0
+    n0, w0 = meta[0, 1] * meta[0, 2], meta[0, 2]
+    for c in range(n0):
+        dmin[c], dmax[c], smax[c], nval[c], npix[c] = np.inf, -np.inf, 0.0, 0.0, 0.0
+    for y in range(H):
+        row = (y >> first) * w0
+        for x in range(W):
+            c = row + (x >> first)
+            npix[c] += 1.0
+            d = depth[y, x]
+            if d == d:
+                dmin[c] = min(dmin[c], d)
+                dmax[c] = max(dmax[c], d)
+                smax[c] = max(smax[c], sigma[y, x])
+                nval[c] += 1.0
     for level in range(1, meta.shape[0]):
         po, pw = meta[level - 1, 0], meta[level - 1, 2]
         off, h, w = meta[level, 0], meta[level, 1], meta[level, 2]
@@ -85,7 +89,7 @@ def _fill_pyramids(depth, sigma, meta, dmin, dmax, smax, nval, npix):
 
 
 @nb.njit(cache=True)
-def _select_blocks(lo, hi, block_m, R, t, fx, fy, cx, cy, W, H, planes, dmin, dmax, smax, nval, npix, meta,
+def _select_blocks(lo, hi, block_m, R, t, fx, fy, cx, cy, W, H, planes, dmin, dmax, smax, nval, npix, meta, first,
                    near, tau_max, min_valid_fraction, out_ijk, out_cls):
     r = 0.5 * np.sqrt(3.0) * block_m
     f = max(fx, fy)
@@ -112,10 +116,10 @@ def _select_blocks(lo, hi, block_m, R, t, fx, fy, cx, cy, W, H, planes, dmin, dm
                     n += 1
                     continue
                 rad = f * r / (z - r)
-                level = 0
-                while (1 << level) < 2.0 * rad and level < meta.shape[0]:
+                level = first
+                while (1 << level) < 2.0 * rad and level - first < meta.shape[0]:
                     level += 1
-                if level >= meta.shape[0]:
+                if level - first >= meta.shape[0]:
                     out_ijk[n, 0], out_ijk[n, 1], out_ijk[n, 2] = i, j, k
                     out_cls[n] = MIXED
                     n += 1
@@ -125,7 +129,7 @@ def _select_blocks(lo, hi, block_m, R, t, fx, fy, cx, cy, W, H, planes, dmin, dm
                 if u + rad < -0.5 or u - rad > W - 0.5 or v + rad < -0.5 or v - rad > H - 0.5:
                     continue
                 cell = float(1 << level)
-                off, h, w = meta[level, 0], meta[level, 1], meta[level, 2]
+                off, h, w = meta[level - first, 0], meta[level - first, 1], meta[level - first, 2]
                 x0 = min(max(int(np.floor((u + 0.5 - rad) / cell)), 0), w - 1)
                 x1 = min(max(int(np.floor((u + 0.5 + rad) / cell)), 0), w - 1)
                 y0 = min(max(int(np.floor((v + 0.5 - rad) / cell)), 0), h - 1)
@@ -231,7 +235,7 @@ def integrate(store: BlockStore, depth: np.ndarray, sigma: np.ndarray, K: np.nda
     out_cls = np.empty(n_max, np.int8)
     dmin, dmax, smax, nval, npix, meta = _pyramids(depth, sigma)
     n = _select_blocks(lo, hi, bm, R, t, fx, fy, cx, cy, W, H, _frustum_planes(K, W, H), dmin, dmax, smax, nval,
-                       npix, meta, cfg.near_m, cfg.tau_max_m, cfg.min_valid_fraction, out_ijk, out_cls)
+                       npix, meta, _FIRST_LEVEL, cfg.near_m, cfg.tau_max_m, cfg.min_valid_fraction, out_ijk, out_cls)
     if n == 0:
         return empty
     ijk, cls = out_ijk[:n], out_cls[:n]
