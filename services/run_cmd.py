@@ -82,6 +82,8 @@ def pipeline_services(cfg, dataset: str, out: Path, realtime: bool, record: bool
             if not record:
                 continue
             s = dataclasses.replace(s, argv=["record", "--out", str(out / "recording.mcap")])
+        elif s.argv[0] == "mapping":  # the map goes into the run folder: DIR/mesh.ply, DIR/submaps/, DIR/map.npz
+            s = dataclasses.replace(s, argv=["mapping", "--out", str(out)])
         services.append(dataclasses.replace(s, restart="never"))
     mode = ["--realtime"] if realtime else ["--lockstep"]
     wait = ["--wait-for", ",".join(s.name for s in services)] if services else []
