@@ -1,0 +1,141 @@
+"""``sigmaslam depth [CONFIG]``: sensors/frame + estimator/state + estimator/keyframes -> depth/stereo and
+depth/fused (DepthFrame: depth, sigma, K and T_SC of the rectified left camera, T_WC when the estimator
+knows the frame's pose, identity otherwise).
+
+Thin shell around :class:`services.depth.pipeline.DepthPipeline`. Frames wait in a keep-latest queue of
+one: a frame that a newer one replaces before the service gets to it is dropped and counted (the
+``sensors/frame`` queue's drops in ``stats/depth``), so the service never blocks upstream and runs at
+``depth.rate_hz`` at most. A frame waits up to ``depth.pose_wait_s`` for its estimator state. A frame
+that cannot be processed (missing camera, wrong image size) is dropped, counted and logged.
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import threading
+import time
+from collections import OrderedDict
+
+import numpy as np
+
+from services.depth.pipeline import DepthPipeline, DepthResult
+from services.system_config import load_system_config
+from shared import topics
+from shared.camera import CalibrationError
+from shared.codec import Header
+from shared.messages import DepthFrame, MultiCameraFrame
+from shared.rig import load_rig_config
+from transport.node import Node
+from transport.queues import Empty
+
+log = logging.getLogger("sigmaslam.depth")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("config", nargs="?", help="YAML system config (default: built-in defaults)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config field")
+
+
+def frame_images(frame: MultiCameraFrame, left: str, right: str) -> tuple[np.ndarray, np.ndarray]:
+    names = list(frame.camera_names)
+    if left not in names or right not in names:
+        raise ValueError(f"frame has cameras {names}, needs {left!r} and {right!r}")
+    return frame.images[names.index(left)], frame.images[names.index(right)]
+
+
+def depth_message(res: DepthResult, which: str, pipe: DepthPipeline, stamp_ns: int, seq: int, frame_id: str) -> DepthFrame:
+    depth, sigma = res.stereo if which == "stereo" else res.fused
+    source = "stereo" if which == "stereo" or res.mvs is None else "fused"
+    return DepthFrame(header=Header(stamp_ns=stamp_ns, seq=seq, frame_id=frame_id),
+                      depth=np.ascontiguousarray(depth, np.float32), sigma=np.ascontiguousarray(sigma, np.float32),
+                      K=pipe.K, T_WC=np.eye(4) if res.T_WC is None else res.T_WC, T_SC=pipe.T_SC, source=source)
+
+
+class PoseBook:
+    """T_WS of recent estimator states by stamp (filled from the Zenoh thread)."""
+
+    def __init__(self, size: int = 256) -> None:
+        self._poses: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._lock = threading.Lock()
+        self._size = size
+
+    def add(self, msg) -> None:
+        if msg.status in ("initialising", "lost", "reset"):
+            return
+        with self._lock:
+            self._poses[int(msg.header.stamp_ns)] = np.asarray(msg.T_WS)
+            while len(self._poses) > self._size:
+                self._poses.popitem(last=False)
+
+    def get(self, stamp_ns: int) -> np.ndarray | None:
+        with self._lock:
+            return self._poses.get(int(stamp_ns))
+
+
+def main(args: argparse.Namespace) -> int:
+    cfg = load_system_config(args.config, args.set)
+    dc = cfg.depth
+    try:
+        cams = {c.name: c for c in load_rig_config(cfg.rig)}
+        pipe = DepthPipeline(dc, cams[dc.left_camera], cams[dc.right_camera])
+    except KeyError as exc:
+        print(f"sigmaslam depth: camera {exc} not in the rig", flush=True)
+        return 2
+    except (CalibrationError, FileNotFoundError) as exc:
+        print(f"sigmaslam depth: {exc}", flush=True)
+        return 2
+    log.info("depth: method %s (stereo gain %.3f, MVS %s), %dx%d, f %.1f px, baseline %.3f m", pipe.method,
+             pipe.stereo_gain, "on" if pipe.mvs_net is not None else "off", dc.width, dc.height, pipe.f_px, pipe.baseline_m)
+    poses = PoseBook()
+    lock = threading.Lock()
+    dropped_bad = 0
+
+    def remember(frame: MultiCameraFrame) -> None:
+        try:
+            left, _ = frame_images(frame, dc.left_camera, dc.right_camera)
+        except ValueError:
+            return
+        with lock:
+            pipe.remember_frame(int(frame.header.stamp_ns), left)
+
+    with Node("depth", cfg.transport) as node:
+        frames = node.subscriber(topics.FRAME, depth=1)
+        node.subscriber(topics.STATE, handler=poses.add)
+        if pipe.mvs_net is not None:
+            node.subscriber(topics.FRAME, handler=remember)
+        keyframes = node.subscriber(topics.KEYFRAMES)
+        pub_stereo = node.publisher(topics.DEPTH_STEREO)
+        pub_fused = node.publisher(topics.DEPTH_FUSED)
+        timer = node.timer("depth", budget_ms=dc.budget_ms)
+        print(f"depth: running ({pipe.method}, {dc.rate_hz:g} Hz) on namespace {cfg.transport.namespace}", flush=True)
+        period = 1.0 / dc.rate_hz
+        next_t = time.monotonic()
+        seq = 0
+        while not node.stopped:
+            if node.wait(max(0.0, next_t - time.monotonic())):
+                break
+            try:
+                frame = frames.get(timeout=0.1)
+            except Empty:
+                continue
+            next_t = time.monotonic() + period
+            stamp = int(frame.header.stamp_ns)
+            deadline = time.monotonic() + dc.pose_wait_s
+            while poses.get(stamp) is None and time.monotonic() < deadline and not node.stopped:
+                time.sleep(0.002)
+            for kf in keyframes.drain():
+                with lock:
+                    pipe.update_keyframes(kf.stamps_ns, kf.T_WS)
+            try:
+                left, right = frame_images(frame, dc.left_camera, dc.right_camera)
+                with timer, lock:
+                    res = pipe.process(stamp, left, right, poses.get(stamp))
+            except (ValueError, RuntimeError) as exc:  # e.g. a camera missing or images of the wrong size
+                dropped_bad += 1
+                log.warning("depth: frame %d dropped (%d so far): %s", stamp, dropped_bad, exc)
+                continue
+            name = f"{dc.left_camera}_rect"
+            pub_stereo.publish(depth_message(res, "stereo", pipe, stamp, seq, name))
+            pub_fused.publish(depth_message(res, "fused", pipe, stamp, seq, name))
+            seq += 1
+    return 0
