@@ -91,6 +91,7 @@ class Renderer:
         v = scene.vertices[scene.triangles]
         n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
         self._normals = (n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)).astype(np.float32)
+        self._last_hit: tuple | None = None
         rng = np.random.default_rng([self.cfg.seed, 7])
         self._phase = rng.uniform(0, 2 * np.pi, (len(self.cameras), 2))
 
@@ -110,13 +111,18 @@ class Renderer:
     def depth(self, T_WC: np.ndarray, cam_index: int = 0) -> np.ndarray:
         """(H, W) float32 depth along the optical axis [m]; NaN where the ray hits nothing."""
         cam = self.cameras[cam_index].camera
-        z = self.cast(self._centre[cam_index], T_WC)["t_hit"]
+        key = (cam_index, np.asarray(T_WC, np.float64).tobytes())
+        if self.cfg.supersample == 1 and self._last_hit is not None and self._last_hit[0] == key:
+            z = self._last_hit[1]  # the image was just rendered from the same rays
+        else:
+            z = self.cast(self._centre[cam_index], T_WC)["t_hit"]
         return np.where(np.isfinite(z), z, np.nan).astype(np.float32).reshape(cam.height, cam.width)
 
     def radiance(self, T_WC: np.ndarray, cam_index: int = 0) -> np.ndarray:
         """(H, W) float32 noise-free irradiance (albedo x shade x vignetting, 1 = full), anti-aliased."""
         cam, s = self.cameras[cam_index].camera, self.cfg.supersample
         hit = self.cast(self._rays[cam_index], T_WC)
+        self._last_hit = ((cam_index, np.asarray(T_WC, np.float64).tobytes()), hit["t_hit"])
         ids = hit["ids"]
         ok = ids != INVALID
         idx = np.where(ok, ids, 0).astype(np.int64)

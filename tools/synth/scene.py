@@ -236,7 +236,8 @@ def build_scene(name: str, seed: int = 0, positions: np.ndarray | None = None, c
         c = np.array([rng.uniform(lo[0] + r, hi[0] - r), rng.uniform(lo[1] + r, hi[1] - r), lo[2]])
         if c[0] - r < lo[0] or c[1] - r < lo[1]:
             continue
-        if _box_distance(pts, c - [r, r, 0], c + [r, r, sz]) < clearance_m:
+        top = sz * (1.3 if kind == "stack" else 1.0)  # a stack carries a second box of 0.3 sz
+        if _box_distance(pts, c - [r, r, 0], c + [r, r, top]) < clearance_m:
             continue
         alb = rng.uniform(0.7, 1.2)
         if kind in ("box", "stack"):
