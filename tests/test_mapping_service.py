@@ -85,6 +85,9 @@ def test_mapping_service_end_to_end(tmp_path):
                 p_depth.publish(m.DepthFrame(header=Header(stamp_ns=99 * 10**9, frame_id="cam0"), depth=frames[0][2],
                                              sigma=np.full_like(frames[0][2], 0.02), K=K, T_WC=np.eye(4), T_SC=T_SC, source="gt"))
                 assert wait_for(lambda: any(len(g.faces) > 1000 for g in got), 20.0), "".join(lines)
+                g = next(g for g in got if len(g.faces) > 1000)
+                assert g.vertex_colors.shape == g.vertices_M.shape  # uncertainty colours (sigma = 2 cm: mostly blue)
+                assert np.median(g.vertex_colors[:, 2]) > 150 and np.median(g.vertex_colors[:, 0]) < 50
                 # keyframes: bind (no motion), then a correction that must move submap 0
                 stamps = np.array([f[0] for f in frames])
                 T_WS = np.array([f[1] for f in frames])

@@ -110,9 +110,12 @@ class MappingLoop:
         out = []
         for sid in sorted(self.to_publish):
             sm = self.mapper.submaps[sid]
-            v, f = sm.mesher.mesh()
+            if self.cfg.vertex_colors:
+                v, f, c = self.mapper.colored_mesh(sm)
+            else:
+                (v, f), c = sm.mesher.mesh(), np.empty((0, 3), np.uint8)
             out.append(messages.SubmapMesh(header=Header(stamp_ns=sm.anchor_stamp_ns, frame_id=f"M{sm.id}"), submap_id=sm.id,
-                                           T_WM=sm.T_WM, vertices_M=v, faces=f, vertex_colors=np.empty((0, 3), np.uint8)))
+                                           T_WM=sm.T_WM, vertices_M=v, faces=f, vertex_colors=c))
         self.to_publish.clear()
         return out
 

@@ -17,7 +17,7 @@ from services.mapping.blocks import BlockStore
 from services.mapping.config import SensorModelConfig, SubmapConfig
 from services.mapping.integrate import IntegrationResult, integrate
 from services.mapping.mesh import ChunkMesher
-from services.mapping.query import UNKNOWN, BlockField, state
+from services.mapping.query import UNKNOWN, BlockField, interpolate, state
 from services.mapping.sensor_model import prepare_depth
 from shared.geometry import inv_T
 
@@ -163,6 +163,20 @@ class SubmapMapper:
             if sm.mesher.update(sm.store, left):
                 changed.append(sm.id)
         return changed
+
+    def colored_mesh(self, submap: Submap, sigma_lo_m: float = 0.02, sigma_hi_m: float = 0.2
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Mesh of a submap with vertex colours from the map's own uncertainty at each vertex,
+        ``sigma_map = |l_min| / (3 ||grad L||)`` (eq. 7): blue at ``sigma_lo_m`` to red at ``sigma_hi_m``."""
+        v, f = submap.mesher.mesh()
+        if len(v) == 0:
+            return v, f, np.empty((0, 3), np.uint8)
+        _, g, valid = interpolate(submap.field(), v)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sig = abs(self.sensor.l_min) / (3.0 * np.linalg.norm(g, axis=1))
+        x = np.clip((np.where(valid & np.isfinite(sig), sig, sigma_hi_m) - sigma_lo_m) / (sigma_hi_m - sigma_lo_m), 0.0, 1.0)
+        rgb = np.stack([np.clip(2 * x - 1, 0, 1), 1 - np.abs(2 * x - 1), np.clip(1 - 2 * x, 0, 1)], axis=1)
+        return v, f, np.round(rgb * 255).astype(np.uint8)
 
     def world_mesh(self) -> tuple[np.ndarray, np.ndarray]:
         """All submap meshes in W (vertices float32 [m], faces int32), combined with the submap poses."""
