@@ -210,3 +210,31 @@ def test_error_paths(tmp_path):
     res = subprocess.run([sys.executable, "-m", "services.cli", "synth", "--out", str(tmp_path / "y"),
                           "--groundtruth", str(tmp_path / "missing.csv")], cwd=REPO, capture_output=True, text=True)
     assert res.returncode == 1 and "missing.csv" in res.stderr
+
+
+def test_ensure_replica_generates_once_under_concurrency(tmp_path):
+    import threading
+    import time
+
+    from tools.synth.api import ensure_replica
+
+    paths, errors = [], []
+
+    def call():
+        try:
+            paths.append(ensure_replica("V1_02", "vicon-b", imu="sim", duration_s=0.3, start_s=5.0, root=tmp_path,
+                                        progress=False))
+        except Exception as exc:  # reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=call) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors and len(paths) == 2 and paths[0] == paths[1]
+    assert (paths[0] / "replica.yaml").is_file() and not list(tmp_path.glob("*.partial"))
+    t = time.monotonic()
+    assert ensure_replica("V1_02", "vicon-b", imu="sim", duration_s=0.3, start_s=5.0, root=tmp_path) == paths[0]
+    assert time.monotonic() - t < 1.0  # cached
+    assert EurocDataset(paths[0]).frame_stamps_ns.size == 7  # 0.3 s at 20 Hz, both ends included
