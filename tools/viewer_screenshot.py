@@ -41,7 +41,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--duration", type=float, default=3600.0, help="stop repeating after this long [s]")
     ap.add_argument("--until-gone", action="store_true", help="stop when the viewer no longer answers")
     ap.add_argument("--keep", action="store_true", help="also keep numbered copies OUT-0001.png, ...")
+    ap.add_argument("--wait-up", type=float, default=60.0, help="wait this long for the viewer to answer [s]")
     args = ap.parse_args(argv)
+    deadline = time.monotonic() + args.wait_up
+    while not reachable(args.url):
+        if time.monotonic() > deadline:
+            print(f"{args.url} does not answer", file=sys.stderr)
+            return 2
+        time.sleep(1.0)
     from playwright.sync_api import sync_playwright
 
     out = Path(args.out)

@@ -25,6 +25,7 @@ KEYFRAME_RGB = (230, 60, 30)
 GT_RGB = (40, 170, 60)
 LANDMARK_RGB = (70, 110, 200)
 PLACEHOLDER = np.zeros((48, 64, 3), np.uint8)
+REFRAME_GROWTH = 1.3  # re-frame (untouched views) when the map diagonal grew by this factor
 
 
 def _pose(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -50,6 +51,8 @@ class SceneDrawer:
         self._frusta: dict[str, object] = {}
         self._bbox: dict[int, np.ndarray] = {}  # submap -> (2,3) world bbox, for framing the view
         self._framed = False
+        self._framed_extent = 0.0  # map diagonal when the view was last framed [m]
+        self._set_eye: dict[int, np.ndarray] = {}  # client -> camera position the viewer last set
         self._body_p: np.ndarray | None = None
         self.drawn_meshes = 0  # meshes sent to the browser (re-sends included)
         self.moved_meshes = 0
@@ -143,7 +146,7 @@ class SceneDrawer:
             if len(kf) >= 2:
                 scene.add_line_segments("/trajectory_keyframes/line", _polyline(kf), KEYFRAME_RGB, thickness=2.0,
                                         thickness_units="screen")
-            scene.add_point_cloud("/trajectory_keyframes/points", kf, KEYFRAME_RGB, point_size=0.04, point_shape="circle")
+            scene.add_point_cloud("/trajectory_keyframes/points", kf, KEYFRAME_RGB, point_size=0.02, point_shape="circle")
         if up.ground_truth_W is not None and len(up.ground_truth_W) >= 2:
             scene.add_line_segments("/ground_truth/line", _polyline(up.ground_truth_W), GT_RGB, thickness=2.0,
                                     thickness_units="screen")
@@ -168,14 +171,22 @@ class SceneDrawer:
         if up.status_md is not None:
             self.status.content = up.status_md
         clients = self.server.get_clients()
-        if not self._framed and self._bbox and not self.follow.value:
-            self._to_frame.update(clients)
+        if self._bbox and not self.follow.value:
+            lo, hi = self._map_bounds()
+            if not self._framed:
+                self._to_frame.update(clients)
+            elif np.linalg.norm(hi - lo) > REFRAME_GROWTH * self._framed_extent:
+                # the map outgrew the view: re-frame the clients whose camera the user has not moved since
+                self._to_frame.update(cid for cid, c in clients.items() if cid in self._set_eye and cid in self._camera_known
+                                      and np.allclose(c.camera.position, self._set_eye[cid], atol=0.05))
         ready = [c for cid, c in clients.items() if cid in self._to_frame and cid in self._camera_known]
         if ready and (self._bbox or self._body_p is not None):
             self._frame_view(ready)
             self._to_frame.difference_update(c.client_id for c in ready)
         self._to_frame.intersection_update(clients)  # forget disconnected clients
         self._camera_known.intersection_update(clients)
+        for cid in set(self._set_eye) - set(clients):
+            del self._set_eye[cid]
 
     def _draw_mesh(self, sid: int, mesh: MeshData) -> None:
         wxyz, pos = _pose(mesh.T_WM)
@@ -217,11 +228,14 @@ class SceneDrawer:
                 client.camera.position = self._body_p + offset
                 client.camera.look_at = self._body_p
 
+    def _map_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        boxes = np.stack(list(self._bbox.values()))
+        return boxes[:, 0].min(0), boxes[:, 1].max(0)
+
     def _frame_view(self, clients: list) -> None:
         """Point the given clients' cameras at the map (or the body) from above and aside."""
         if self._bbox:
-            boxes = np.stack(list(self._bbox.values()))
-            lo, hi = boxes[:, 0].min(0), boxes[:, 1].max(0)
+            lo, hi = self._map_bounds()
         elif self._body_p is not None:
             lo, hi = self._body_p - 1.0, self._body_p + 1.0
         else:
@@ -233,4 +247,7 @@ class SceneDrawer:
             with client.atomic():  # position first: setting it shifts look_at along
                 client.camera.position = eye
                 client.camera.look_at = center
-        self._framed = self._framed or bool(self._bbox)
+            self._set_eye[client.client_id] = eye
+        if self._bbox:
+            self._framed = True
+            self._framed_extent = float(np.linalg.norm(hi - lo))
