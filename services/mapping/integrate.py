@@ -28,6 +28,7 @@ warnings.filterwarnings("ignore", message=".*TBB threading layer.*")
 
 CLEAR, MIXED = 1, 2
 _LEVELS = 9  # pyramid levels: cells of 1 .. 256 pixels
+_WINDOW = 4  # a block's footprint is tested on the pyramid level whose cells are >= 1/_WINDOW of its diameter
 _FIRST_LEVEL = 2  # finer levels are not built: a block at 6 m spans > 16 px; a coarser cell is only conservative
 
 
@@ -117,7 +118,7 @@ def _select_blocks(lo, hi, block_m, R, t, fx, fy, cx, cy, W, H, planes, dmin, dm
                     continue
                 rad = f * r / (z - r)
                 level = first
-                while (1 << level) < 2.0 * rad and level - first < meta.shape[0]:
+                while (1 << level) * _WINDOW < 2.0 * rad and level - first < meta.shape[0]:
                     level += 1
                 if level - first >= meta.shape[0]:
                     out_ijk[n, 0], out_ijk[n, 1], out_ijk[n, 2] = i, j, k
