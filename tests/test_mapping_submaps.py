@@ -149,3 +149,16 @@ def test_pose_buffer_exact_and_interpolated():
     assert buf.lookup(9_000_000_000, 1000, 2_000_000_000) is None  # not arrived yet
     with pytest.raises(ValueError):
         buf.add(10, np.full((4, 4), np.nan))
+
+
+def test_bad_frames_raise_clear_errors():
+    mapper = SubmapMapper()
+    d = np.full((H, W), 2.0, np.float32)
+    s = np.full((H, W), 0.03, np.float32)
+    with pytest.raises(ValueError, match="intrinsics"):
+        mapper.integrate(d, s, np.zeros((3, 3)), np.eye(4), np.eye(4), 0)
+    with pytest.raises(ValueError, match="T_WC"):
+        mapper.integrate(d, s, K, np.full((4, 4), np.nan), np.eye(4), 0)
+    with pytest.raises(ValueError, match="shape"):
+        mapper.integrate(d, s[:, :10], K, np.eye(4), np.eye(4), 0)
+    assert mapper.submaps == []  # nothing was created by the rejected frames

@@ -103,6 +103,7 @@ class SubmapMapper:
         ``T_WS = T_WC T_SC^-1`` anchors a new submap when one starts."""
         d, s, _ = prepare_depth(depth, sigma, self.sensor)
         K = np.asarray(K, float)
+        _check_inputs(K, T_WC, T_SC)
         cur = self.current
         ov = float("nan")
         new = cur is None
@@ -192,3 +193,13 @@ class SubmapMapper:
 
     def nbytes(self) -> int:
         return sum(sm.store.nbytes() for sm in self.submaps)
+
+
+def _check_inputs(K: np.ndarray, T_WC: np.ndarray, T_SC: np.ndarray) -> None:
+    """ValueError for intrinsics or poses that would corrupt the map."""
+    if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise ValueError(f"bad intrinsics K {K.tolist()}")
+    for name, T in (("T_WC", T_WC), ("T_SC", T_SC)):
+        T = np.asarray(T, float)
+        if T.shape != (4, 4) or not np.isfinite(T).all() or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-4):
+            raise ValueError(f"{name} is not a rigid transform")
