@@ -5,6 +5,7 @@ SIGTERM writes mesh.ply / map.npz / mapping.json."""
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -13,6 +14,7 @@ import time
 
 import numpy as np
 import open3d as o3d
+import pytest
 import yaml
 
 from services.mapping.io import load_map
@@ -36,12 +38,14 @@ def state(stamp: int, T_WS: np.ndarray) -> m.EstimatorState:
                             acc_bias=np.zeros(3), covariance=np.eye(15))
 
 
+@pytest.mark.e2e
 def test_mapping_service_end_to_end(tmp_path):
     out = tmp_path / "run"
     mesh = room_scene()
     renderer = DepthRenderer(mesh)
     frames = []
-    for i, a in enumerate(np.linspace(0, 2 * np.pi, 6, endpoint=False)):
+    n = 16 if os.environ.get("SIGMASLAM_E2E") == "full" else 6
+    for i, a in enumerate(np.linspace(0, 2 * np.pi, n, endpoint=False)):
         eye = np.array([3.0 + 0.8 * np.cos(a), 2.5 + 0.8 * np.sin(a), 1.5])
         T_WC = look_at(eye, eye + np.array([np.cos(a + 0.5), np.sin(a + 0.5), -0.2]))
         frames.append(((i + 1) * 100_000_000, T_WC @ inv_T(T_SC), renderer.render(K, W, H, T_WC)))
@@ -91,10 +95,10 @@ def test_mapping_service_end_to_end(tmp_path):
                 # keyframes: bind (no motion), then a correction that must move submap 0
                 stamps = np.array([f[0] for f in frames])
                 T_WS = np.array([f[1] for f in frames])
-                p_kf.publish(m.Keyframes(header=Header(stamp_ns=stamps[-1]), ids=np.arange(6), stamps_ns=stamps, T_WS=T_WS))
+                p_kf.publish(m.Keyframes(header=Header(stamp_ns=stamps[-1]), ids=np.arange(n), stamps_ns=stamps, T_WS=T_WS))
                 time.sleep(0.5)
                 delta = make_T(so3_exp(np.array([0.0, 0.0, 0.05])), np.array([0.2, 0.1, 0.0]))
-                p_kf.publish(m.Keyframes(header=Header(stamp_ns=stamps[-1]), ids=np.arange(6), stamps_ns=stamps,
+                p_kf.publish(m.Keyframes(header=Header(stamp_ns=stamps[-1]), ids=np.arange(n), stamps_ns=stamps,
                                          T_WS=delta @ T_WS))
                 T_WM_new = delta @ frames[0][1]
                 assert wait_for(lambda: any(np.allclose(g.T_WM, T_WM_new, atol=1e-9) for g in got), 10.0), "".join(lines)
@@ -107,7 +111,7 @@ def test_mapping_service_end_to_end(tmp_path):
             proc.kill()
     assert proc.returncode == 0, "".join(lines)
     report = json.loads((out / "mapping.json").read_text())
-    assert report["counts"]["integrated"] == 6 and report["counts"]["dropped_no_pose"] == 1, report
+    assert report["counts"]["integrated"] == n and report["counts"]["dropped_no_pose"] == 1, report
     world = o3d.io.read_triangle_mesh(str(out / "mesh.ply"))
     assert len(world.triangles) > 1000 and (out / "submaps" / "submap_000.ply").is_file()
     # the world mesh is where the room is, after undoing the keyframe correction applied to every submap
