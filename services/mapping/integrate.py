@@ -256,3 +256,12 @@ def integrate(store: BlockStore, depth: np.ndarray, sigma: np.ndarray, K: np.nda
                    cfg.tau_min_m, cfg.tau_max_m, cfg.near_m, changed)
     store.unrefine(sv[~changed & was_new[fine]])  # allocated this frame but nothing seen: back to unknown coarse
     return IntegrationResult(np.concatenate([sc, sv[changed]]), int(len(sc)), int(len(sv)), n_pix)
+
+
+def warm_up(cfg: SensorModelConfig | None = None) -> None:
+    """Compile (or load from cache) the numba kernels on a tiny frame, so that the first real frame
+    does not pay for it."""
+    cfg = cfg or SensorModelConfig()
+    K = np.array([[20.0, 0.0, 15.5], [0.0, 20.0, 11.5], [0.0, 0.0, 1.0]])
+    depth = np.full((24, 32), 1.0, np.float32)
+    integrate(BlockStore(cfg.voxel_size_m), depth, np.full_like(depth, cfg.sigma_min_m), K, np.eye(4), cfg)

@@ -150,6 +150,9 @@ def main(args: argparse.Namespace) -> int:
         return 2
     out_dir = args.out or cfg.output_dir
     loop = MappingLoop(cfg)
+    from services.mapping.integrate import warm_up
+
+    warm_up(cfg.sensor)
     with Node("mapping", sys_cfg.transport) as node:
         node.subscriber(topics.STATE, policy="all", depth=cfg.state_buffer, handler=loop.on_state)
         kfs = node.subscriber(topics.KEYFRAMES)
