@@ -258,3 +258,27 @@ def test_stats_markdown():
     row = [r for r in md.splitlines() if r.startswith("| depth")][0]
     assert "| stereo | 9.5 | 80.0 | 120.0 | 100 | 2 | 4 |" in row
     assert "stale" in stats_markdown({"depth": (st, 0.0)}, 10.0)
+
+
+def test_build_model_uses_the_pipeline_rig_and_real_ground_truth(tmp_path):
+    from services.system_config import load_system_config
+    from services.viewer.service import build_model, main
+    from shared.camera import CalibrationError
+    from shared.paths import euroc_files
+
+    gt_file = euroc_files("V1_02")["groundtruth"]
+    cfg = load_system_config(None, [f"viewer.ground_truth={gt_file}"])
+    model = build_model(cfg)  # rig: the real EuRoC calibration (rig.calibration = '')
+    assert len(model.ground_truth.gt) > 10000
+    model.apply(state(1, pose()))
+    fr = model.take_update(0.0).frusta
+    assert [f.name for f in fr] == ["cam0", "cam1"]
+    assert abs(fr[1].T_WC[:3, 3] - fr[0].T_WC[:3, 3]).max() > 0.1  # the 11 cm stereo baseline
+    with pytest.raises(CalibrationError):
+        build_model(load_system_config(None, [f"viewer.rig={tmp_path / 'none.yaml'}"]))
+
+    class Args:
+        config = None
+        set = [f"viewer.ground_truth={tmp_path / 'missing.csv'}"]
+
+    assert main(Args()) == 2  # a clear error, no server started

@@ -161,7 +161,8 @@ class SceneDrawer:
             if self.follow.value:
                 self._follow()
         if up.live_image is not None and self._frusta:
-            next(iter(self._frusta.values())).image = up.live_image
+            frustum = self._frusta.get(up.live_camera) or next(iter(self._frusta.values()))
+            frustum.image = up.live_image
         if up.depth_rgb is not None:
             self.depth_img.image = up.depth_rgb
             self.sigma_img.image = up.sigma_rgb

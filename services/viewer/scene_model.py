@@ -54,7 +54,8 @@ class SceneUpdate:
     keyframes_W: np.ndarray | None = None  # (K,3)
     T_WS: np.ndarray | None = None  # latest body pose
     frusta: tuple[Frustum, ...] = ()
-    live_image: np.ndarray | None = None  # (H,W,3) uint8 for the first camera's frustum
+    live_image: np.ndarray | None = None  # (H,W,3) uint8 for the frustum of live_camera
+    live_camera: str = ""  # name of the camera of live_image (the frame's first camera)
     depth_rgb: np.ndarray | None = None
     sigma_rgb: np.ndarray | None = None
     depth_source: str = ""
@@ -207,6 +208,7 @@ class ViewerModel:
         # colour mapping outside the lock: receiving never waits for it
         if frame is not None and frame.images:
             up.live_image = _downscale(gray_to_rgb(frame.images[0]), LIVE_IMAGE_MAX_WIDTH)
+            up.live_camera = frame.camera_names[0] if frame.camera_names else ""
         if depth is not None:
             up.depth_rgb = depth_image(depth.depth, tuple(self.cfg.depth_range_m))
             up.sigma_rgb = sigma_image(depth.sigma, tuple(self.cfg.sigma_range_m))

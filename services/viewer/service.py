@@ -14,13 +14,14 @@ import logging
 import sys
 import time
 
-from services.system_config import load_system_config
+from services.system_config import SystemConfig, load_system_config
 from services.viewer.config import ViewerConfig
 from services.viewer.scene_model import ViewerModel
 from shared import messages as m
 from shared import topics
 from shared.camera import CalibrationError, load_rig
 from shared.euroc import TrajectoryFileError, read_trajectory
+from shared.rig import load_rig_config
 from transport.config import TransportConfig
 from transport.node import Node
 from transport.pubsub import RateLimitedLog, Subscriber
@@ -36,17 +37,28 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config field, e.g. viewer.port=8081")
 
 
-def build_model(cfg: ViewerConfig) -> ViewerModel:
-    """The scene model with the configured rig and ground truth (errors name the file)."""
-    cameras = load_rig(cfg.rig) if cfg.rig else None
-    gt = read_trajectory(cfg.ground_truth) if cfg.ground_truth else None
-    return ViewerModel(cfg, cameras, gt)
+def build_model(cfg: SystemConfig) -> ViewerModel:
+    """The scene model with the rig (viewer.rig, else the pipeline's rig section) and ground truth.
+
+    A bad viewer.rig or ground-truth file is an error naming the file; an unusable pipeline rig only a
+    warning (frusta then come from the depth frames' K and T_SC)."""
+    vcfg = cfg.viewer
+    if vcfg.rig:
+        cameras = load_rig(vcfg.rig)
+    else:
+        try:
+            cameras = load_rig_config(cfg.rig)
+        except CalibrationError as exc:
+            log.warning("no rig for the camera frusta (%s): using the depth frames' K and T_SC", exc)
+            cameras = None
+    gt = read_trajectory(vcfg.ground_truth) if vcfg.ground_truth else None
+    return ViewerModel(vcfg, cameras, gt)
 
 
 def main(args: argparse.Namespace) -> int:
     cfg = load_system_config(args.config, args.set)
     try:
-        model = build_model(cfg.viewer)
+        model = build_model(cfg)
     except (CalibrationError, TrajectoryFileError) as exc:
         print(f"sigmaslam viewer: {exc}", file=sys.stderr)
         return 2
