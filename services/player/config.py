@@ -1,0 +1,24 @@
+"""Configuration of the dataset player (``sigmaslam player``)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from shared.config import param
+
+
+@dataclasses.dataclass
+class PlayerConfig:
+    """How the player paces a dataset onto sensors/imu and sensors/frame.
+
+    Modes: ``lockstep`` publishes the next frame only once the estimator answered the previous one
+    (an estimator/state with a stamp >= the frame's) or ``lockstep_timeout_s`` passed: deterministic
+    offline runs at whatever speed the pipeline manages. ``rate`` plays at ``rate`` x sensor time.
+    """
+
+    mode: str = param("lockstep", "'lockstep' (wait for estimator/state per frame) or 'rate' (timed by rate)")
+    rate: float = param(1.0, "mode 'rate': playback speed as a multiple of sensor time (1 = real time)")
+    lockstep_timeout_s: float = param(3.0, "mode 'lockstep': longest wait for the estimator's answer to a frame", "s")
+    start_paused: bool = param(False, "wait for a 'resume' control command before the first message")
+    max_frames: int = param(0, "stop after this many frames (0 = all)")
+    end_linger_s: float = param(0.5, "stay on the bus this long after publishing sensors/end", "s")
