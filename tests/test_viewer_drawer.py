@@ -44,10 +44,17 @@ def test_only_changed_submaps_are_sent_to_the_browser(drawer):
         model.apply(msg)
     drawer.draw(model.take_update())
     assert drawer.drawn_meshes == 4 and drawer.moved_meshes == 4
-    np.testing.assert_allclose(drawer._meshes[0].position, submap_messages(0, 0.1)[0].T_WM[:3, 3], atol=1e-6)
+    moved_T = submap_messages(0, 0.1)[0].T_WM
+    np.testing.assert_allclose(drawer._meshes[0].position, moved_T[:3, 3], atol=1e-6)
+    np.testing.assert_allclose(drawer._bbox[0].mean(0), moved_T[:3, 3], atol=1e-6)  # framing follows the move
     model.set_color_mode("uncertainty")  # vertex colours: the GLB path
     drawer.draw(model.take_update())
     assert drawer.drawn_meshes == 8
+    emptied = submap_messages(4)[1]
+    model.apply(m.SubmapMesh(header=emptied.header, submap_id=1, T_WM=emptied.T_WM, vertices_M=np.zeros((0, 3), np.float32),
+                             faces=np.zeros((0, 3), np.int32), vertex_colors=np.zeros((0, 3), np.uint8)))
+    drawer.draw(model.take_update())
+    assert sorted(drawer._meshes) == [0, 2, 3] and 1 not in drawer._bbox
 
 
 def test_export_trajectory_chunks_images_and_controls(drawer, tmp_path):

@@ -38,6 +38,13 @@ def _polyline(points: np.ndarray) -> np.ndarray:
     return np.stack([p[:-1], p[1:]], axis=1)
 
 
+def _world_bounds(T_WM: np.ndarray, bounds_M: np.ndarray) -> np.ndarray:
+    """(2,3) axis-aligned min/max in W of the box ``bounds_M`` (min/max in M) posed at T_WM."""
+    sel = np.array(np.meshgrid([0, 1], [0, 1], [0, 1], indexing="ij")).reshape(3, -1).T
+    corners_W = transform_points(T_WM, np.where(sel == 1, bounds_M[1], bounds_M[0]))
+    return np.stack([corners_W.min(0), corners_W.max(0)])
+
+
 class SceneDrawer:
     def __init__(self, server: viser.ViserServer, model: ViewerModel, *, publish_control: Callable[[str], None],
                  export_dir: str | Path, follow: bool = False, frustum_scale_m: float = 0.25) -> None:
@@ -50,6 +57,7 @@ class SceneDrawer:
         self._chunks: dict[int, object] = {}
         self._frusta: dict[str, object] = {}
         self._bbox: dict[int, np.ndarray] = {}  # submap -> (2,3) world bbox, for framing the view
+        self._bounds_M: dict[int, np.ndarray] = {}  # submap -> (2,3) min/max of its vertices in M
         self._framed = False
         self._framed_extent = 0.0  # map diagonal when the view was last framed [m]
         self._set_eye: dict[int, np.ndarray] = {}  # client -> camera position the viewer last set
@@ -120,7 +128,6 @@ class SceneDrawer:
     # ------------------------------------------------------------------ drawing
 
     def draw(self, up: SceneUpdate) -> None:
-        scene = self.server.scene
         for sid in up.removed_submaps:
             handle = self._meshes.pop(sid, None)
             self._bbox.pop(sid, None)
@@ -132,7 +139,18 @@ class SceneDrawer:
             handle = self._meshes.get(sid)
             if handle is not None:
                 handle.wxyz, handle.position = _pose(T_WM)
+                self._bbox[sid] = _world_bounds(T_WM, self._bounds_M[sid])
                 self.moved_meshes += 1
+        self._draw_tracks(up)
+        self._draw_body_and_images(up)
+        if up.stats_md is not None:
+            self.stats.content = up.stats_md
+        if up.status_md is not None:
+            self.status.content = up.status_md
+        self._update_framing()
+
+    def _draw_tracks(self, up: SceneUpdate) -> None:
+        scene = self.server.scene
         for k in up.trajectory_removed:
             handle = self._chunks.pop(k, None)
             if handle is not None:
@@ -153,6 +171,8 @@ class SceneDrawer:
         if up.landmarks_W is not None and len(up.landmarks_W):
             scene.add_point_cloud("/landmarks/points", up.landmarks_W.astype(np.float32), LANDMARK_RGB,
                                   point_size=0.02, point_shape="circle")
+
+    def _draw_body_and_images(self, up: SceneUpdate) -> None:
         if up.T_WS is not None:
             self._body.wxyz, self._body.position = _pose(up.T_WS)
             self._body_p = up.T_WS[:3, 3].copy()
@@ -167,10 +187,8 @@ class SceneDrawer:
             self.depth_img.image = up.depth_rgb
             self.sigma_img.image = up.sigma_rgb
             self.depth_label.content = f"depth / sigma (**{up.depth_source}**)"
-        if up.stats_md is not None:
-            self.stats.content = up.stats_md
-        if up.status_md is not None:
-            self.status.content = up.status_md
+
+    def _update_framing(self) -> None:
         clients = self.server.get_clients()
         if self._bbox and not self.follow.value:
             lo, hi = self._map_bounds()
@@ -192,7 +210,11 @@ class SceneDrawer:
     def _draw_mesh(self, sid: int, mesh: MeshData) -> None:
         wxyz, pos = _pose(mesh.T_WM)
         name = f"/submaps/m{sid}"
-        if len(mesh.faces) == 0:
+        if len(mesh.faces) == 0:  # an emptied submap: nothing to draw
+            old = self._meshes.pop(sid, None)
+            self._bbox.pop(sid, None)
+            if old is not None:
+                old.remove()
             return
         if np.all(mesh.colors == mesh.colors[0]):  # one colour: the cheap path, no GLB encoding
             handle = self.server.scene.add_mesh_simple(name, mesh.vertices_M, mesh.faces, color=tuple(int(c) for c in mesh.colors[0]),
@@ -201,8 +223,8 @@ class SceneDrawer:
             tm = trimesh.Trimesh(mesh.vertices_M, mesh.faces, vertex_colors=mesh.colors, process=False)
             handle = self.server.scene.add_mesh_trimesh(name, tm, wxyz=wxyz, position=pos)
         self._meshes[sid] = handle  # same name: viser replaced the previous node
-        corners = transform_points(mesh.T_WM, np.stack([mesh.vertices_M.min(0), mesh.vertices_M.max(0)]).astype(np.float64))
-        self._bbox[sid] = np.stack([corners.min(0), corners.max(0)])
+        self._bounds_M[sid] = np.stack([mesh.vertices_M.min(0), mesh.vertices_M.max(0)]).astype(np.float64)
+        self._bbox[sid] = _world_bounds(mesh.T_WM, self._bounds_M[sid])
         self.drawn_meshes += 1
 
     def _draw_frustum(self, fr) -> None:
