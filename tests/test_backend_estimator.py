@@ -19,7 +19,7 @@ def _run(t_end, cams, cfg=None, t0=0.5, blank=(np.inf, np.inf), init_gt=True, se
     rng = np.random.default_rng(seed)
     tr = sim.Trajectory()
     pts = sim.landmarks_cylinder(300, seed=2)
-    est = WindowedVioEstimator(cfg or BackendConfig(), [BackendCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams])
+    est = WindowedVioEstimator(cfg or BackendConfig(compute_covariance=True), [BackendCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams])
     st, om, ac = sim.imu(tr, 0.0, t_end + 0.1, 200.0, rng, gyro_bias=GYRO_BIAS, acc_bias=ACC_BIAS, **IMU_NOISE)
     if init_gt:
         T0 = tr.T_WS(np.array([t0]))[0]
@@ -70,6 +70,20 @@ def test_three_camera_rig_accuracy_bias_and_covariance():
     assert len(r.keyframe_ids) == est.cfg.window_keyframes and np.all(np.diff(r.keyframe_ids) > 0)
     kf_gt = [gt[np.argmin(np.abs(times * 1e9 - s))] for s in r.keyframe_stamps_ns]
     assert max(np.linalg.norm(a[:3, 3] - b[:3, 3]) for a, b in zip(r.keyframe_T_WS, kf_gt)) < 0.05
+
+
+def test_motion_only_between_keyframes():
+    """Default config: non-keyframes solve only their own state; same accuracy class, keyframe covariance only."""
+    cfg = BackendConfig()
+    assert cfg.motion_only_between_keyframes and not cfg.compute_covariance
+    times, res, gt, est, counts = _run(10.5, sim.rig(3), cfg=cfg)
+    err = _pos_err(res, gt)
+    assert np.sqrt(np.mean(err ** 2)) < 0.03
+    assert all(r.status == "tracking" for r in res[5:])
+    is_kf = np.arange(len(res)) % 2 == 0  # _run marks every other frame as a keyframe
+    assert all(np.all(np.isfinite(r.covariance)) for r, k in zip(res, is_kf) if k)
+    assert all(np.all(np.isnan(r.covariance)) for r, k in zip(res, is_kf) if not k)
+    assert max(c["states"] for c in counts) <= cfg.window_keyframes + 1
 
 
 def test_radtan_distortion_converges():

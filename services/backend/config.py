@@ -43,8 +43,12 @@ class BackendConfig:
     static_window_s: float = param(0.5, "IMU span inspected for a static start", "s")
     static_gyro_std: float = param(0.01, "a start is static when the gyro std stays below this", "rad/s")
     static_acc_std: float = param(0.08, "... and the accelerometer std below this", "m/s^2")
-    compute_covariance: bool = param(True, "compute the 15x15 marginal covariance of every frame (else NaN except "
-                                     "when a keyframe is marginalised; saves ~5 ms per frame)")
+    compute_covariance: bool = param(False, "compute the 15x15 marginal covariance of every frame (else only of "
+                                     "keyframes, NaN for the others; ~5-10 ms per frame)")
+    reject_outliers_every_frame: bool = param(False, "remove outlier observations after every frame's optimisation "
+                                              "(else only when the frame becomes a keyframe)")
+    motion_only_between_keyframes: bool = param(True, "non-keyframe frames solve only their own state against the "
+                                                "fixed window (ignored when compute_covariance is on)")
     # --- service ---
     budget_ms: float = param(18.0, "per-frame budget of the optimisation stage (stats topic)", "ms")
     imu_wait_s: float = param(0.5, "how long a feature frame waits for the IMU samples up to its time", "s")

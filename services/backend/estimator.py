@@ -17,6 +17,10 @@ Design choices:
 * **Landmarks** are added once seen in >= 2 window views (any cameras) with enough parallax, by linear
   triangulation, rejected on cheirality, depth range and reprojection error; after every optimisation
   observations with a reprojection error above the bound are removed.
+* **Per-frame cost**: outlier rejection runs when the frame becomes a keyframe, the marginal covariance is
+  computed for keyframes (NaN for other frames unless ``compute_covariance``). With
+  ``motion_only_between_keyframes`` (and no per-frame covariance) a non-keyframe frame solves only its own
+  state against the window held fixed (:mod:`services.backend.motion_only`); the window is optimised at keyframes.
 * **No features**: the window keeps its IMU chain (keyframes still come at ``max_keyframe_interval_s``),
   the state is propagated by the IMU factors, status ``imu_only``.
 """
@@ -32,6 +36,7 @@ from services.backend import init as vio_init
 from services.backend.cameras import BackendCamera, camera_from_calib  # noqa: F401 (re-exported)
 from services.backend.config import BackendConfig
 from services.backend.imu_factors import ImuBuffer, imu_factor, make_bias, make_params, predict
+from services.backend.motion_only import optimise_latest
 from services.backend.triangulation import triangulate_checked
 
 
@@ -107,6 +112,9 @@ class WindowedVioEstimator:
         self.last_error = ""
         self._marginals: gtsam.Marginals | None = None
         self._first_frame_pending = False
+        # loop-closure hook (services/loop/history.py): called as f(self, old, new) before keyframe `old` is
+        # marginalised, while the window's marginals still cover it
+        self.on_marginalise = None
 
     # ---------------------------------------------------------------- input
     def add_imu(self, stamp_ns: int, omega_S: np.ndarray, acc_S: np.ndarray) -> None:
@@ -167,6 +175,11 @@ class WindowedVioEstimator:
             n = self._add_state(stamp_ns)
         self._first_frame_pending = False
         self._add_observations(n, ids, cams, uv)
+        last_kf = self.keyframes[-1]
+        keyframe = (n == last_kf or is_keyframe
+                    or stamp_ns - self.stamps[last_kf] >= self.cfg.max_keyframe_interval_s * 1e9)
+        if not keyframe and self.cfg.motion_only_between_keyframes and not self.cfg.compute_covariance:
+            return self._motion_only_frame(n, last_kf)
         self._triangulate_new(n)
         graph = self._build_graph(n)
         params = gtsam.LevenbergMarquardtParams()
@@ -184,17 +197,15 @@ class WindowedVioEstimator:
             graph = self._build_graph(n)
             params.setOrdering(self._schur_ordering())
             self.values = gtsam.LevenbergMarquardtOptimizer(graph, self.values, params).optimize()
-        if self._reject_outliers():
+        # a non-keyframe state leaves the window after this frame, and its observations with it: rejection
+        # (a pass over every observation of the window) is only worth it when the frame stays
+        if (keyframe or self.cfg.reject_outliers_every_frame) and self._reject_outliers():
             graph = self._build_graph(n)
         seen_now = sum(1 for lm in self._in_graph if n in self._obs[lm])
         status = "tracking" if seen_now >= self.cfg.min_landmarks_tracking else "imu_only"
-        last_kf = self.keyframes[-1]
-        keyframe = (n == last_kf or is_keyframe
-                    or stamp_ns - self.stamps[last_kf] >= self.cfg.max_keyframe_interval_s * 1e9)
-        will_marginalise = n != last_kf and keyframe and len(self.keyframes) + 1 > self.cfg.window_keyframes
         self._marginals = None
         cov = np.full((15, 15), np.nan)
-        if self.cfg.compute_covariance or will_marginalise:
+        if self.cfg.compute_covariance or keyframe:
             try:
                 self._marginals = gtsam.Marginals(graph, self.values)
                 cov = self._marginals.jointMarginalCovariance(_state_keys(n)).fullMatrix()
@@ -208,6 +219,22 @@ class WindowedVioEstimator:
                     self._marginalise_oldest()
             else:
                 self._remove_state(n)
+        self.imu.prune_before(self.stamps[self.keyframes[-1]])
+        return result
+
+    def _motion_only_frame(self, n: int, k: int) -> FrameResult:
+        """Non-keyframe: solve the newest state alone against the fixed window, report it, drop it."""
+        lms = [lm for lm in self._in_graph if n in self._obs[lm]]
+        proj = [self._projection(lm, n, j, c, xy) for lm in lms for j, (c, xy) in enumerate(self._obs[lm][n])]
+        try:
+            upd = optimise_latest(self.values, k, n, self._imu_factors[n], proj, lms, self.cfg.lm_max_iterations)
+            self.values.update(upd)
+        except RuntimeError as exc:  # keep the IMU prediction
+            self.failed_optimisations += 1
+            self.last_error = str(exc)
+        status = "tracking" if len(lms) >= self.cfg.min_landmarks_tracking else "imu_only"
+        result = self._result(n, np.full((15, 15), np.nan), status)
+        self._remove_state(n)
         self.imu.prune_before(self.stamps[self.keyframes[-1]])
         return result
 
@@ -365,6 +392,8 @@ class WindowedVioEstimator:
 
     def _marginalise_oldest(self) -> None:
         old, new = self.keyframes[0], self.keyframes[1]
+        if self.on_marginalise is not None:
+            self.on_marginalise(self, old, new)
         keys = _state_keys(new)
         lin = gtsam.Values()
         lin.insert(X(new), self.values.atPose3(X(new)))

@@ -9,6 +9,7 @@ estimator refuses (bad arrays, time going backwards, IMU gap) is dropped, counte
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import time
 
@@ -16,6 +17,7 @@ import numpy as np
 
 from services.backend.estimator import BackendInputError, WindowedVioEstimator, camera_from_calib
 from services.backend.imu_factors import ImuDataError
+from services.frontend.undistort import LookupCamera
 from services.backend.outputs import keyframes_message, state_message
 from services.system_config import load_system_config
 from shared import topics
@@ -37,7 +39,9 @@ class BackendShell:
     """Per-frame logic of the service without the transport."""
 
     def __init__(self, cfg, cameras) -> None:
-        self.estimator = WindowedVioEstimator(cfg, [camera_from_calib(c) for c in cameras])
+        # undistortion by table lookup (the exact Newton inverse costs ~10 ms per frame at 300 observations)
+        cams = [dataclasses.replace(c, camera=LookupCamera(c.camera)) for c in cameras]
+        self.estimator = WindowedVioEstimator(cfg, [camera_from_calib(c) for c in cams])
         self.dropped = 0
         self.seq = 0
         self.newest_imu_ns = -1
