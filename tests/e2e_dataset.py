@@ -35,7 +35,9 @@ def scaled_rig(scale: float) -> list[CameraCalib]:
 
 
 def make_dataset(out: str | Path, sequence: str = "V1_02", start_s: float = 0.0, seconds: float = 8.0,
-                 scale: float = 0.5, real_imu: bool = False, seed: int = 0) -> Path:
+                 scale: float = 0.5, real_imu: bool = False, seed: int = 0,
+                 blank_s: tuple[float, float] | None = None) -> Path:
+    """Write the dataset to ``out``; frames within ``blank_s`` (seconds from the start) are black."""
     files = euroc_files(sequence)
     gt = read_euroc_csv(files["groundtruth"])
     t0 = int(gt.stamps_ns[0] + start_s * 1e9)
@@ -60,6 +62,9 @@ def make_dataset(out: str | Path, sequence: str = "V1_02", start_s: float = 0.0,
 
     def frame_iter():
         for t in frames:
+            if blank_s is not None and blank_s[0] <= (t - t0) * 1e-9 < blank_s[1]:
+                yield int(t), [np.zeros((c.camera.height, c.camera.width), np.uint8) for c in cams]
+                continue
             T = traj.pose(np.array([t]))[0]
             yield int(t), [fs.render(room, c, T) for c in cams]
 
