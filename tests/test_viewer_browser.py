@@ -70,12 +70,13 @@ class Proc:
 
 
 def coloured_pixels(png: bytes) -> int:
-    """Strongly coloured (saturated) pixels in the 3D view: meshes, not the white background or grey lines."""
+    """Saturated or dark pixels in the 3D view: meshes in any colouring, not the white background or the
+    light grid (thin lines and dots add a little)."""
     img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[:, :PANEL_X]
     img[:160, :330] = 255  # the top-left corner holds viser's 'software WebGL' notice
     img[-80:, :80] = 255  # ... and the bottom-left the orientation axes
-    spread = img.max(axis=2).astype(int) - img.min(axis=2)
-    return int((spread > 100).sum())
+    hi = img.max(axis=2).astype(int)
+    return int(((hi - img.min(axis=2) > 80) | (hi < 120)).sum())
 
 
 @pytest.fixture
@@ -142,6 +143,12 @@ def test_viewer_page_draws_meshes_and_controls_work(stack):
             assert wait_for(lambda: coloured_pixels(page.screenshot()) < 0.2 * with_meshes, 15, 0.5)
             page.get_by_label("meshes", exact=True).click()
             assert wait_for(lambda: coloured_pixels(page.screenshot()) > 0.8 * with_meshes, 15, 0.5)
+
+            if FULL:  # the other colourings (vertex colours: the GLB path) also draw
+                for mode in ("height", "uncertainty", "submap"):
+                    page.get_by_role("textbox", name="Mesh colour").or_(page.get_by_label("Mesh colour")).first.click()
+                    page.get_by_role("option", name=mode, exact=True).click()
+                    assert wait_for(lambda: coloured_pixels(page.screenshot()) > 0.5 * with_meshes, 20, 0.5), mode
 
             # pause button -> Control on `control` for the player
             page.get_by_role("button", name="Pause").click()

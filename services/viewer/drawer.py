@@ -25,6 +25,7 @@ KEYFRAME_RGB = (230, 60, 30)
 GT_RGB = (40, 170, 60)
 LANDMARK_RGB = (70, 110, 200)
 PLACEHOLDER = np.zeros((48, 64, 3), np.uint8)
+SRGB_TO_LINEAR = np.round(255.0 * (np.arange(256) / 255.0) ** 2.2).astype(np.uint8)  # approximate sRGB decoding
 REFRAME_GROWTH = 1.3  # re-frame (untouched views) when the map diagonal grew by this factor
 
 
@@ -220,7 +221,8 @@ class SceneDrawer:
             handle = self.server.scene.add_mesh_simple(name, mesh.vertices_M, mesh.faces, color=tuple(int(c) for c in mesh.colors[0]),
                                                        side="double", wxyz=wxyz, position=pos)
         else:
-            tm = trimesh.Trimesh(mesh.vertices_M, mesh.faces, vertex_colors=mesh.colors, process=False)
+            # glTF vertex colours are linear; the browser shows them as sRGB: convert so they look as computed
+            tm = trimesh.Trimesh(mesh.vertices_M, mesh.faces, vertex_colors=SRGB_TO_LINEAR[mesh.colors], process=False)
             handle = self.server.scene.add_mesh_trimesh(name, tm, wxyz=wxyz, position=pos)
         self._meshes[sid] = handle  # same name: viser replaced the previous node
         self._bounds_M[sid] = np.stack([mesh.vertices_M.min(0), mesh.vertices_M.max(0)]).astype(np.float64)
