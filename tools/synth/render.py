@@ -20,6 +20,7 @@ import open3d as o3d
 
 from shared.camera import CameraCalib
 from shared.config import param
+from tools.synth.kernels import build_rays, flatten_mips, shade_rays
 from tools.synth.scene import Scene
 
 INVALID = 0xFFFFFFFF
@@ -88,6 +89,7 @@ class Renderer:
         self._mips = [scene.atlas]
         for _ in range(max(self.cfg.mip_levels, 1) - 1):
             self._mips.append(cv2.pyrDown(self._mips[-1]))
+        self._mip_buf = flatten_mips(self._mips)
         v = scene.vertices[scene.triangles]
         n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
         self._normals = (n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)).astype(np.float32)
@@ -101,12 +103,11 @@ class Renderer:
 
     def cast(self, rays_C: np.ndarray, T_WC: np.ndarray) -> dict[str, np.ndarray]:
         """Cast rays (N, 3) given in C from pose T_WC; returns t_hit (= z in C for z=1 rays), ids, uvs."""
-        R, t = np.asarray(T_WC[:3, :3], np.float32), np.asarray(T_WC[:3, 3], np.float32)
         rays = np.empty((len(rays_C), 6), np.float32)
-        rays[:, :3] = t
-        rays[:, 3:] = rays_C @ R.T
-        out = self._rc.cast_rays(o3d.core.Tensor(rays))
-        return {"t_hit": out["t_hit"].numpy(), "ids": out["primitive_ids"].numpy(), "uvs": out["primitive_uvs"].numpy()}
+        build_rays(rays_C, np.asarray(T_WC[:3, :3], np.float32), np.asarray(T_WC[:3, 3], np.float32), rays)
+        out = self._rc.cast_rays(o3d.core.Tensor.from_numpy(rays))
+        return {"t_hit": out["t_hit"].numpy(), "ids": out["primitive_ids"].numpy(), "uvs": out["primitive_uvs"].numpy(),
+                "rays": rays}
 
     def depth(self, T_WC: np.ndarray, cam_index: int = 0) -> np.ndarray:
         """(H, W) float32 depth along the optical axis [m]; NaN where the ray hits nothing."""
@@ -123,17 +124,25 @@ class Renderer:
         cam, s = self.cameras[cam_index].camera, self.cfg.supersample
         hit = self.cast(self._rays[cam_index], T_WC)
         self._last_hit = ((cam_index, np.asarray(T_WC, np.float64).tobytes()), hit["t_hit"])
+        val = np.empty(len(hit["ids"]), np.float32)
+        shade_rays(hit["ids"], hit["uvs"], hit["t_hit"], hit["rays"], self.scene.tri_uv, self.scene.tri_shade,
+                   self._normals, *self._mip_buf, self.scene.texels_per_m / (cam.fx * s), val)
+        hs, ws = cam.height * s, cam.width * s
+        img = val.reshape(cam.height, s, cam.width, s).mean(axis=(1, 3)) if s > 1 else val.reshape(hs, ws)
+        return img * self._vignette[cam_index]
+
+    def radiance_reference(self, T_WC: np.ndarray, cam_index: int = 0) -> np.ndarray:
+        """Plain-numpy version of :meth:`radiance` (without supersampling or vignetting): checks the kernel."""
+        cam = self.cameras[cam_index].camera
+        hit = self.cast(self._centre[cam_index], T_WC)
         ids = hit["ids"]
         ok = ids != INVALID
         idx = np.where(ok, ids, 0).astype(np.int64)
         tri = self.scene.tri_uv[idx]  # (N, 3, 2)
         b = hit["uvs"]
         tex = (1.0 - b[:, :1] - b[:, 1:2]) * tri[:, 0] + b[:, :1] * tri[:, 1] + b[:, 1:2] * tri[:, 2]
-        albedo = self._sample_texture(tex, hit["t_hit"], self._rays[cam_index], idx, T_WC, cam.fx * s)
-        val = albedo * (self.scene.tri_shade[idx] / 255.0) * ok
-        hs, ws = cam.height * s, cam.width * s
-        img = val.reshape(cam.height, s, cam.width, s).mean(axis=(1, 3)) if s > 1 else val.reshape(hs, ws)
-        return img * self._vignette[cam_index]
+        albedo = self._sample_texture(tex, hit["t_hit"], self._centre[cam_index], idx, T_WC, cam.fx)
+        return (albedo * (self.scene.tri_shade[idx] / 255.0) * ok).reshape(cam.height, cam.width)
 
     def _sample_texture(self, tex: np.ndarray, z: np.ndarray, rays_C: np.ndarray, idx: np.ndarray,
                         T_WC: np.ndarray, f_px: float) -> np.ndarray:
@@ -176,6 +185,9 @@ class Renderer:
         """Images of every camera at body pose T_WS (averaged over ``blur_T_WS`` sub-frame poses when given:
         motion blur) and depth of the cameras in ``with_depth`` at T_WS exactly."""
         poses = blur_T_WS or [T_WS]
-        imgs = [self.image([T @ c.T_SC for T in poses], i, t_s, rng) for i, c in enumerate(self.cameras)]
-        depths = {i: self.depth(T_WS @ self.cameras[i].T_SC, i) for i in with_depth}
+        imgs, depths = [], {}
+        for i, c in enumerate(self.cameras):
+            imgs.append(self.image([T @ c.T_SC for T in poses], i, t_s, rng))
+            if i in with_depth:  # right after the image: reuses its rays when they are the same
+                depths[i] = self.depth(T_WS @ c.T_SC, i)
         return imgs, depths
