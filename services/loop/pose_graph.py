@@ -59,15 +59,17 @@ class PoseGraph:
         self._cauchy = loop_cauchy_k
         self.estimate: dict[int, np.ndarray] = {}
 
-    def add_node(self, key: int, T_WS: np.ndarray, rel_cov: np.ndarray | None = None) -> None:
+    def add_node(self, key: int, T_WS: np.ndarray, rel_cov: np.ndarray | None = None,
+                 T_rel: np.ndarray | None = None) -> None:
         """Append a keyframe with its window estimate; ``rel_cov`` (6,6): covariance of the relative pose from
-        the previous node (required except for the first node)."""
+        the previous node (required except for the first node); ``T_rel``: that relative pose as the window
+        estimated it (default: from the two nodes' window estimates)."""
         T_WS = np.asarray(T_WS, float)
         if self.keys:
             prev = self.keys[-1]
             if rel_cov is None or not np.all(np.isfinite(rel_cov)):
                 raise ValueError(f"keyframe {key}: relative covariance to {prev} missing or not finite")
-            T_rel = inv_T(self.odom[prev]) @ T_WS
+            T_rel = inv_T(self.odom[prev]) @ T_WS if T_rel is None else np.asarray(T_rel, float)
             self.graph.add(gtsam.BetweenFactorPose3(_sym(prev), _sym(key), gtsam.Pose3(T_rel), _noise(rel_cov)))
             guess = self.estimate.get(prev, self.odom[prev]) @ T_rel  # follows the latest correction
         else:

@@ -1,0 +1,40 @@
+"""Configuration of loop closure, the pose graph, relocalisation and the final bundle adjustment."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from shared.config import param
+
+
+@dataclasses.dataclass
+class LoopConfig:
+    """Loop closure (bag of binary words + PnP), pose graph, relocalisation, final BA (runs in the back end)."""
+
+    enabled: bool = param(True, "detect loops, keep the pose graph and correct the published poses")
+    vocabulary: str = param("", "ORB vocabulary .npz (empty: the shipped services/loop/data/orb_vocabulary.npz)")
+    # --- place recognition ---
+    min_age_s: float = param(10.0, "loop candidates are at least this much older than the query keyframe", "s")
+    min_score: float = param(0.05, "least raw L1 bag-of-words score of a candidate")
+    min_normalised: float = param(0.8, "least score relative to the query's score with its predecessor keyframe")
+    max_candidates: int = param(2, "candidates verified per query keyframe")
+    # --- geometric verification ---
+    max_hamming: int = param(50, "largest Hamming distance of a descriptor match", "bits")
+    ransac_px: float = param(3.0, "PnP RANSAC and refinement inlier threshold", "px")
+    min_inliers: int = param(25, "PnP inliers needed to accept a loop")
+    min_inlier_ratio: float = param(0.35, "share of descriptor matches that must be PnP inliers")
+    sigma_px: float = param(1.0, "feature noise used for the loop constraint's covariance", "px")
+    cov_inflation: float = param(4.0, "loop covariance = this x the inverse reprojection information "
+                                 "(the old landmarks are uncertain too)")
+    loop_cauchy_k: float = param(3.0, "Cauchy scale of loop factors, in sigmas")
+    max_translation_jump_m: float = param(0.0, "reject a loop moving the keyframe further than this from its "
+                                          "odometry pose (0: no limit)", "m")
+    # --- output and relocalisation ---
+    correct_state: bool = param(True, "apply the pose-graph correction to estimator/state and estimator/keyframes")
+    relocalise_after_s: float = param(1.0, "after this long without tracking, the next keyframes are matched "
+                                      "against the map built before the loss, whatever their age", "s")
+    queue_depth: int = param(200, "keyframe events waiting for the loop thread at most (oldest dropped, counted)")
+    # --- final bundle adjustment ---
+    final_ba: bool = param(True, "at the end of the stream, bundle-adjust all keyframes and publish "
+                           "estimator/trajectory_final")
+    final_ba_iterations: int = param(30, "Levenberg-Marquardt iterations of the final bundle adjustment")
