@@ -17,6 +17,7 @@ from shared.codec import Header, Message, array_field, register, scalar_field
 __all__ = [
     "Header", "ImuSample", "MultiCameraFrame", "FeatureFrame", "EstimatorState", "Keyframes",
     "DepthFrame", "SubmapMesh", "ServiceStats", "Heartbeat", "Control", "StreamEnd",
+    "KeyframeFeatures", "FinalTrajectory",
 ]
 
 
@@ -148,3 +149,34 @@ class StreamEnd(Message):
 
     source: str = scalar_field("name of the source that ended")
     frames_sent: int = scalar_field("frames published by the source")
+
+
+# --- loop closure and the non-causal trajectory (type ids 70-79) ---
+
+
+@register(70)
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class KeyframeFeatures(Message):
+    """Features of one frontend keyframe with their ORB descriptors (for loop closure); header.stamp_ns is the
+    keyframe's frame time."""
+
+    keyframe_id: int = scalar_field("frontend keyframe counter")
+    landmark_ids: object = array_field("landmark id of each feature", "int64", ("K",))
+    camera_index: object = array_field("index of the observing camera", "int16", ("K",))
+    uv: object = array_field("pixel coordinates (distorted image) [px]", "float32", ("K", 2))
+    descriptors: object = array_field("ORB descriptor of each feature (256 bits)", "uint8", ("K", 32))
+
+
+@register(71)
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class FinalTrajectory(Message):
+    """Non-causal trajectory at the end of a stream (final bundle adjustment over all keyframes, loops), one
+    pose per frame the estimator published; with the run's loop-closure counts."""
+
+    stamps_ns: object = array_field("frame times [ns]", "int64", ("N",))
+    T_WS: object = array_field("body poses in world", "float64", ("N", 4, 4))
+    keyframes: int = scalar_field("keyframes in the final bundle adjustment")
+    loops_proposed: int = scalar_field("place-recognition candidates verified by PnP")
+    loops_verified: int = scalar_field("candidates PnP accepted")
+    loops_accepted: int = scalar_field("loop factors added to the pose graph")
+    relocalisations: int = scalar_field("relocalisations after a loss of tracking")

@@ -36,9 +36,13 @@ STATS = Topic("stats/*", m.ServiceStats, "latest", 32, "per-service statistics; 
 HEARTBEAT = Topic("heartbeat/*", m.Heartbeat, "latest", 32, "per-service liveness; publish on heartbeat/<service>")
 CONTROL = Topic("control", m.Control, "all", 64, "commands to services")
 STREAM_END = Topic("sensors/end", m.StreamEnd, "all", 8, "end of a data source")
+KEYFRAME_FEATURES = Topic("frontend/keyframe_features", m.KeyframeFeatures, "all", 64,
+                          "ORB descriptors of each frontend keyframe (loop closure)")
+TRAJECTORY_FINAL = Topic("estimator/trajectory_final", m.FinalTrajectory, "all", 4,
+                         "non-causal trajectory after the final bundle adjustment (end of stream)")
 
 ALL: tuple[Topic, ...] = (IMU, FRAME, FEATURES, STATE, KEYFRAMES, DEPTH_STEREO, DEPTH_FUSED, SUBMAP,
-                          STATS, HEARTBEAT, CONTROL, STREAM_END)
+                          STATS, HEARTBEAT, CONTROL, STREAM_END, KEYFRAME_FEATURES, TRAJECTORY_FINAL)
 
 
 def per_service(topic: Topic, service: str) -> str:
