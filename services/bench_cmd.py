@@ -13,6 +13,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "transport": ("tools.bench_transport", "Zenoh round-trip latency and 786 KB frame latency/rate, SHM on and off"),
     "netns": ("tools.bench_netns", "estimator/state and depth/fused latency across network namespaces (via a router) vs one host"),
     "mapping": ("tools.bench_mapping", "occupancy integration ms per 512x384 depth frame, memory, mesh accuracy on a replica"),
+    "mapping-ablation": ("tools.mapping_ablation", "map accuracy/completeness from GT, stereo (heuristic/learned sigma) and fused depth at GT poses"),
 }
 
 

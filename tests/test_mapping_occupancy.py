@@ -228,3 +228,21 @@ def test_bad_input():
     s[20:30] = np.nan
     _, _, n = prepare_depth(d, s, cfg)
     assert n == (H - 30) * W
+
+
+def test_coarsening_free_blocks_keeps_mesh_and_states(room_map):
+    from services.mapping.mesh import ChunkMesher
+
+    store, _, _, cfg = room_map
+    copy = BlockStore.from_arrays(store.arrays())
+    n = copy.coarsen_free(0.7 * cfg.l_min)
+    assert n > 100 and copy.nbytes() < 0.8 * store.nbytes()
+    meshes = []
+    for s in (store, copy):
+        mesher = ChunkMesher(4)
+        mesher.mark(s, np.arange(s.n_blocks))
+        mesher.update(s)
+        meshes.append(mesher.mesh())
+    assert np.array_equal(meshes[0][1], meshes[1][1]) and np.allclose(meshes[0][0], meshes[1][0])
+    p = np.random.default_rng(5).uniform([0, 0, 0], [6, 5, 3], (20000, 3))
+    assert np.array_equal(state(BlockField.of(store), p), state(BlockField.of(copy), p))

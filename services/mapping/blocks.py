@@ -122,6 +122,21 @@ class BlockStore:
         self.coarse_w[slots] = 0
         self.free_rows = np.concatenate([self.free_rows, rows.astype(np.int32)])
 
+    def coarsen_free(self, below: float) -> int:
+        """Turn refined blocks whose voxels are all observed and all below ``below`` (clearly free: no
+        surface within a voxel of them) into coarse ones (mean L, least w); returns how many."""
+        slots = self.refined_slots()
+        if len(slots) == 0:
+            return 0
+        rows = self.vox_slot[slots]
+        Lv, wv = self.Lv[rows], self.wv[rows]
+        free = (wv > 0).all(axis=(1, 2, 3)) & (Lv < below).all(axis=(1, 2, 3))
+        slots, Lv, wv = slots[free], Lv[free], wv[free]
+        self.unrefine(slots)
+        self.coarse_L[slots] = Lv.mean(axis=(1, 2, 3))
+        self.coarse_w[slots] = wv.min(axis=(1, 2, 3))
+        return int(len(slots))
+
     def _grow_blocks(self, n: int) -> None:
         cap = len(self.keys)
         if n <= cap:

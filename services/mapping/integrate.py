@@ -240,8 +240,8 @@ def integrate(store: BlockStore, depth: np.ndarray, sigma: np.ndarray, K: np.nda
     if n == 0:
         return empty
     ijk, cls = out_ijk[:n], out_cls[:n]
-    was_new = store.lookup(pack_keys(ijk)) < 0
     slots = store.insert(pack_keys(ijk))
+    was_unknown = (store.vox_slot[slots] < 0) & (store.coarse_w[slots] == 0)  # new, or allocated but never seen
     coarse_clear = (cls == CLEAR) & (store.vox_slot[slots] < 0)
     sc = slots[coarse_clear]
     w = store.coarse_w[sc].astype(np.float32)
@@ -254,7 +254,7 @@ def integrate(store: BlockStore, depth: np.ndarray, sigma: np.ndarray, K: np.nda
     _update_voxels(np.ascontiguousarray(ijk[fine]), store.vox_slot[sv].astype(np.int64), store.Lv, store.wv, R, t,
                    fx, fy, cx, cy, depth, sigma, store.voxel_size, float(cfg.l_min), int(cfg.w_max), cfg.tau_k,
                    cfg.tau_min_m, cfg.tau_max_m, cfg.near_m, changed)
-    store.unrefine(sv[~changed & was_new[fine]])  # allocated this frame but nothing seen: back to unknown coarse
+    store.unrefine(sv[~changed & was_unknown[fine]])  # refined for nothing: back to unknown coarse
     return IntegrationResult(np.concatenate([sc, sv[changed]]), int(len(sc)), int(len(sv)), n_pix)
 
 

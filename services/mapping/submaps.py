@@ -111,6 +111,8 @@ class SubmapMapper:
             ov = self.overlap(cur, d, K, T_WC)
             new = bool(ov < self.cfg.eps_vol)
         if new:
+            if cur is not None:  # the closed submap no longer grows: keep voxels only near surfaces
+                cur.store.coarsen_free(0.7 * self.sensor.l_min)
             cur = self.new_submap(T_WC @ inv_T(T_SC), stamp_ns)
         T_MC = inv_T(cur.T_WM) @ T_WC
         if cur.anchor_view is None:
