@@ -13,6 +13,7 @@ from shared.config import from_dict, load_yaml, merge, param, parse_override
 from services.backend.config import BackendConfig
 from services.depth.config import DepthConfig
 from services.frontend.config import FrontendConfig
+from services.loop.config import LoopConfig
 from services.mapping.config import MappingConfig
 from services.player.config import PlayerConfig
 from services.recorder.config import RecorderConfig
@@ -33,6 +34,7 @@ class SystemConfig:
     rig: RigConfig = param(RigConfig(), "camera rig calibration used by the pipeline services")
     frontend: FrontendConfig = param(FrontendConfig(), "multi-camera feature tracker (sigmaslam frontend)")
     backend: BackendConfig = param(BackendConfig(), "visual-inertial estimator (sigmaslam backend)")
+    loop: LoopConfig = param(LoopConfig(), "loop closure, pose graph, relocalisation, final BA (in sigmaslam backend)")
     depth: DepthConfig = param(DepthConfig(), "stereo/MVS depth with learned uncertainty (sigmaslam depth)")
     mapping: MappingConfig = param(MappingConfig(), "occupancy submapping (sigmaslam mapping)")
     player: PlayerConfig = param(PlayerConfig(), "dataset player: pacing of sensors/imu and sensors/frame (sigmaslam player)")

@@ -29,6 +29,9 @@ class LoopConfig:
     loop_cauchy_k: float = param(3.0, "Cauchy scale of loop factors, in sigmas")
     max_translation_jump_m: float = param(0.0, "reject a loop moving the keyframe further than this from its "
                                           "odometry pose (0: no limit)", "m")
+    min_solve_interval_s: float = param(1.0, "pose-graph solves at most this often (sensor time); loops found in "
+                                        "between wait for the next solve", "s")
+    pose_graph_iterations: int = param(20, "Levenberg-Marquardt iterations per pose-graph solve")
     # --- output and relocalisation ---
     correct_state: bool = param(True, "apply the pose-graph correction to estimator/state and estimator/keyframes")
     relocalise_after_s: float = param(1.0, "after this long without tracking, the next keyframes are matched "

@@ -70,6 +70,8 @@ class LoopCloser:
         self._reloc_before: int | None = None  # relocalisation mode: candidates older than this stamp
         self.solve_ms: list[float] = []
         self.node_stamps: dict[int, int] = {}
+        self._dirty = False
+        self._last_solve_ns = -(1 << 62)
 
     # ------------------------------------------------------------------ status
     def note_status(self, stamp_ns: int, status: str) -> None:
@@ -146,7 +148,7 @@ class LoopCloser:
             if np.isfinite(p_W[:, 0]).sum() >= self.cfg.min_inliers:
                 self._old[rec.state] = (fs, p_W, rec)
                 self.db.add(rec.state, rec.stamp_ns, bag)
-        solved = False
+        solved = self._solve_if_due(rec.stamp_ns)
         keep = []
         for lp in self._pending:
             if lp.query_stamp_ns == rec.stamp_ns:
@@ -168,10 +170,20 @@ class LoopCloser:
                 return False
         self.graph.add_loop(LoopConstraint(old.state, rec.state, T_old_new, lp.covariance))
         self.loops.append((old.state, rec.state, T_old_new, lp.covariance))
-        t0 = time.perf_counter()
-        self.graph.optimise()
-        self.solve_ms.append(1e3 * (time.perf_counter() - t0))
         self.counts["accepted"] += 1
+        self._dirty = True
+        return self._solve_if_due(rec.stamp_ns)
+
+    def _solve_if_due(self, stamp_ns: int) -> bool:
+        """Solve the pose graph when loops were added and the last solve is ``min_solve_interval_s`` old (gtsam
+        holds Python's GIL while it solves, so solves are rationed to keep the estimator's thread running)."""
+        if not self._dirty or stamp_ns - self._last_solve_ns < self.cfg.min_solve_interval_s * 1e9:
+            return False
+        t0 = time.perf_counter()
+        self.graph.optimise(self.cfg.pose_graph_iterations)
+        self.solve_ms.append(1e3 * (time.perf_counter() - t0))
+        self._dirty = False
+        self._last_solve_ns = int(stamp_ns)
         return True
 
     def correction(self) -> np.ndarray:

@@ -1,0 +1,144 @@
+"""Loop closure inside the back end process: wraps a ``BackendShell`` (no transport in here).
+
+* installs the estimator's marginalisation hook (keyframe history) and a :class:`ThreadedLoopCloser`; the
+  estimator's per-frame path only enqueues, so ``estimator/state`` is never delayed by verification or
+  pose-graph solves;
+* corrects the published state and keyframe poses by the pose graph's latest correction ``T_W'W`` (when
+  ``loop.correct_state``); after a solve the keyframes message also carries every corrected pose-graph node;
+* keeps the uncorrected causal poses, and at the end of the stream (:meth:`LoopClosingBackend.finish`) runs
+  the final bundle adjustment over all keyframes with IMU and loop factors, giving the non-causal trajectory.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from services.loop.config import LoopConfig
+from services.loop.final_ba import bundle_adjust, follow_keyframes
+from services.loop.history import attach
+from services.loop.loop_closer import LoopCloser, ThreadedLoopCloser
+from services.loop.verification import FeatureSet
+from shared.messages import EstimatorState, FinalTrajectory, Header, KeyframeFeatures, Keyframes
+
+log = logging.getLogger("sigmaslam.loop")
+
+
+def corrected_state(msg: EstimatorState, T: np.ndarray) -> EstimatorState:
+    """``msg`` moved by the rigid correction T (= T_W'W): pose, velocity and the covariance's p/v blocks."""
+    R = T[:3, :3]
+    J = np.eye(15)
+    J[3:6, 3:6] = J[6:9, 6:9] = R
+    return EstimatorState(header=msg.header, T_WS=T @ msg.T_WS, v_W=R @ msg.v_W, gyro_bias=msg.gyro_bias,
+                          acc_bias=msg.acc_bias, covariance=J @ msg.covariance @ J.T, status=msg.status)
+
+
+class LoopClosingBackend:
+    def __init__(self, shell, cfg: LoopConfig) -> None:
+        self.shell, self.cfg = shell, cfg
+        est = shell.estimator
+        self.history = attach(est)
+        self.runner = ThreadedLoopCloser(LoopCloser(cfg, est.cameras))
+        self.history.listeners.append(self.runner.submit_record)
+        self._stamps: list[int] = []
+        self._T_raw: list[np.ndarray] = []
+        self._generation = 0
+        self.dropped_features = 0
+        self._end_ns: int | None = None
+        self._finished = False
+        self._last_process = time.monotonic()
+
+    @property
+    def counts(self) -> dict[str, int]:
+        return dict(self.runner.closer.counts)
+
+    def add_keyframe_features(self, msg: KeyframeFeatures) -> None:
+        n = len(msg.landmark_ids)
+        if n == 0 or np.asarray(msg.descriptors).shape != (n, 32):
+            self.dropped_features += 1
+            return
+        self.runner.submit_features(int(msg.header.stamp_ns), FeatureSet(
+            np.asarray(msg.landmark_ids, np.int64), np.asarray(msg.camera_index, np.int64),
+            np.asarray(msg.uv, float), np.asarray(msg.descriptors, np.uint8)))
+
+    def process(self, frame):
+        """As ``BackendShell.process``, with corrected poses."""
+        self._last_process = time.monotonic()
+        msgs = self.shell.process(frame)
+        if msgs is None or msgs[0].status == "initialising":
+            return msgs
+        state, kfs = msgs
+        self._stamps.append(int(state.header.stamp_ns))
+        self._T_raw.append(np.array(state.T_WS))
+        self.runner.submit_status(int(state.header.stamp_ns), state.status)
+        if not self.cfg.correct_state:
+            return msgs
+        T = self.runner.correction()
+        state = corrected_state(state, T)
+        if kfs is not None:
+            ids, stamps, poses = kfs.ids, kfs.stamps_ns, np.einsum("ij,njk->nik", T, kfs.T_WS)
+            gen = self.runner.generation
+            if gen != self._generation:  # a solve moved the past keyframes: send them all once
+                self._generation = gen
+                with self.runner._lock:
+                    g_ids, g_stamps, g_T = self.runner.closer.corrected_keyframes()
+                keep = ~np.isin(g_ids, ids)
+                ids, stamps = np.r_[g_ids[keep], ids], np.r_[g_stamps[keep], stamps]
+                poses = np.concatenate([g_T[keep], poses])
+            kfs = Keyframes(header=kfs.header, ids=np.asarray(ids, np.int64), stamps_ns=np.asarray(stamps, np.int64),
+                            T_WS=np.ascontiguousarray(poses, np.float64))
+        return state, kfs
+
+    def finish(self, seq: int = 0) -> FinalTrajectory | None:
+        """Final bundle adjustment over every keyframe (None when too little was tracked)."""
+        self.runner.drain()
+        est = self.shell.estimator
+        records = self.history.records + self.history.capture_window(est)
+        closer = self.runner.closer
+        c = closer.counts
+        if len(records) < 2 or len(self._stamps) < 2:
+            return None
+        stamps = np.array(self._stamps, np.int64)
+        T_raw = np.array(self._T_raw)
+        if self.cfg.final_ba:
+            res = bundle_adjust(records, est.cameras, est.cfg.sigma_px, est.cfg.cauchy_k, closer.loops,
+                                self.cfg.final_ba_iterations)
+            T_final = follow_keyframes(stamps, T_raw, res.stamps_ns, res.T_WS)
+            n_kf = len(res.stamps_ns)
+            log.info("final BA: %d keyframes, %d landmarks, %d observations, error %.1f -> %.1f", n_kf,
+                     res.landmarks, res.observations, res.initial_error, res.final_error)
+        else:  # the pose graph alone
+            g_ids, g_stamps, g_T = closer.corrected_keyframes()
+            T_final = follow_keyframes(stamps, T_raw, g_stamps, g_T) if len(g_ids) else T_raw
+            n_kf = len(g_ids)
+        return FinalTrajectory(header=Header(stamp_ns=int(stamps[-1]), seq=seq, frame_id="W"), stamps_ns=stamps,
+                               T_WS=np.ascontiguousarray(T_final, np.float64), keyframes=int(n_kf),
+                               loops_proposed=int(c["proposed"]), loops_verified=int(c["verified"]),
+                               loops_accepted=int(c["accepted"]), relocalisations=int(c["relocalised"]))
+
+    def poll_end(self, stream_ends, idle_s: float = 2.0) -> FinalTrajectory | None:
+        """Call while no frame is waiting, with the StreamEnd messages received since the last call: returns the
+        final trajectory once, when the player's stream has ended and its last frame is processed (or no frame
+        came for ``idle_s`` after the end)."""
+        for e in stream_ends:
+            if e.source == "player":
+                self._end_ns = int(e.header.stamp_ns)
+        if self._finished or self._end_ns is None:
+            return None
+        last = self._stamps[-1] if self._stamps else -1
+        if last < self._end_ns and time.monotonic() - self._last_process < idle_s:
+            return None
+        self._finished = True
+        t0 = time.perf_counter()
+        try:
+            out = self.finish()
+        except (RuntimeError, ValueError) as exc:
+            log.warning("final trajectory not computed: %s", exc)
+            return None
+        log.info("final trajectory in %.1f s; loops %s", time.perf_counter() - t0, self.counts)
+        return out
+
+    def close(self) -> None:
+        self.runner.close()
