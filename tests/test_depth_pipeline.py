@@ -1,0 +1,49 @@
+"""The network path of the depth pipeline (no transport): weights from a JSON+pt pair, keyframes announced
+after their frames become MVS sources, fusion of stereo and MVS never has a larger sigma than either."""
+import numpy as np
+import torch
+
+from services.depth import weights
+from services.depth.config import DepthConfig
+from services.depth.mvs_net import MVSNet
+from services.depth.pipeline import DepthPipeline
+from services.depth.stereo_net import StereoNet
+from shared.camera import camera_from_sensor_yaml, read_sensor_yaml_file
+from shared.paths import euroc_dir
+
+
+def test_network_pipeline_with_keyframes(tmp_path):
+    torch.manual_seed(0)
+    weights.save(StereoNet(96), tmp_path / "stereo", "stereo", {"max_disparity": 96}, {"gain": 2.0})
+    weights.save(MVSNet(16), tmp_path / "mvs", "mvs", {"n_planes": 16}, {"gain": 0.5})
+    calib = euroc_dir() / "calib"
+    cams = [camera_from_sensor_yaml(read_sensor_yaml_file(calib / f"cam{i}_sensor.yaml"), f"cam{i}") for i in (0, 1)]
+    cfg = DepthConfig(method="network", stereo_weights=str(tmp_path / "stereo.pt"), mvs_weights=str(tmp_path / "mvs.pt"),
+                      mvs_sources=2, threads=1, device="cpu")
+    pipe = DepthPipeline(cfg, *cams)
+    assert pipe.method == "network" and pipe.stereo_gain == 2.0 and pipe.mvs_gain == 0.5
+    rng = np.random.default_rng(0)
+    raw = [rng.integers(0, 255, (480, 752), dtype=np.uint8) for _ in range(4)]
+    T_WS = [np.eye(4) for _ in range(4)]
+    for i, T in enumerate(T_WS):
+        T[0, 3] = 0.05 * i
+    # without a pose: stereo only
+    res = pipe.process(0, raw[0], raw[1], None)
+    assert res.mvs is None and res.T_WC is None and res.fused is res.stereo
+    assert res.stereo[0].shape == (384, 512)
+    # frames 1..3 seen; keyframes 1 and 2 announced later (and one unknown stamp that is ignored)
+    for i in (1, 2, 3):
+        pipe.remember_frame(i, raw[i])
+    pipe.update_keyframes(np.array([1, 2, 99]), np.stack([T_WS[1], T_WS[2], T_WS[0]]))
+    assert pipe.n_keyframe_views == 2
+    res = pipe.process(3, raw[3], raw[0], T_WS[3])
+    assert res.n_sources == 2 and res.mvs is not None
+    (ds, ss), (dm, sm), (df, sf) = res.stereo, res.mvs, res.fused
+    both = np.isfinite(ds) & np.isfinite(dm)
+    assert both.mean() > 0.5
+    assert (sf[both] <= np.minimum(ss[both], sm[both]) * (1 + 1e-5)).all()
+    lo, hi = np.minimum(ds, dm)[both], np.maximum(ds, dm)[both]
+    assert ((df[both] >= lo * (1 - 1e-5)) & (df[both] <= hi * (1 + 1e-5))).all()  # a convex combination
+    only_mvs = ~np.isfinite(ds) & np.isfinite(dm)
+    np.testing.assert_allclose(df[only_mvs], dm[only_mvs], rtol=1e-6)
+    np.testing.assert_allclose(res.T_WC, T_WS[3] @ pipe.T_SC)

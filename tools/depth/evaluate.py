@@ -1,0 +1,242 @@
+"""``sigmaslam eval depth``: depth and uncertainty of every method on held-out frames with ground truth.
+
+Methods: SGBM with the quadratic and the linear heuristic sigma; the stereo network with its learned
+sigma and, for the same depths, with the quadratic heuristic sigma; the MVS network; the fusion of both
+networks (eq. 14). The heuristic models get the same treatment as the networks: one gain each, fitted
+on the validation split of the rendered training set (sec. V-A). Per method: AbsRel, RMSE, delta<1.25,
+mean Mahalanobis, NLL, fraction within 1/2/3 sigma (next to the Laplacian expectation), coverage; a
+table (markdown + JSON), a calibration plot (PNG) and the CPU time per frame (median over frames).
+
+Frames come from a synthetic replica (``--replica DIR``: EuRoC folder with ``mav0/scene/mesh.ply``;
+ground truth ray-cast in the rectified left camera at the ground-truth pose; MVS sources are earlier
+frames chosen by baseline) or from a split of the rendered set (``--split test``).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+METHODS = ("sgbm_quadratic", "sgbm_linear", "stereo_net", "stereo_net_quadratic", "mvs_net", "fused")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--replica", help="replica folder (EuRoC layout with mav0/scene/mesh.ply)")
+    p.add_argument("--data", default="data/depth_train", help="rendered set (val split: heuristic gains; --split)")
+    p.add_argument("--split", default="test", help="split of --data to evaluate when no --replica is given")
+    p.add_argument("--frames", type=int, default=30, help="frames evaluated")
+    p.add_argument("--stride", type=int, default=10, help="replica: every n-th frame (after --skip)")
+    p.add_argument("--skip", type=int, default=40, help="replica: frames skipped at the start (MVS needs history)")
+    p.add_argument("--sources", type=int, default=4, help="MVS source views")
+    p.add_argument("--prior-points", type=int, default=150, help="sparse prior depths (landmark-like, 2%% noise)")
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--stereo-weights", default="", help="default: services/depth/weights/stereo.pt")
+    p.add_argument("--mvs-weights", default="", help="default: services/depth/weights/mvs.pt")
+    p.add_argument("--out", default="out/depth/eval", help="output folder")
+
+
+def _replica_frames(path: Path, n: int, stride: int, skip: int, rect, sources: int, rng):
+    """Yields (left, right, gt, T_WC, [(src_img, T_WC_src)], stamp) from a replica."""
+    import open3d as o3d
+
+    from services.depth.views import select_sources
+    from shared.euroc import read_euroc_csv
+    from shared.euroc_reader import EurocDataset
+    from shared.trajectory import Trajectory
+
+    ds = EurocDataset(path)
+    traj = Trajectory(read_euroc_csv(ds.groundtruth_path), knot_spacing_s=0.05)
+    mesh = o3d.io.read_triangle_mesh(str(ds.root / "scene" / "mesh.ply"))
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    w, h = rect.size
+    v, u = np.mgrid[0:h, 0:w]
+    rays = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], 1) @ np.linalg.inv(rect.K).T  # z = 1
+    stamps = ds.frame_stamps_ns[(ds.frame_stamps_ns >= traj.t0_ns) & (ds.frame_stamps_ns <= traj.t_end_ns)]
+    T_WC_all = traj.pose(stamps) @ rect.T_SN0
+    names = ds.camera_names
+    for k in range(n):
+        i = skip + k * stride
+        if i >= len(stamps):
+            return
+        imgs = ds.load_frame(stamps[i])
+        left, right = rect.rectify(imgs[names.index("cam0")], imgs[names.index("cam1")])
+        T = T_WC_all[i]
+        dirs = rays @ T[:3, :3].T
+        hit = scene.cast_rays(o3d.core.Tensor(np.hstack([np.tile(T[:3, 3], (len(dirs), 1)), dirs]).astype(np.float32)))
+        gt = hit["t_hit"].numpy().reshape(h, w)  # rays have z = 1: t is the depth
+        gt[~np.isfinite(gt)] = np.nan
+        lo = max(0, i - 40)
+        idx = select_sources(T, T_WC_all[lo:i], sources, 0.03, 1.0, 35.0)
+        srcs = []
+        for j in idx:
+            im = ds.load_frame(stamps[lo + j])
+            srcs.append((rect.rectify(im[names.index("cam0")], im[names.index("cam0")])[0], T_WC_all[lo + j]))
+        yield left, right, gt.astype(np.float32), T, srcs, int(stamps[i])
+
+
+def _split_frames(root: Path, split: str, n: int, sources: int):
+    from services.depth.views import select_sources
+
+    files = sorted((root / split).glob("scene_*.npz"))
+    per = max(1, int(np.ceil(n / max(1, len(files)))))
+    count = 0
+    for f in files:
+        with np.load(f) as z:
+            s = dict(z)  # decompress once
+        T = s["T_WC"]
+        for i in np.linspace(0, len(T) - 1, per).astype(int):
+            if count >= n:
+                return
+            others = np.array([j for j in range(len(T)) if j != i])
+            order = others[np.argsort(np.abs(others - i))[::-1]]
+            idx = order[select_sources(T[i], T[order], sources, 0.03, 1.0, 40.0)]
+            yield s["left"][i], s["right"][i], s["depth"][i], T[i], [(s["left"][j], T[j]) for j in idx], count
+            count += 1
+
+
+def _prior(rng, gt: np.ndarray, n: int) -> np.ndarray:
+    from tools.depth.train import prior_points
+
+    return prior_points(rng, np.where(np.isfinite(gt), gt, np.nan), n)
+
+
+def heuristic_gains(root: Path, f_px: float, baseline_m: float, stereo_net, n_frames: int = 24) -> dict[str, float]:
+    """Gains of the heuristic sigma models on the validation split (same calibration as the networks)."""
+    import torch
+
+    from services.depth.sgbm import sgbm_depth
+    from services.depth.uncertainty import calibration_gain, disparity_to_depth, heuristic_sigma
+
+    acc: dict[str, list] = {"sgbm_quadratic": [], "sgbm_linear": [], "stereo_net_quadratic": []}
+    for left, right, gt, *_ in _split_frames(root, "val", n_frames, 1):
+        for name, model, coeff in (("sgbm_quadratic", "quadratic", 1.0), ("sgbm_linear", "linear", 0.01)):
+            d, s = sgbm_depth(left, right, f_px, baseline_m, model, coeff)
+            acc[name].append((d, s, gt))
+        if stereo_net is not None:
+            with torch.inference_mode():
+                u, su = stereo_net(torch.from_numpy(left).float()[None, None], torch.from_numpy(right).float()[None, None])
+            d, _ = disparity_to_depth(u[0].numpy(), su[0].numpy(), f_px, baseline_m)
+            acc["stereo_net_quadratic"].append((d, heuristic_sigma(d, "quadratic", 1.0 / (f_px * baseline_m)), gt))
+    return {k: calibration_gain(*(np.stack(x) for x in zip(*v))) for k, v in acc.items() if v}
+
+
+def main(args: argparse.Namespace) -> int:
+    import cv2
+    import torch
+
+    from services.depth import weights
+    from services.depth.sgbm import sgbm_depth
+    from services.depth.uncertainty import (EXPECTED_WITHIN, depth_metrics, disparity_to_depth, fuse,
+                                            heuristic_sigma, logdepth_to_depth)
+    from shared.camera import camera_from_sensor_yaml, read_sensor_yaml_file, stereo_rectification
+    from tools.depth.make_dataset import BASELINE_M, K_RECT
+
+    torch.set_num_threads(args.threads)
+    rng = np.random.default_rng(0)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    st_net, st_meta = weights.load(args.stereo_weights or weights.WEIGHTS_DIR / "stereo.pt")
+    mv_net, mv_meta = weights.load(args.mvs_weights or weights.WEIGHTS_DIR / "mvs.pt")
+    if args.replica:
+        root = Path(args.replica) / "mav0" if (Path(args.replica) / "mav0").is_dir() else Path(args.replica)
+        cams = [camera_from_sensor_yaml(read_sensor_yaml_file(root / c / "sensor.yaml"), c) for c in ("cam0", "cam1")]
+        rect = stereo_rectification(cams[0], cams[1], (512, 384))
+        K, baseline = rect.K, rect.baseline_m
+        frames = _replica_frames(Path(args.replica), args.frames, args.stride, args.skip, rect, args.sources, rng)
+        source = f"replica {args.replica}"
+    else:
+        K, baseline = K_RECT, BASELINE_M
+        frames = _split_frames(Path(args.data), args.split, args.frames, args.sources)
+        source = f"{args.data}/{args.split}"
+    f_px = float(K[0, 0])
+    hg = heuristic_gains(Path(args.data), f_px, baseline, st_net)
+    q_coeff = 1.0 / (f_px * baseline)
+    acc = {m: [] for m in METHODS}
+    times: dict[str, list] = {"sgbm": [], "stereo_net": [], "mvs_net": [], "fusion": []}
+    n_src = []
+    for left, right, gt, T_WC, srcs, _ in frames:
+        t = time.perf_counter()
+        d, s = sgbm_depth(left, right, f_px, baseline, "quadratic", 1.0)
+        times["sgbm"].append(time.perf_counter() - t)
+        acc["sgbm_quadratic"].append((d, s * hg["sgbm_quadratic"], gt))
+        acc["sgbm_linear"].append((d, heuristic_sigma(d, "linear", 0.01 * hg["sgbm_linear"]), gt))
+        tt = lambda a: torch.from_numpy(np.asarray(a)).float()
+        with torch.inference_mode():
+            t = time.perf_counter()
+            u, su = st_net(tt(left)[None, None], tt(right)[None, None])
+            d_st, s_st = disparity_to_depth(u[0].numpy(), su[0].numpy() * st_meta["gain"], f_px, baseline)
+            times["stereo_net"].append(time.perf_counter() - t)
+            acc["stereo_net"].append((d_st, s_st, gt))
+            acc["stereo_net_quadratic"].append((d_st, heuristic_sigma(d_st, "quadratic", q_coeff * hg["stereo_net_quadratic"]), gt))
+            if not srcs:
+                continue
+            n_src.append(len(srcs))
+            prior = _prior(rng, gt, args.prior_points)
+            t = time.perf_counter()
+            ld, sl = mv_net(tt(left)[None, None], tt(np.stack([x[0] for x in srcs]))[None, :, None], tt(K)[None],
+                            tt(np.stack([np.linalg.inv(x[1]) @ T_WC for x in srcs]))[None], tt(prior)[None])
+            d_mv, s_mv = logdepth_to_depth(ld[0].numpy(), sl[0].numpy() * mv_meta["gain"])
+            times["mvs_net"].append(time.perf_counter() - t)
+        acc["mvs_net"].append((d_mv, s_mv, gt))
+        t = time.perf_counter()
+        acc["fused"].append((*fuse(d_st, s_st, d_mv, s_mv), gt))
+        times["fusion"].append(time.perf_counter() - t)
+    rows = {}
+    for m, v in acc.items():
+        if not v:
+            continue
+        d, s, g = (np.stack(x) for x in zip(*v))
+        met = depth_metrics(d, s, g)
+        met["coverage"] = float(np.mean(np.isfinite(d) & np.isfinite(g)) / max(np.mean(np.isfinite(g)), 1e-9))
+        rows[m] = met
+    timing = {k: float(np.median(v) * 1000) for k, v in times.items() if v}
+    result = {"source": source, "frames": len(acc["stereo_net"]), "mvs_frames": len(acc["mvs_net"]),
+              "mean_sources": float(np.mean(n_src)) if n_src else 0.0, "heuristic_gains": hg,
+              "network_gains": {"stereo": st_meta["gain"], "mvs": mv_meta["gain"]}, "metrics": rows,
+              "median_ms": timing, "threads": args.threads, "expected_within_laplace": EXPECTED_WITHIN["laplace"]}
+    (out / "metrics.json").write_text(json.dumps(result, indent=1))
+    lines = [f"Depth evaluation on {source}: {result['frames']} frames ({result['mvs_frames']} with MVS, "
+             f"{result['mean_sources']:.1f} sources on average)", "",
+             "| method | AbsRel | RMSE [m] | d<1.25 | mean Mahalanobis | NLL (Laplace) | <1s | <2s | <3s | coverage |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for m, r in rows.items():
+        lines.append(f"| {m} | {r['absrel']:.4f} | {r['rmse']:.4f} | {r['delta1']:.3f} | {r['mahalanobis']:.3f} | "
+                     f"{r['nll_laplace']:.3f} | {r['within_1s']:.3f} | {r['within_2s']:.3f} | {r['within_3s']:.3f} | "
+                     f"{r['coverage']:.3f} |")
+    e = EXPECTED_WITHIN["laplace"]
+    lines += [f"| (Laplace expectation) | | | | 1.000 | | {e[0]:.3f} | {e[1]:.3f} | {e[2]:.3f} | |", "",
+              "CPU time per 512x384 frame, median [ms] (" + f"{args.threads} threads): " +
+              ", ".join(f"{k} {v:.1f}" for k, v in timing.items())]
+    (out / "table.md").write_text("\n".join(lines) + "\n")
+    _plot(acc, out / "calibration.png")
+    print("\n".join(lines))
+    return 0
+
+
+def _plot(acc, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    k = np.linspace(0, 4, 81)
+    fig, ax = plt.subplots(figsize=(6, 4.5))
+    ax.plot(k, 1 - np.exp(-k), "k--", label="Laplace expectation")
+    for m, v in acc.items():
+        if not v:
+            continue
+        d, s, g = (np.stack(x).ravel() for x in zip(*v))
+        ok = np.isfinite(d) & np.isfinite(s) & np.isfinite(g) & (s > 0)
+        z = np.sort(np.abs(d[ok] - g[ok]) / s[ok])
+        ax.plot(k, np.searchsorted(z, k) / max(len(z), 1), label=m)
+    ax.set_xlabel("k (|d - d_gt| < k sigma)")
+    ax.set_ylabel("fraction of pixels")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
