@@ -65,6 +65,8 @@ def main(argv: list[str] | None = None) -> int:
             page.wait_for_timeout(args.wait * 1000)
             n = 0
             while True:
+                if n and args.until_gone and not reachable(args.url):
+                    break  # the viewer went away: keep the last screenshot of the live page
                 tmp = out.with_suffix(".tmp.png")
                 page.screenshot(path=str(tmp))
                 tmp.replace(out)  # readers never see a half-written file
@@ -74,8 +76,6 @@ def main(argv: list[str] | None = None) -> int:
                 if args.every <= 0 or time.monotonic() - t0 > args.duration:
                     break
                 time.sleep(args.every)
-                if args.until_gone and not reachable(args.url):
-                    break
         finally:
             browser.close()
     print(f"wrote {out} ({n} screenshots)", flush=True)

@@ -58,7 +58,7 @@ class SceneDrawer:
         self._chunks: dict[int, object] = {}
         self._frusta: dict[str, object] = {}
         self._bbox: dict[int, np.ndarray] = {}  # submap -> (2,3) world bbox, for framing the view
-        self._bounds_M: dict[int, np.ndarray] = {}  # submap -> (2,3) min/max of its vertices in M
+        self._bounds_M: dict[int, np.ndarray] = {}  # submap -> (2,3) robust min/max of its vertices in M
         self._framed = False
         self._framed_extent = 0.0  # map diagonal when the view was last framed [m]
         self._set_eye: dict[int, np.ndarray] = {}  # client -> camera position the viewer last set
@@ -81,7 +81,7 @@ class SceneDrawer:
 
     def _build_gui(self, follow: bool) -> None:
         gui = self.server.gui
-        gui.configure_theme(control_width="large")
+        gui.configure_theme(control_width="medium")
         with gui.add_folder("View"):
             self.status = gui.add_markdown("*waiting for data*")
             self.follow = gui.add_checkbox("Follow camera", initial_value=follow)
@@ -225,7 +225,8 @@ class SceneDrawer:
             tm = trimesh.Trimesh(mesh.vertices_M, mesh.faces, vertex_colors=SRGB_TO_LINEAR[mesh.colors], process=False)
             handle = self.server.scene.add_mesh_trimesh(name, tm, wxyz=wxyz, position=pos)
         self._meshes[sid] = handle  # same name: viser replaced the previous node
-        self._bounds_M[sid] = np.stack([mesh.vertices_M.min(0), mesh.vertices_M.max(0)]).astype(np.float64)
+        # robust extent (2nd-98th percentile): a few stray fragments must not shrink the framed view
+        self._bounds_M[sid] = np.percentile(mesh.vertices_M, [2.0, 98.0], axis=0).astype(np.float64)
         self._bbox[sid] = _world_bounds(mesh.T_WM, self._bounds_M[sid])
         self.drawn_meshes += 1
 
@@ -267,7 +268,12 @@ class SceneDrawer:
             return
         center = (lo + hi) / 2.0
         radius = max(float(np.linalg.norm(hi - lo)) / 2.0, 0.5)
-        eye = center + radius * np.array([-0.9, -0.9, 0.8])
+        back = np.array([-0.9, -0.9, 0.8]) / np.linalg.norm([-0.9, -0.9, 0.8])  # from the map towards the eye
+        right = np.cross(-back, [0.0, 0.0, 1.0])
+        right /= np.linalg.norm(right)
+        # look a little right of the map so that it sits left of the control panel
+        center = center + 0.3 * radius * right
+        eye = center + 1.6 * radius * back
         for client in clients:
             with client.atomic():  # position first: setting it shifts look_at along
                 client.camera.position = eye
