@@ -103,3 +103,22 @@ def test_covisibility_queries():
     assert cv.covisible_with_landmarks([5, 6, 7]) == {2: 3, 1: 2}
     cv.add_keyframe(0, [100])  # replacing a keyframe's landmarks updates the inverse index
     assert cv.keyframes(1) == [] and cv.oldest_covisible(3, 1) == 0
+
+
+def test_corrected_state_moves_pose_velocity_and_covariance_consistently():
+    from services.loop.backend_loop import corrected_state
+    from shared.messages import EstimatorState, Header
+
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(15, 15))
+    T_WS = _exp([0.1, 0.2, 0.3, 1.0, 2.0, 3.0])
+    msg = EstimatorState(header=Header(stamp_ns=1), T_WS=T_WS, v_W=np.array([1.0, 0.0, 0.0]), gyro_bias=np.zeros(3),
+                         acc_bias=np.zeros(3), covariance=A @ A.T, status="tracking")
+    T = _exp([0.0, 0.0, 0.5, 0.2, -0.1, 0.0])
+    out = corrected_state(msg, T)
+    assert np.allclose(out.T_WS, T @ T_WS) and np.allclose(out.v_W, T[:3, :3] @ msg.v_W)
+    # sampled p_W perturbations, moved by T, have the transformed position covariance
+    P = msg.covariance[3:6, 3:6]
+    xs = rng.multivariate_normal(np.zeros(3), P, 20000) @ T[:3, :3].T
+    assert np.allclose(np.cov(xs.T), out.covariance[3:6, 3:6], atol=0.05 * np.abs(P).max())
+    assert np.allclose(out.covariance[0:3, 0:3], msg.covariance[0:3, 0:3])  # body-frame rotation block unchanged
