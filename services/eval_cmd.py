@@ -8,6 +8,7 @@ import importlib
 
 # name -> (module, one-line help)
 EVALS: dict[str, tuple[str, str]] = {
+    "ate": ("services.eval_ate_cmd", "ATE RMSE after SE(3)/Sim(3)/position+yaw alignment: --gt GT --est EST (TUM or EuRoC CSV)"),
     "mesh": ("services.eval_mesh_cmd", "mesh accuracy (mean est->GT distance) and completeness (GT within 0.2 m), paper sec. V"),
     "depth": ("tools.depth.evaluate", "depth + sigma of SGBM, stereo/MVS networks and their fusion against GT: table, calibration plot, CPU time"),
 }
