@@ -19,6 +19,7 @@ from services.backend.estimator import BackendInputError, WindowedVioEstimator, 
 from services.backend.imu_factors import ImuDataError
 from services.frontend.undistort import LookupCamera
 from services.backend.outputs import keyframes_message, state_message
+from services.loop.backend_loop import LoopClosingBackend
 from services.system_config import load_system_config
 from shared import topics
 from shared.camera import CalibrationError
@@ -79,11 +80,15 @@ def main(args: argparse.Namespace) -> int:
         return 2
     bc = cfg.backend
     shell = BackendShell(bc, cameras)
+    loop = LoopClosingBackend(shell, cfg.loop) if cfg.loop.enabled else None  # loop closure: services/loop
     with Node("backend", cfg.transport) as node:
         imu = node.subscriber(topics.IMU)
         features = node.subscriber(topics.FEATURES)
         state_pub = node.publisher(topics.STATE)
         kf_pub = node.publisher(topics.KEYFRAMES)
+        kf_features = node.subscriber(topics.KEYFRAME_FEATURES)
+        ends = node.subscriber(topics.STREAM_END)
+        final_pub = node.publisher(topics.TRAJECTORY_FINAL)
         timer = node.timer("optimise", budget_ms=bc.budget_ms)
         log.info("backend: %d cameras", len(cameras))
         while not node.stopped:
@@ -92,6 +97,8 @@ def main(args: argparse.Namespace) -> int:
             except Empty:
                 for s in imu.drain():
                     shell.add_imu(s)
+                if loop is not None and (final := loop.poll_end(ends.drain())) is not None:
+                    final_pub.publish(final)
                 continue
             stamp = int(frame.header.stamp_ns)
             deadline = time.monotonic() + bc.imu_wait_s
@@ -101,8 +108,11 @@ def main(args: argparse.Namespace) -> int:
                 time.sleep(0.002)
                 for s in imu.drain():
                     shell.add_imu(s)
+            if loop is not None:
+                for kff in kf_features.drain():
+                    loop.add_keyframe_features(kff)
             with timer:
-                msgs = shell.process(frame)
+                msgs = shell.process(frame) if loop is None else loop.process(frame)
             if msgs is not None:
                 state_pub.publish(msgs[0])
                 if msgs[1] is not None:

@@ -16,6 +16,7 @@ import numpy as np
 
 from services.frontend.gyro import GyroIntegrator
 from services.frontend.tracker import FrontendInputError, MultiCameraTracker, TrackerOutput
+from services.loop.frontend_hook import keyframe_features_message
 from services.system_config import load_system_config
 from shared import topics
 from shared.camera import CalibrationError
@@ -95,6 +96,7 @@ def main(args: argparse.Namespace) -> int:
         frames = node.subscriber(topics.FRAME)
         states = node.subscriber(topics.STATE, policy="latest", depth=1)
         out = node.publisher(topics.FEATURES)
+        kf_features = node.publisher(topics.KEYFRAME_FEATURES)  # loop closure (services/loop)
         timer = node.timer("track", budget_ms=fc.budget_ms)
         log.info("frontend: %d cameras %s", len(cameras), shell.names)
 
@@ -123,5 +125,9 @@ def main(args: argparse.Namespace) -> int:
             with timer:
                 msg = shell.process(frame)
             if msg is not None:
+                if msg.is_keyframe:  # descriptors first: the back end's loop closer wants them with the frame
+                    kff = keyframe_features_message(shell.tracker, stamp, msg.header.seq)
+                    if kff is not None:
+                        kf_features.publish(kff)
                 out.publish(msg)
     return 0
