@@ -56,6 +56,7 @@ def _state(stamp, T_WS):
                             gyro_bias=np.zeros(3), acc_bias=np.zeros(3), covariance=np.eye(15))
 
 
+@pytest.mark.e2e
 def test_depth_service_end_to_end(tmp_path, frame_data):
     ref, T_WS, images, gt = frame_data
     with router() as tcfg:
