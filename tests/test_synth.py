@@ -67,7 +67,7 @@ def test_scene_clearance_variants_and_ply(tmp_path):
 
     from tools.synth.scene import site_positions
 
-    a = build_scene("machinehall-b", seed=0)
+    a = build_scene("machinehall-b", seed=0, textures=False)
     pts = site_positions("machinehall")
     rc = o3d.t.geometry.RaycastingScene()
     rc.add_triangles(o3d.core.Tensor(a.vertices.astype(np.float32)), o3d.core.Tensor(a.triangles.astype(np.uint32)))
@@ -78,7 +78,7 @@ def test_scene_clearance_variants_and_ply(tmp_path):
     v, f = read_ply(a.save_ply(tmp_path / "m.ply"))
     np.testing.assert_array_equal(v, a.vertices)
     np.testing.assert_array_equal(f, a.triangles)
-    b = build_scene("machinehall-b", seed=1)
+    b = build_scene("machinehall-b", seed=1, textures=False)
     assert len(b.triangles) != len(a.triangles) or not np.array_equal(b.vertices, a.vertices)
 
 
@@ -108,7 +108,7 @@ def test_photometric_knobs(small_scene, rig):
 @pytest.fixture(scope="module")
 def replica(tmp_path_factory):
     out = tmp_path_factory.mktemp("replica") / "r"
-    spec = ReplicaSpec(scene="vicon-a", sequence="V1_02", imu="sim", imu_noise=False, start_s=20.0, duration_s=1.0,
+    spec = ReplicaSpec(scene="vicon-a", sequence="V1_02", imu="sim", imu_noise=False, start_s=20.0, duration_s=0.6,
                        depth_cameras=[0, 1])
     return generate(spec, out, progress=False)
 
@@ -117,7 +117,7 @@ def test_replica_layout_and_reader(replica):
     ds = EurocDataset(replica)
     stamps = np.loadtxt(euroc_files("V1_02")["image_timestamps"], dtype=np.int64)
     assert ds.camera_names == ["cam0", "cam1"]
-    assert len(ds.frame_stamps_ns) >= 19 and np.isin(ds.frame_stamps_ns, stamps).all()  # the real stamps
+    assert len(ds.frame_stamps_ns) >= 12 and np.isin(ds.frame_stamps_ns, stamps).all()  # the real stamps
     assert sum(ds.stats.values()) == 0
     imgs = ds.load_frame(ds.frame_stamps_ns[3])
     assert imgs[0].shape == (480, 752) and imgs[0].dtype == np.uint8 and imgs[0].std() > 10

@@ -158,11 +158,12 @@ class _Builder:
             self.uv.append(org + local * self.tpm)
             self.shade.append(self._shade(np.array([0.0, 0.0, 1.0]), albedo))
 
-    def finish(self, name: str, seed: int, style: str, room_min, room_max) -> Scene:
+    def finish(self, name: str, seed: int, style: str, room_min, room_max, textures: bool = True) -> Scene:
         q = np.stack(self.verts)  # (Q, 4, 3)
         nq = len(q)
         rows = int(np.ceil((self._y + self._row_h + 1) / self.tile_px))
-        atlas = make_atlas(rows, self.atlas_width // self.tile_px, self.tile_px, style, seed)
+        atlas = (make_atlas(rows, self.atlas_width // self.tile_px, self.tile_px, style, seed) if textures
+                 else np.full((rows * self.tile_px, self.atlas_width), 128, np.uint8))
         uv = np.stack(self.uv)  # (Q, 4, 2)
         base = (np.arange(nq) * 4)[:, None]
         tris = np.concatenate([base + [0, 1, 2], base + [0, 2, 3]]).astype(np.int32)
@@ -189,9 +190,10 @@ def _box_distance(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
 
 
 def build_scene(name: str, seed: int = 0, positions: np.ndarray | None = None, clearance_m: float = 0.5,
-                tile_px: int = 256, extra_positions: np.ndarray | None = None) -> Scene:
+                tile_px: int = 256, extra_positions: np.ndarray | None = None, textures: bool = True) -> Scene:
     """Build scene ``name`` (see :data:`SCENES`) around the site's GT positions, or ``positions`` (N, 3)
-    instead; ``extra_positions`` (the replica's own trajectory) are kept clear and inside the room too."""
+    instead; ``extra_positions`` (the replica's own trajectory) are kept clear and inside the room too.
+    ``textures=False`` skips the texture atlas (uniform grey): geometry only, much faster."""
     if name not in SCENES:
         raise KeyError(f"unknown scene {name!r}; known: {', '.join(SCENES)}")
     site, style, n_obj, scale, light_off = SCENES[name]
@@ -261,4 +263,4 @@ def build_scene(name: str, seed: int = 0, positions: np.ndarray | None = None, c
             for z in np.linspace(0.05, sz - 0.03, int(rng.integers(3, 6))):
                 b.box(c + [0, 0, z], (sx - 0.07, sy, 0.03), yaw, alb * 0.9, bottom=True)
         placed += 1
-    return b.finish(name, seed, style, lo, hi)
+    return b.finish(name, seed, style, lo, hi, textures)
