@@ -59,6 +59,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config field")
     p.add_argument("--realtime", action="store_true", help="play at sensor rate instead of lockstep")
+    p.add_argument("--rate", type=float, default=0.0, metavar="R",
+                   help="play at R times sensor rate instead of lockstep (overrides --realtime; 0: off)")
     p.add_argument("--record", action="store_true", help="also record every topic to DIR/recording.mcap")
     p.add_argument("--player-arg", action="append", default=[], metavar="ARG",
                    help="extra argument for the player (repeatable), e.g. --player-arg=--max-frames=200")
@@ -78,7 +80,7 @@ def _free_port() -> int:
 
 
 def pipeline_services(cfg, dataset: str, out: Path, realtime: bool, record: bool,
-                      player_args: list[str]) -> list[ServiceSpec]:
+                      player_args: list[str], rate: float = 0.0) -> list[ServiceSpec]:
     """The configured services with the player of ``dataset`` (replacing a configured one) appended."""
     services = []
     configured = [s for s in cfg.supervisor.services if s.argv and s.argv[0] not in ("player", "record")]
@@ -92,7 +94,7 @@ def pipeline_services(cfg, dataset: str, out: Path, realtime: bool, record: bool
         elif s.argv[0] == "mapping":  # the map goes into the run folder: DIR/mesh.ply, DIR/submaps/, DIR/map.npz
             s = dataclasses.replace(s, argv=["mapping", "--out", str(out)])
         services.append(dataclasses.replace(s, restart="never"))
-    mode = ["--realtime"] if realtime else ["--lockstep"]
+    mode = ["--rate", f"{rate:g}"] if rate > 0 else (["--realtime"] if realtime else ["--lockstep"])
     wait = ["--wait-for", ",".join(s.name for s in services)] if services else []
     services.append(ServiceSpec(name="player", argv=["player", dataset, *mode, *wait, *player_args], restart="never"))
     return services
@@ -205,7 +207,7 @@ def main(args: argparse.Namespace) -> int:
     if not cfg.rig.calibration:
         cfg.rig.calibration = dataset
     cfg.supervisor.services = pipeline_services(cfg, dataset, out.resolve(), args.realtime, args.record,
-                                                args.player_arg)
+                                                args.player_arg, getattr(args, "rate", 0.0))
     cfg.supervisor.start_router = True
     validate(cfg.supervisor, SUBCOMMANDS)
     config_path = (out / "config.yaml").resolve()

@@ -4,6 +4,10 @@ A :class:`StageTimer` measures one processing stage (``with timer: work()`` or
 ``timer.record(seconds)``); it keeps a sliding window of recent items for rate and percentiles and
 counts items over budget since start. A :class:`StatsCollector` turns a service's timers and
 subscription queues into one :class:`shared.messages.ServiceStats` message.
+
+Per-item log (opt-in, for benchmarks): with ``$SIGMASLAM_STAGE_LOG`` naming a folder, every stage of every
+service appends one record per item (:data:`STAGE_LOG_DTYPE`: wall time of the item's end [ns], duration [s])
+to ``<folder>/<service>.<stage>.bin``; :func:`read_stage_log` reads it back.
 """
 
 from __future__ import annotations
@@ -19,6 +23,9 @@ from typing import Callable
 import numpy as np
 
 from shared.messages import Header, Heartbeat, ServiceStats
+
+STAGE_LOG_ENV = "SIGMASLAM_STAGE_LOG"
+STAGE_LOG_DTYPE = np.dtype([("end_ns", "<i8"), ("seconds", "<f8")])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -49,6 +56,11 @@ class StageTimer:
         self._local = threading.local()
         self.count = 0
         self.overruns = 0
+        self._log_fd: int | None = None
+
+    def log_to(self, path: str | os.PathLike) -> None:
+        """Append one :data:`STAGE_LOG_DTYPE` record per item to ``path`` from now on."""
+        self._log_fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
 
     def __enter__(self) -> StageTimer:
         self._local.t0 = time.perf_counter()
@@ -64,6 +76,11 @@ class StageTimer:
             self.count += 1
             self.overruns += over
             self._window.append((time.monotonic(), seconds))
+        if self._log_fd is not None:
+            try:
+                os.write(self._log_fd, np.array([(time.time_ns(), seconds)], STAGE_LOG_DTYPE).tobytes())
+            except OSError:
+                self._log_fd = None  # a full disk must not stop the service
         return over
 
     def snapshot(self) -> StageSnapshot:
@@ -110,6 +127,13 @@ class StatsCollector:
             if timer.name in self._stages and self._stages[timer.name] is not timer:
                 raise ValueError(f"{self.service}: stage {timer.name!r} registered twice")
             self._stages[timer.name] = timer
+        folder = os.environ.get(STAGE_LOG_ENV)
+        if folder and timer._log_fd is None:
+            try:
+                os.makedirs(folder, exist_ok=True)
+                timer.log_to(os.path.join(folder, f"{self.service}.{timer.name}.bin"))
+            except OSError:
+                pass  # logging is a benchmark aid only
         return timer
 
     def stage(self, name: str) -> StageTimer | None:
@@ -144,6 +168,13 @@ class StatsCollector:
             queue_dropped=i64([c[1] for _, c in queues]),
             queue_depth=i64([c[2] for _, c in queues]),
         )
+
+
+def read_stage_log(path: str | os.PathLike) -> np.ndarray:
+    """Records of a per-item stage log (a partly written last record is ignored)."""
+    data = open(path, "rb").read()
+    n = len(data) // STAGE_LOG_DTYPE.itemsize
+    return np.frombuffer(data[: n * STAGE_LOG_DTYPE.itemsize], STAGE_LOG_DTYPE)
 
 
 def heartbeat(service: str, state: str = "running", stamp_ns: int | None = None, seq: int = 0) -> Heartbeat:
