@@ -79,11 +79,9 @@ class LoopClosingBackend:
         state = corrected_state(state, T)
         if kfs is not None:
             ids, stamps, poses = kfs.ids, kfs.stamps_ns, np.einsum("ij,njk->nik", T, kfs.T_WS)
-            gen = self.runner.generation
-            if gen != self._generation:  # a solve moved the past keyframes: send them all once
+            gen, (g_ids, g_stamps, g_T) = self.runner.corrected_keyframes()
+            if gen != self._generation:  # the correction moved the past keyframes: send them all once
                 self._generation = gen
-                with self.runner._lock:
-                    g_ids, g_stamps, g_T = self.runner.closer.corrected_keyframes()
                 keep = ~np.isin(g_ids, ids)
                 ids, stamps = np.r_[g_ids[keep], ids], np.r_[g_stamps[keep], stamps]
                 poses = np.concatenate([g_T[keep], poses])

@@ -128,6 +128,7 @@ class LoopCloser:
     def add_record(self, rec: KeyframeRecord) -> bool:
         """A keyframe left the window: pose-graph node, database entry, pending loops. True when solved."""
         prev = self._prev_record
+        self.node_stamps[rec.state] = rec.stamp_ns
         if prev is None:
             self.graph.add_node(rec.state, rec.T_WS)
         else:
@@ -137,7 +138,6 @@ class LoopCloser:
             self.counts["unlinked_nodes"] += int(not linked)
             self.graph.add_node(rec.state, rec.T_WS, cov, T_rel)
         self._prev_record = rec
-        self.node_stamps[rec.state] = rec.stamp_ns
         self.covisibility.add_keyframe(rec.state, np.fromiter(rec.obs.keys(), np.int64, len(rec.obs)))
         feats = self._features.pop(rec.stamp_ns, None)
         for s in [s for s in self._features if s < rec.stamp_ns]:
@@ -204,7 +204,9 @@ class ThreadedLoopCloser:
         self._q: queue.Queue = queue.Queue()
         self._lock = threading.Lock()
         self._correction = np.eye(4)
+        self._keyframes = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 4, 4)))
         self.generation = 0  # increases after every pose-graph solve
+        self._solves = 0
         self.dropped = 0
         self.errors = 0
         self._thread = threading.Thread(target=self._run, name="loop-closer", daemon=True)
@@ -231,6 +233,11 @@ class ThreadedLoopCloser:
     def correction(self) -> np.ndarray:
         with self._lock:
             return self._correction.copy()
+
+    def corrected_keyframes(self) -> tuple[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """(generation, (states, stamps, T_WS)) of the pose-graph nodes as of the latest correction."""
+        with self._lock:
+            return self.generation, self._keyframes
 
     def drain(self, timeout_s: float = 30.0) -> bool:
         """Wait until everything submitted so far is processed."""
@@ -259,10 +266,15 @@ class ThreadedLoopCloser:
                     c.note_status(item[1], item[2])
                 else:
                     c.add_record(item[1])
+                    corr = c.correction()
+                    solved = len(c.solve_ms) != self._solves
+                    snap = c.corrected_keyframes() if solved else None
                     with self._lock:
-                        changed = not np.array_equal(self._correction, c.correction())
-                        self._correction = c.correction()
-                        self.generation += int(changed)
+                        self._correction = corr
+                        if solved:  # past keyframes moved: a new generation of corrected nodes
+                            self._solves = len(c.solve_ms)
+                            self._keyframes = snap
+                            self.generation += 1
             except Exception:  # noqa: BLE001 - a bad keyframe must not kill loop closing; counted and logged
                 self.errors += 1
                 log.exception("loop closer: %s event failed", kind)
