@@ -1,0 +1,332 @@
+"""``sigmaslam bench pipeline [DATASET]``: the whole pipeline at sensor rate, measured per stage and end to end.
+
+One ``sigmaslam run`` (services/run_cmd.py: router, player, frontend, backend, depth, mapping as processes) with
+the player at ``--rate`` times sensor rate (1 = real time), while this process
+
+- has every service log the compute time of each item per stage ($SIGMASLAM_STAGE_LOG, transport/stats.py):
+  median, p90, p99, achieved rate, items over the budgets of configs/budgets.yaml;
+- subscribes to sensors/frame, estimator/state, depth/fused and map/submap and records arrival wall times
+  (tools/pipeline_probe.py): latency sensor -> state, -> fused depth, -> submap update;
+- samples CPU share and resident memory of every service process (psutil);
+- reads queue drops and the services' own overrun counts from the run's stats.json.
+
+Prints the tables and the pass/over table against the budgets, writes ``--out``/bench.json, bench_series.npz and
+PNG plots. ``--max-rate`` instead bisects the playback rate factor for the highest one at which the estimator
+(frontend sensors/frame queue, backend frontend/frame queue) drops no frame, with a few short runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sys
+import threading
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+
+from tools.bench_budgets import check_budgets, format_table, load_budgets
+from tools.pipeline_probe import (ArrivalLog, ProcessSampler, first_arrivals, map_latencies, matched_latencies,
+                                  summary)
+
+SERVICES = ("frontend", "backend", "depth", "mapping")
+# (service, queue) pairs whose drops are frames lost by the estimator
+ESTIMATOR_QUEUES = (("frontend", "sensors/frame"), ("backend", "frontend/frame"))
+LATENCY_TOPICS = ("state", "depth", "map")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("dataset", nargs="?", help="EuRoC ASL folder (default: the cached 25 s V1_02 replica)")
+    p.add_argument("--out", default="out/bench_pipeline", help="output folder (default out/bench_pipeline)")
+    p.add_argument("--config", help="YAML system config (default: built-in defaults)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config field")
+    p.add_argument("--services", default=",".join(SERVICES),
+                   help="pipeline services to start (comma-separated; 'config': those of --config)")
+    p.add_argument("--seconds", type=float, default=0.0, help="play only the first S seconds of data (0: all) [s]")
+    p.add_argument("--rate", type=float, default=1.0, help="playback rate factor (1: real sensor rate)")
+    p.add_argument("--budgets", help="budgets YAML (default configs/budgets.yaml)")
+    p.add_argument("--transport-s", type=float, default=0.0,
+                   help="also run the transport bench's 30 Hz frame cases for this long and check the transport "
+                        "budget (0: skip) [s]")
+    p.add_argument("--max-rate", action="store_true", help="search the highest rate factor without estimator drops")
+    p.add_argument("--max-rate-runs", type=int, default=4, help="runs of the --max-rate search")
+    p.add_argument("--max-rate-seconds", type=float, default=8.0, help="seconds of data per --max-rate run [s]")
+    p.add_argument("--timeout-s", type=float, default=900.0, help="give up a run after this long [s]")
+    p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+
+
+# ----------------------------------------------------------------------------- one run
+
+def frames_within(dataset: Path, seconds: float) -> int:
+    """Camera frames in the first ``seconds`` of the dataset (0: all)."""
+    root = dataset / "mav0" if (dataset / "mav0").is_dir() else dataset
+    csv = root / "cam0" / "data.csv"
+    if not csv.is_file():
+        raise FileNotFoundError(f"{csv} not found: {dataset} is not an EuRoC ASL folder")
+    stamps = np.array([int(line.split(",")[0]) for line in csv.read_text().splitlines()
+                       if line.strip() and not line.startswith("#")], np.int64)
+    if seconds <= 0:
+        return len(stamps)
+    return int(np.sum(stamps - stamps[0] <= int(seconds * 1e9)))
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _probe(log: ArrivalLog, transport_cfg, stop: threading.Event, ready: threading.Event) -> None:
+    from shared import topics
+    from transport.node import Node
+
+    with Node("bench", transport_cfg, handle_signals=False) as node:
+        node.subscriber(topics.FRAME, handler=log.handler("frame"))
+        node.subscriber(topics.STATE, policy="all", handler=log.handler("state"))
+        node.subscriber(topics.DEPTH_FUSED, handler=log.handler("depth"))
+        node.subscriber(topics.SUBMAP, handler=log.handler("map"))
+        ready.set()
+        stop.wait()
+
+
+def run_once(dataset: Path, out: Path, rate: float, seconds: float, services: str, config: str | None,
+             sets: list[str], timeout_s: float) -> dict:
+    """One measured pipeline run into ``out``; returns the raw measurements (see :func:`summarise`)."""
+    from services import run_cmd
+    from services.system_config import load_system_config
+    from transport.stats import STAGE_LOG_ENV
+
+    out.mkdir(parents=True, exist_ok=True)
+    stage_dir = out / "stage_log"
+    shutil.rmtree(stage_dir, ignore_errors=True)
+    stage_dir.mkdir()
+    port = _free_port()
+    overrides = [f"transport.namespace=sigmaslam/bench-{uuid.uuid4().hex[:8]}",
+                 f"transport.connect=[tcp/127.0.0.1:{port}]", f"transport.router_listen=[tcp/127.0.0.1:{port}]",
+                 "loop.final_ba=false"]  # the bench measures the real-time part; --set loop.final_ba=true to add it
+    if services != "config":
+        names = [s for s in services.split(",") if s]
+        overrides.append("supervisor.services=[" + ", ".join(f"{{name: {s}, argv: [{s}]}}" for s in names) + "]")
+    overrides += sets
+    transport_cfg = load_system_config(config, overrides).transport
+    frames = frames_within(dataset, seconds)
+    args = argparse.Namespace(dataset=str(dataset), config=config, out=str(out / "run"), set=overrides,
+                              realtime=True, rate=rate, record=False, player_arg=[f"--max-frames={frames}"],
+                              settle_s=5.0, timeout_s=timeout_s, final_timeout_s=120.0)
+    log, stop, ready = ArrivalLog(), threading.Event(), threading.Event()
+    probe = threading.Thread(target=_probe, args=(log, transport_cfg, stop, ready), name="bench-probe", daemon=True)
+    probe.start()
+    ready.wait(30.0)
+    sampler = ProcessSampler(0.5).start()
+    old = os.environ.get(STAGE_LOG_ENV)
+    os.environ[STAGE_LOG_ENV] = str(stage_dir.resolve())
+    t0 = time.monotonic()
+    try:
+        rc = run_cmd.main(args)
+    finally:
+        if old is None:
+            os.environ.pop(STAGE_LOG_ENV, None)
+        else:
+            os.environ[STAGE_LOG_ENV] = old
+        sampler.stop()
+        stop.set()
+        probe.join(timeout=10)
+    stats_path = out / "run" / "stats.json"
+    return {"rc": rc, "wall_s": time.monotonic() - t0, "rate": rate, "frames_requested": frames,
+            "dataset": str(dataset), "log": log, "sampler": sampler, "stage_dir": stage_dir,
+            "run_stats": json.loads(stats_path.read_text()) if stats_path.is_file() else {}}
+
+
+# ----------------------------------------------------------------------------- summary
+
+def stage_items(stage_dir: Path) -> dict[str, np.ndarray]:
+    """'service.stage' -> per-item records (end_ns, seconds) from the stage logs."""
+    from transport.stats import read_stage_log
+
+    return {p.name[:-4]: read_stage_log(p) for p in sorted(Path(stage_dir).glob("*.bin"))}
+
+
+def stage_summary(rec: np.ndarray, budget_ms: float | None) -> dict:
+    ms = rec["seconds"] * 1e3
+    s = summary(ms)
+    out = {"n": s["n"]}
+    if s["n"]:
+        out.update({"median_ms": s["median"], "p90_ms": s["p90"], "p99_ms": s["p99"], "mean_ms": s["mean"],
+                    "max_ms": s["max"]})
+        span = (rec["end_ns"][-1] - rec["end_ns"][0]) / 1e9
+        out["rate_hz"] = float((len(rec) - 1) / span) if span > 0 else None
+    if budget_ms is not None:
+        out["budget_ms"] = float(budget_ms)
+        out["over_budget"] = int(np.sum(ms > budget_ms))
+    return out
+
+
+def latency_series(log: ArrivalLog) -> dict[str, dict]:
+    published = first_arrivals(*log.get("frame"))
+    out = {name: matched_latencies(published, *log.get(name)) for name in ("state", "depth")}
+    ds, da = log.get("depth")
+    out["map"] = map_latencies(published, ds, da, log.get("map")[1])
+    return out
+
+
+def summarise(raw: dict, budgets) -> tuple[dict, dict]:
+    """(summary for bench.json, per-item series for plots and bench_series.npz)."""
+    per_stage_budget = {"frontend.track": None, "backend.optimise": None, "depth.depth": budgets.depth_frame_ms,
+                        "mapping.integrate": budgets.integrate_frame_ms}
+    items = stage_items(raw["stage_dir"])
+    stages = {k: stage_summary(v, per_stage_budget.get(k)) for k, v in items.items()}
+    lat = latency_series(raw["log"])
+    fs, fa = raw["log"].get("frame")
+    published = first_arrivals(fs, fa)
+    span = (max(published.values()) - min(published.values())) / 1e9 if len(published) > 1 else 0.0
+    latency = {}
+    for name in LATENCY_TOPICS:
+        s = summary(lat[name]["latency_ms"])
+        s["unmatched"] = lat[name]["unmatched"]
+        stamps = lat[name]["stamp_ns"]
+        s["rate_hz"] = float(len(np.unique(stamps)) / span) if span > 0 else None
+        latency[name] = s
+    svc = raw["run_stats"].get("services", {})
+    queues = {f"{name}:{q}": v for name, s in svc.items() for q, v in s.get("queues", {}).items()}
+    est_drops = sum(svc.get(n, {}).get("queues", {}).get(q, {}).get("dropped", 0) for n, q in ESTIMATOR_QUEUES)
+    service_overruns = {f"{name}.{st}": {"overruns": v["overruns"], "budget_ms": v["budget_ms"], "count": v["count"]}
+                        for name, s in svc.items() for st, v in s.get("stages", {}).items()}
+    result = {
+        "dataset": raw["dataset"], "rate": raw["rate"], "rc": raw["rc"], "wall_s": raw["wall_s"],
+        "frames_requested": raw["frames_requested"], "frames_published": len(published),
+        "sensor_rate_hz": float((len(published) - 1) / span) if span > 0 else None,
+        "states": raw["run_stats"].get("states", {}), "stages": stages, "latency_ms": latency,
+        "drops": {"estimator_frames": int(est_drops), "queues": queues},
+        "service_overruns": service_overruns, "processes": raw["sampler"].summary(),
+        "cpu_count": os.cpu_count(), "loadavg_1min": os.getloadavg()[0],
+    }
+    series = {"stages": items, "latency": lat, "processes": raw["sampler"].series(),
+              "t0_ns": min(published.values()) if published else 0}
+    return result, series
+
+
+# ----------------------------------------------------------------------------- printing
+
+def _f(v, fmt: str = ".1f") -> str:
+    return "-" if v is None else format(v, fmt)
+
+
+def format_report(res: dict) -> str:
+    lines = [f"pipeline bench: {res['dataset']} at {res['rate']:g}x sensor rate; {res['frames_published']} frames "
+             f"published ({_f(res['sensor_rate_hz'])} Hz); {res['cpu_count']} CPUs, load average "
+             f"{res['loadavg_1min']:.1f} (shared machine: timings include other users' load)", "",
+             "| stage | items | rate [Hz] | median [ms] | p90 [ms] | p99 [ms] | over budget |", "|---|---:|---:|---:|---:|---:|---|"]
+    for k, s in res["stages"].items():
+        over = f"{s['over_budget']} (> {s['budget_ms']:g} ms)" if "budget_ms" in s else "-"
+        lines.append(f"| {k} | {s['n']} | {_f(s.get('rate_hz'))} | {_f(s.get('median_ms'))} | {_f(s.get('p90_ms'))} | "
+                     f"{_f(s.get('p99_ms'))} | {over} |")
+    lines += ["", "| latency from sensor time | n | rate [Hz] | median [ms] | p90 [ms] | p99 [ms] | max [ms] |",
+              "|---|---:|---:|---:|---:|---:|---:|"]
+    names = {"state": "estimator/state", "depth": "depth/fused", "map": "map/submap (first update after)"}
+    for k, s in res["latency_ms"].items():
+        lines.append(f"| {names[k]} | {s['n']} | {_f(s.get('rate_hz'))} | {_f(s.get('median'))} | {_f(s.get('p90'))} | "
+                     f"{_f(s.get('p99'))} | {_f(s.get('max'))} |")
+    lines += ["", "| process | CPU mean [% core] | CPU p90 | machine share | RSS median [MiB] | RSS peak [MiB] |",
+              "|---|---:|---:|---:|---:|---:|"]
+    for k, p in res["processes"].items():
+        lines.append(f"| {k} | {p['cpu_mean_pct']:.0f} | {p['cpu_p90_pct']:.0f} | {p['machine_share']:.2f} | "
+                     f"{p['rss_median_mb']:.0f} | {p['rss_peak_mb']:.0f} |")
+    drops = {k: v["dropped"] for k, v in res["drops"]["queues"].items() if v.get("dropped")}
+    lines += ["", f"queue drops: {drops or 'none'}; estimator frames dropped: {res['drops']['estimator_frames']}; "
+              f"states: {res['states']}"]
+    ov = {k: f"{v['overruns']}/{v['count']} > {v['budget_ms']:g} ms" for k, v in res["service_overruns"].items()
+          if v["overruns"]}
+    lines.append(f"services' own budget overruns: {ov or 'none'}")
+    lines += ["", format_table([*map(_row, res["checks"])])] if res.get("checks") else []
+    return "\n".join(lines)
+
+
+def _row(d: dict):
+    from tools.bench_budgets import Check
+
+    return Check(**d)
+
+
+# ----------------------------------------------------------------------------- max rate
+
+def next_rate(lo: float | None, hi: float | None, rate: float) -> float:
+    """Next rate factor to try: double while passing, halve while failing, then bisect (geometric mean)."""
+    if lo is None:
+        return rate / 2
+    if hi is None:
+        return rate * 2
+    return float(np.sqrt(lo * hi))
+
+
+def search_max_rate(args, dataset: Path, budgets) -> dict:
+    lo, hi, rate, tried = None, None, args.rate, []
+    for i in range(max(args.max_rate_runs, 1)):
+        raw = run_once(dataset, Path(args.out) / f"rate_{i}_{rate:.3g}", rate, args.max_rate_seconds, args.services,
+                       args.config, args.set, args.timeout_s)
+        res, _ = summarise(raw, budgets)
+        drops = res["drops"]["estimator_frames"]
+        ok = raw["rc"] == 0 and drops == 0 and res["frames_published"] > 0
+        tried.append({"rate": rate, "estimator_drops": drops, "rc": raw["rc"], "ok": ok,
+                      "state_p99_ms": res["latency_ms"]["state"].get("p99")})
+        print(f"[bench pipeline] rate {rate:.3g}x: estimator drops {drops}, rc {raw['rc']} -> "
+              f"{'ok' if ok else 'drops'}", flush=True)
+        if ok:
+            lo = rate if lo is None else max(lo, rate)
+        else:
+            hi = rate if hi is None else min(hi, rate)
+        rate = next_rate(lo, hi, rate)
+    return {"max_rate": lo, "first_failing_rate": hi, "runs": tried, "seconds_per_run": args.max_rate_seconds}
+
+
+# ----------------------------------------------------------------------------- command
+
+def _dataset(arg: str | None) -> Path:
+    if arg:
+        return Path(arg).resolve()
+    from tools.synth.api import ensure_default_replica
+
+    return ensure_default_replica()
+
+
+def main(args: argparse.Namespace) -> int:
+    if args.rate <= 0 or args.seconds < 0:
+        print("bench pipeline: --rate must be positive and --seconds >= 0", file=sys.stderr)
+        return 2
+    try:
+        dataset = _dataset(args.dataset)
+        frames_within(dataset, 0.0)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"bench pipeline: {exc}", file=sys.stderr)
+        return 2
+    budgets = load_budgets(args.budgets)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if args.max_rate:
+        res = search_max_rate(args, dataset, budgets)
+        (out / "max_rate.json").write_text(json.dumps(res, indent=2))
+        print(f"[bench pipeline] highest rate without estimator drops: {res['max_rate']} "
+              f"(first failing: {res['first_failing_rate']}); wrote {out / 'max_rate.json'}", flush=True)
+        return 0 if res["max_rate"] is not None else 1
+    raw = run_once(dataset, out, args.rate, args.seconds, args.services, args.config, args.set, args.timeout_s)
+    res, series = summarise(raw, budgets)
+    if args.transport_s > 0:
+        from tools.bench_transport import benchmark
+
+        tr = benchmark(argparse.Namespace(duration=args.transport_s, rate=30.0, samples=200, port=0))
+        res["transport"] = {k: tr["frames"][0][k] for k in ("p50_ms", "p99_ms", "drops")}
+    res["checks"] = [c.__dict__ for c in check_budgets(res, budgets)]
+    (out / "bench.json").write_text(json.dumps(res, indent=2))
+    from tools.bench_plots import save_series, write_plots
+
+    save_series(out / "bench_series.npz", series)
+    if not args.no_plots:
+        write_plots(out, series)
+    print(format_report(res), flush=True)
+    print(f"[bench pipeline] wrote {out / 'bench.json'}" + ("" if args.no_plots else " and PNG plots"), flush=True)
+    return 0 if raw["rc"] == 0 else 1
