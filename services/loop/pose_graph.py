@@ -9,6 +9,7 @@ estimator never waits for it).
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import gtsam
@@ -90,11 +91,23 @@ class PoseGraph:
                                                 _noise(loop.covariance, self._cauchy)))
         self.loops.append(loop)
 
-    def optimise(self, max_iterations: int = 50) -> dict[int, np.ndarray]:
-        """Solve; the result becomes the initial guess of the next solve. Returns key -> corrected T_WS."""
+    def optimise(self, max_iterations: int = 50, relative_tol: float = 1e-6) -> dict[int, np.ndarray]:
+        """Solve; the result becomes the initial guess of the next solve. Returns key -> corrected T_WS.
+
+        Iterates one LM step at a time and yields between steps: gtsam keeps Python's GIL while it computes, so
+        another thread (the estimator's) waits at most one step, not a whole solve."""
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(max_iterations)
-        values = gtsam.LevenbergMarquardtOptimizer(self.graph, self.initial, params).optimize()
+        opt = gtsam.LevenbergMarquardtOptimizer(self.graph, self.initial, params)
+        err = opt.error()
+        for _ in range(max_iterations):
+            opt.iterate()
+            new = opt.error()
+            time.sleep(0)
+            if err - new <= relative_tol * max(err, 1e-12):
+                break
+            err = new
+        values = opt.values()
         self.initial = values
         self.estimate = {k: values.atPose3(_sym(k)).matrix() for k in self.keys}
         return dict(self.estimate)
