@@ -102,7 +102,7 @@ class LoopClosingBackend:
         T_raw = np.array(self._T_raw)
         if self.cfg.final_ba:
             res = bundle_adjust(records, est.cameras, est.cfg.sigma_px, est.cfg.cauchy_k, closer.loops,
-                                self.cfg.final_ba_iterations)
+                                self.cfg.final_ba_iterations, loop_observations=closer.loop_observations)
             T_final = follow_keyframes(stamps, T_raw, res.stamps_ns, res.T_WS)
             n_kf = len(res.stamps_ns)
             log.info("final BA: %d keyframes, %d landmarks, %d observations, error %.1f -> %.1f", n_kf,

@@ -2,8 +2,9 @@
 
 The graph holds every keyframe's (pose, velocity, bias) linked by the IMU factors the window used, every
 recorded observation as a Cauchy-robust reprojection factor (the window's noise model), landmarks seen at
-least twice (initial positions: their last window estimate), the accepted loop constraints, and a gauge
-prior on the first keyframe. Frames between keyframes follow their keyframe:
+least twice (initial positions: their last window estimate), the accepted loop constraints (relative poses,
+and the loop keyframe's PnP inliers as observations of the old landmarks), and a gauge prior on the first
+keyframe. Frames between keyframes follow their keyframe:
 ``T_final(t) = T_final(kf) T_causal(kf)^-1 T_causal(t)`` with kf the latest keyframe at or before t.
 """
 
@@ -31,9 +32,11 @@ class FinalBaResult:
 
 def bundle_adjust(records: list[KeyframeRecord], cameras, sigma_px: float = 1.0, cauchy_k: float = 2.0,
                   loops: list[tuple[int, int, np.ndarray, np.ndarray]] = (), max_iterations: int = 30,
-                  prior_sigma_rot: float = 1e-3, prior_sigma_pos: float = 1e-3) -> FinalBaResult:
+                  prior_sigma_rot: float = 1e-3, prior_sigma_pos: float = 1e-3,
+                  loop_observations: list[tuple[int, int, np.ndarray, int]] = ()) -> FinalBaResult:
     """``records`` of all keyframes (time order, no duplicates); ``cameras``: the estimator's BackendCamera
-    list; ``loops``: (old state, new state, T_old_new, covariance 6x6)."""
+    list; ``loops``: (old state, new state, T_old_new, covariance 6x6); ``loop_observations``: (state, camera,
+    normalised xy, landmark id) observations of old landmarks by loop keyframes (PnP inliers)."""
     recs = sorted({r.state: r for r in records}.values(), key=lambda r: r.state)
     if len(recs) < 2:
         raise ValueError("the final bundle adjustment needs at least two keyframes")
@@ -63,6 +66,9 @@ def bundle_adjust(records: list[KeyframeRecord], cameras, sigma_px: float = 1.0,
                                             gtsam.noiseModel.Isotropic.Sigma(2, sigma_px / c.focal_px)) for c in cameras]
     body = [gtsam.Pose3(c.T_SC) for c in cameras]
     n_lm = n_obs = 0
+    for s, c, xy, lm in loop_observations:
+        if s in states and lm in obs and all(s != s2 for s2, _, _ in obs[lm]):
+            obs[lm].append((s, c, np.asarray(xy, float)))
     for lm, lst in obs.items():
         if lm not in p_init or len({s for s, _, _ in lst}) < 2:
             continue

@@ -47,6 +47,7 @@ class VerifiedLoop:
     covariance: np.ndarray
     inliers: int
     relocalisation: bool
+    observations: tuple = ()  # (camera (I,), normalised xy (I,2), old landmark ids (I,)) of the PnP inliers
 
 
 class LoopCloser:
@@ -65,6 +66,7 @@ class LoopCloser:
         self._prev_bag: np.ndarray | None = None
         self._pending: list[VerifiedLoop] = []
         self.loops: list[tuple[int, int, np.ndarray, np.ndarray]] = []  # (old state, new state, T_old_new, cov)
+        self.loop_observations: list[tuple[int, int, np.ndarray, int]] = []  # (state, camera, xy, old landmark)
         self.counts = collections.Counter()
         self._lost_since: int | None = None
         self._reloc_before: int | None = None  # relocalisation mode: candidates older than this stamp
@@ -110,7 +112,12 @@ class LoopCloser:
                 self.counts["rejected_pnp"] += 1
                 continue
             self.counts["verified"] += 1
-            loop = VerifiedLoop(c.key, int(stamp_ns), res.T_WS, res.covariance, res.inliers, reloc)
+            cams = np.asarray(fs.camera_index, np.int64)[res.query_index]
+            xy = np.zeros((len(cams), 2))
+            for cam in np.unique(cams):
+                xy[cams == cam] = self._undistort[cam](np.asarray(fs.uv, float)[res.query_index][cams == cam])
+            obs = (cams, xy, np.asarray(old_fs.landmark_ids, np.int64)[res.old_index])
+            loop = VerifiedLoop(c.key, int(stamp_ns), res.T_WS, res.covariance, res.inliers, reloc, obs)
             self._pending.append(loop)
             out.append(loop)
             log.info("loop verified: keyframe at %d ns sees state %d (%d inliers%s)", stamp_ns, c.key, res.inliers,
@@ -170,6 +177,9 @@ class LoopCloser:
                 return False
         self.graph.add_loop(LoopConstraint(old.state, rec.state, T_old_new, lp.covariance))
         self.loops.append((old.state, rec.state, T_old_new, lp.covariance))
+        if lp.observations:  # the query keyframe observes the old landmarks: used by the final BA
+            cams, xy, lms = lp.observations
+            self.loop_observations += [(rec.state, int(c), p, int(lm)) for c, p, lm in zip(cams, xy, lms)]
         self.counts["accepted"] += 1
         self._dirty = True
         return self._solve_if_due(rec.stamp_ns)

@@ -39,6 +39,8 @@ class PnpResult:
     inliers: int
     T_WS: np.ndarray | None = None  # current body pose in the old keyframe's world frame
     covariance: np.ndarray | None = None  # (6,6) of T_WS, gtsam Pose3 tangent order [rot_S, t_S]
+    query_index: np.ndarray | None = None  # (I,) inlier features of the query ...
+    old_index: np.ndarray | None = None  # (I,) ... and the old keyframe's features they match
 
 
 def mutual_matches(a: np.ndarray, b: np.ndarray, max_distance: int) -> tuple[np.ndarray, np.ndarray]:
@@ -126,4 +128,4 @@ def verify_pnp(query: FeatureSet, old: FeatureSet, old_p_W: np.ndarray, undistor
         cov = np.linalg.inv(info) * cov_inflation
     except np.linalg.LinAlgError:
         return PnpResult(False, "degenerate inlier geometry", m, n_in, T_WS)
-    return PnpResult(True, "accepted", m, n_in, T_WS, 0.5 * (cov + cov.T))
+    return PnpResult(True, "accepted", m, n_in, T_WS, 0.5 * (cov + cov.T), iq[inliers], io[inliers])
