@@ -17,7 +17,7 @@ from shared.codec import Header, Message, array_field, register, scalar_field
 __all__ = [
     "Header", "ImuSample", "MultiCameraFrame", "FeatureFrame", "EstimatorState", "Keyframes",
     "DepthFrame", "SubmapMesh", "ServiceStats", "Heartbeat", "Control", "StreamEnd",
-    "KeyframeFeatures", "FinalTrajectory",
+    "KeyframeFeatures", "FinalTrajectory", "OccupancyField",
 ]
 
 
@@ -149,6 +149,26 @@ class StreamEnd(Message):
 
     source: str = scalar_field("name of the source that ended")
     frames_sent: int = scalar_field("frames published by the source")
+
+
+# --- occupancy mapping (type ids 50-59) ---
+
+
+@register(50)
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class OccupancyField(Message):
+    """Near-surface occupancy of one submap (its voxel blocks that hold a surface), in the submap frame M_j
+    (header.frame_id = 'M<j>'), for occupancy-to-point factors (eq. 6-7). Voxel (i, j, k) of block b has its
+    centre at ``((block_ijk[b] * B + (i, j, k)) + 0.5) * voxel_size_m``; rebuild the queries with
+    ``services.mapping.export.field_of_message``."""
+
+    submap_id: int = scalar_field("submap id")
+    T_WM: object = array_field("submap pose in world", "float64", (4, 4))
+    voxel_size_m: float = scalar_field("voxel edge length [m]")
+    l_min: float = scalar_field("log-odds of free space of the inverse sensor model (eq. 3, 7)")
+    block_ijk: object = array_field("integer block coordinates, sorted by packed key", "int32", ("N", 3))
+    log_odds: object = array_field("mean log-odds L per voxel (eq. 4), [block, x, y, z]", "float32", ("N", "B", "B", "B"))
+    counts: object = array_field("observation count w per voxel (0 = unknown)", "uint16", ("N", "B", "B", "B"))
 
 
 # --- loop closure and the non-causal trajectory (type ids 70-79) ---

@@ -40,9 +40,11 @@ KEYFRAME_FEATURES = Topic("frontend/keyframe_features", m.KeyframeFeatures, "all
                           "ORB descriptors of each frontend keyframe (loop closure)")
 TRAJECTORY_FINAL = Topic("estimator/trajectory_final", m.FinalTrajectory, "all", 4,
                          "non-causal trajectory after the final bundle adjustment (end of stream)")
+MAP_FIELD = Topic("map/field", m.OccupancyField, "latest", 16,
+                  "near-surface occupancy of a submap (L, w per voxel) for occupancy-to-point factors")
 
 ALL: tuple[Topic, ...] = (IMU, FRAME, FEATURES, STATE, KEYFRAMES, DEPTH_STEREO, DEPTH_FUSED, SUBMAP,
-                          STATS, HEARTBEAT, CONTROL, STREAM_END, KEYFRAME_FEATURES, TRAJECTORY_FINAL)
+                          STATS, HEARTBEAT, CONTROL, STREAM_END, KEYFRAME_FEATURES, TRAJECTORY_FINAL, MAP_FIELD)
 
 
 def per_service(topic: Topic, service: str) -> str:

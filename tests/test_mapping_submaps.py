@@ -162,3 +162,23 @@ def test_bad_frames_raise_clear_errors():
     with pytest.raises(ValueError, match="shape"):
         mapper.integrate(d, s[:, :10], K, np.eye(4), np.eye(4), 0)
     assert mapper.submaps == []  # nothing was created by the rejected frames
+
+
+def test_field_message_round_trip_answers_the_same_queries(mapped):
+    from services.mapping.export import field_message, field_of_message
+    from shared.codec import decode, encode
+    from shared.messages import OccupancyField
+
+    mapper, _ = mapped
+    sm = mapper.submaps[0]
+    msg = decode(encode(field_message(sm, mapper.sensor.l_min)), OccupancyField)
+    assert msg.submap_id == 0 and np.allclose(msg.T_WM, sm.T_WM) and msg.log_odds.shape[1:] == (8, 8, 8)
+    assert len(msg.block_ijk) == len(sm.store.refined_slots())
+    field = field_of_message(msg)
+    mapper.remesh()
+    v, _ = sm.mesher.mesh()  # surface points: where the back end evaluates L and grad L
+    L0, g0, v0 = interpolate(sm.field(), v)
+    L1, g1, v1 = interpolate(field, v)
+    assert v0.mean() > 0.9 and np.array_equal(v0, v1)
+    assert np.allclose(L0[v0], L1[v1]) and np.allclose(g0[v0], g1[v1])
+    assert np.mean(np.abs(L1[v1]) < 1e-3) > 0.999  # the mesh is the L = 0 surface (but for rare interior vertices)

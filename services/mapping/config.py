@@ -61,5 +61,6 @@ class MappingConfig:
     integrate_budget_ms: float = param(50.0, "integration budget per depth frame (reported in stats)", "ms")
     mesh_period_s: float = param(1.0, "changed submaps are re-meshed and published at most this often", "s")
     mesh_budget_ms: float = param(40.0, "meshing work per loop iteration (the rest waits for the next one)", "ms")
+    field_period_s: float = param(2.0, "the current submap's near-surface field goes out on map/field this often (closed submaps once, when closed; <= 0: only closed ones)", "s")
     vertex_colors: bool = param(True, "colour published mesh vertices by the map's uncertainty sigma_map (eq. 7; blue 2 cm .. red 20 cm)")
     output_dir: str = param("", "folder for mesh.ply, submaps/*.ply and map.npz at exit ('' = write nothing)")

@@ -5,7 +5,9 @@ stamp) and ``estimator/keyframes`` (submap poses follow them). Each depth frame 
 ``T_WC = T_WS(stamp) T_SC`` (or at its own T_WC when ``pose_source: frame`` and it is not identity);
 a frame whose state has not arrived waits up to ``pose_wait_s`` and is then dropped (counted).
 Changed submaps are re-meshed within a time budget at most every ``mesh_period_s`` and published on
-``map/submap``; a submap that moved is re-published with its new pose. At exit (SIGTERM/SIGINT) the
+``map/submap``; a submap that moved is re-published with its new pose. The near-surface field of a
+submap (``OccupancyField`` on ``map/field``, for the occupancy-to-point factors) goes out when the
+submap closes, and for the current submap every ``field_period_s``. At exit (SIGTERM/SIGINT) the
 map is meshed completely, published, and, if ``output_dir`` is set, written there: ``mesh.ply``
 (world), ``submaps/submap_NNN.ply`` (each in its own frame M), ``map.npz`` and ``mapping.json``.
 """
@@ -51,6 +53,7 @@ class MappingLoop:
         self.counts = collections.Counter()
         self.integrate_ms: list[float] = []
         self.to_publish: set[int] = set()
+        self.fields_to_publish: set[int] = set()
 
     def on_state(self, msg: messages.EstimatorState) -> None:
         self.poses.add(msg.header.stamp_ns, msg.T_WS)
@@ -98,6 +101,8 @@ class MappingLoop:
             self.counts["integrated"] += 1
             if rep.new_submap:
                 self.counts["submaps"] += 1
+                if rep.submap_id > 0:
+                    self.fields_to_publish.add(rep.submap_id - 1)  # closed: its field is final
                 log.info("submap %d started (overlap %.2f)", rep.submap_id, rep.overlap)
             done += 1
         self.waiting = keep
@@ -117,6 +122,13 @@ class MappingLoop:
             out.append(messages.SubmapMesh(header=Header(stamp_ns=sm.anchor_stamp_ns, frame_id=f"M{sm.id}"), submap_id=sm.id,
                                            T_WM=sm.T_WM, vertices_M=v, faces=f, vertex_colors=c))
         self.to_publish.clear()
+        return out
+
+    def field_messages(self) -> list[messages.OccupancyField]:
+        from services.mapping.export import field_message
+
+        out = [field_message(self.mapper.submaps[i], self.cfg.sensor.l_min) for i in sorted(self.fields_to_publish)]
+        self.fields_to_publish.clear()
         return out
 
     def write_outputs(self, out_dir: Path) -> None:
@@ -158,6 +170,8 @@ def main(args: argparse.Namespace) -> int:
         kfs = node.subscriber(topics.KEYFRAMES)
         depth = node.subscriber(DEPTH_TOPICS[cfg.depth_topic])
         pub = node.publisher(topics.SUBMAP)
+        pub_field = node.publisher(topics.MAP_FIELD)
+        last_field = time.monotonic()
         timer = node.timer("integrate", budget_ms=cfg.integrate_budget_ms)
         mesh_timer = node.timer("mesh")
         last_mesh = time.monotonic()
@@ -176,6 +190,11 @@ def main(args: argparse.Namespace) -> int:
                     loop.remesh(cfg.mesh_budget_ms / 1e3)
                 for m in loop.submap_messages():
                     pub.publish(m)
+            if cfg.field_period_s > 0 and loop.mapper.submaps and time.monotonic() - last_field >= cfg.field_period_s:
+                last_field = time.monotonic()
+                loop.fields_to_publish.add(loop.mapper.current.id)
+            for m in loop.field_messages():
+                pub_field.publish(m)
         # drain: everything received is integrated and meshed before exit
         for msg in depth.drain():
             loop.on_depth(msg)
@@ -184,6 +203,9 @@ def main(args: argparse.Namespace) -> int:
         loop.to_publish.update(sm.id for sm in loop.mapper.submaps)
         for m in loop.submap_messages():
             pub.publish(m)
+        loop.fields_to_publish.update(sm.id for sm in loop.mapper.submaps)
+        for m in loop.field_messages():
+            pub_field.publish(m)
     if out_dir:
         loop.write_outputs(Path(out_dir))
         print(f"mapping: wrote {out_dir}/mesh.ply", flush=True)
