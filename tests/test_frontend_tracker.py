@@ -128,7 +128,7 @@ def test_gyro_prior_keeps_tracks_under_fast_rotation():
     with_prior, _ = run_sequence(cams, poses, images, cfg, gyro=True)
     without, _ = run_sequence(cams, poses, images, cfg, gyro=False)
     assert with_prior.totals["tracked"] > 2 * without.totals["tracked"]
-    assert with_prior.totals["tracked"] > 0.7 * 150 * 5
+    assert with_prior.totals["tracked"] > 0.7 * cfg.max_features_per_camera * 5
 
 
 def test_blank_frames_then_recovery(stereo_seq):

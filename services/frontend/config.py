@@ -12,16 +12,16 @@ class FrontendConfig:
     """Multi-camera KLT frontend."""
 
     # --- detection ---
-    max_features_per_camera: int = param(150, "features tracked per camera at most")
+    max_features_per_camera: int = param(120, "features tracked per camera at most")
     grid_cols: int = param(8, "detection grid columns (features are spread over the cells)")
     grid_rows: int = param(6, "detection grid rows")
     min_distance_px: float = param(15.0, "least distance between two features of one camera", "px")
     fast_threshold: int = param(20, "FAST corner threshold (intensity difference; lowered once when too few corners)")
     border_px: int = param(8, "no features closer than this to the image border", "px")
     # --- KLT tracking ---
-    klt_window_px: int = param(21, "KLT window side", "px")
+    klt_window_px: int = param(15, "KLT window side", "px")
     klt_levels: int = param(3, "KLT pyramid levels above the full image")
-    klt_iterations: int = param(20, "KLT iterations per level")
+    klt_iterations: int = param(10, "KLT iterations per level")
     fb_max_error_px: float = param(0.7, "forward-backward tracking error above which a track is dropped", "px")
     use_gyro_prior: bool = param(True, "start KLT at the position predicted by the gyro-integrated rotation")
     # --- outlier rejection ---

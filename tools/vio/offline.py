@@ -2,7 +2,7 @@
 
     python -m tools.vio.offline DATASET [--max-frames N] [--set frontend.x=y] [--profile] [--out DIR]
 
-Prints per-stage medians (wall and this thread's CPU time: on a shared machine the CPU time is the steadier
+Prints per-stage medians (wall and the process CPU time, all threads: on a shared machine the CPU time is the steadier
 measure) and the causal ATE (SE(3)) when the folder has ground truth; ``--out`` writes the
 causal trajectory (TUM). The same algorithms and config as the services, fed in the same order.
 """
@@ -42,11 +42,11 @@ def run(dataset: str, config: str | None, overrides: list[str], max_frames: int 
         if max_frames and frames >= max_frames:
             break
         frames += 1
-        t0, c0 = time.perf_counter(), time.thread_time()
+        t0, c0 = time.perf_counter(), time.process_time()
         ff = fe.process(msg)
-        t1, c1 = time.perf_counter(), time.thread_time()
+        t1, c1 = time.perf_counter(), time.process_time()
         out = be.process(ff) if ff is not None else None
-        t2, c2 = time.perf_counter(), time.thread_time()
+        t2, c2 = time.perf_counter(), time.process_time()
         t_fe.append(t1 - t0)
         t_be.append(t2 - t1)
         cpu.append((c1 - c0, c2 - c1))
