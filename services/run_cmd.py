@@ -149,7 +149,7 @@ def _collect(node: Node, col: _Collector, sup_thread: threading.Thread, settle_s
 
 
 def _trajectory(states) -> PoseSeries:
-    good = [s for s in states if s.status != "initialising"]
+    good = [s for s in states if s.status not in ("initialising", "reset")]  # no pose in these
     stamps = np.array([s.header.stamp_ns for s in good], np.int64)
     order = np.argsort(stamps, kind="stable")
     T = np.array([s.T_WS for s in good]).reshape(-1, 4, 4)[order]

@@ -3,7 +3,7 @@
 Each enabled :class:`ServiceSpec` runs as ``[sys.executable, "-m", "services.cli", argv[0], CONFIG,
 *argv[1:]]`` in its own session / process group, where CONFIG is the resolved system config the
 supervisor wrote to ``<run_dir>/config.yaml`` (also in ``$SIGMASLAM_CONFIG``; ``$SIGMASLAM_RUN_DIR``
-is the run folder). With ``start_router`` the router (``sigmaslam router CONFIG``) starts first.
+is the run folder; ``$SIGMASLAM_RESTARTS`` counts the restarts of that service, 0 at its first start). With ``start_router`` the router (``sigmaslam router CONFIG``) starts first.
 
 A child that exits is logged with its exit code or signal. It is restarted (after a backoff that
 doubles per recent restart) when its policy says so, at most ``max_restarts`` times within
@@ -178,7 +178,9 @@ class Supervisor:
 
     def _start(self, child: Child) -> None:
         parent = os.getpid()
-        child.proc = subprocess.Popen(child.argv, env=self._env(), start_new_session=True,
+        env = self._env()
+        env["SIGMASLAM_RESTARTS"] = str(child.tracker.total_restarts)  # > 0: a restart (the back end reports 'reset')
+        child.proc = subprocess.Popen(child.argv, env=env, start_new_session=True,
                                       preexec_fn=lambda: _child_setup(parent))
         child.restart_at = None
         self._status(child, f"started pid {child.proc.pid}")

@@ -29,3 +29,12 @@ class TransportConfig:
     zenoh_json5: str = param("", "optional Zenoh JSON5 config file whose settings are applied first (TLS, auth, ACL)")
     heartbeat_period_s: float = param(1.0, "period of each service's heartbeat", "s")
     stats_period_s: float = param(1.0, "period of each service's stats message", "s")
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("peer", "client"):
+            raise ValueError(f"transport.mode must be 'peer' or 'client', got {self.mode!r}")
+        if not self.heartbeat_period_s > 0 or not self.stats_period_s > 0:
+            raise ValueError(f"transport.heartbeat_period_s and stats_period_s must be positive, got "
+                             f"{self.heartbeat_period_s}, {self.stats_period_s}")
+        if self.shm_threshold_bytes < 0 or self.shm_pool_bytes < 0:
+            raise ValueError("transport.shm_threshold_bytes and shm_pool_bytes must be >= 0")

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import os
 import time
 
 import numpy as np
@@ -46,12 +47,24 @@ class BackendShell:
         self.dropped = 0
         self.seq = 0
         self.newest_imu_ns = -1
+        self.restarted = False  # set by main() after a supervisor restart: the first state says 'reset'
 
     def add_imu(self, sample) -> None:
         self.estimator.add_imu(int(sample.header.stamp_ns), sample.omega_S, sample.acc_S)
         self.newest_imu_ns = max(self.newest_imu_ns, int(sample.header.stamp_ns))
 
     def process(self, frame: FeatureFrame) -> tuple[EstimatorState, Keyframes | None] | None:
+        msgs = self._process(frame)
+        if msgs is not None and self.restarted:
+            # a restarted back end lost its window: its first state says so (consumers treat 'reset' like
+            # 'initialising': no pose to use), then it re-initialises from scratch
+            self.restarted = False
+            log.warning("back end restarted: state history lost, re-initialising (status 'reset' at %d)",
+                        msgs[0].header.stamp_ns)
+            msgs = (dataclasses.replace(msgs[0], status="reset"), msgs[1])
+        return msgs
+
+    def _process(self, frame: FeatureFrame) -> tuple[EstimatorState, Keyframes | None] | None:
         stamp = int(frame.header.stamp_ns)
         try:
             res = self.estimator.process_frame(stamp, frame.landmark_ids, frame.camera_index, frame.uv,
@@ -80,6 +93,7 @@ def main(args: argparse.Namespace) -> int:
         return 2
     bc = cfg.backend
     shell = BackendShell(bc, cameras)
+    shell.restarted = int(os.environ.get("SIGMASLAM_RESTARTS", "0") or 0) > 0
     loop = LoopClosingBackend(shell, cfg.loop) if cfg.loop.enabled else None  # loop closure: services/loop
     with Node("backend", cfg.transport) as node:
         imu = node.subscriber(topics.IMU)

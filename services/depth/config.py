@@ -36,6 +36,8 @@ class DepthConfig:
     device: str = param("auto", "'auto' (CUDA when present), 'cpu' or 'cuda'")
     threads: int = param(2, "CPU threads of the networks")
     budget_ms: float = param(100.0, "budget of one depth frame (networks + fusion), reported in stats", "ms")
+    inject_delay_ms: float = param(0.0, "TEST/BENCH KNOB: extra sleep added to every depth frame inside the timed "
+                                   "stage, to overload the service on purpose (docs/reliability.md); keep 0", "ms")
 
     def __post_init__(self) -> None:
         if self.method not in ("network", "sgbm"):
@@ -48,3 +50,5 @@ class DepthConfig:
             raise ValueError(f"depth.mvs_sources must be 1..7, got {self.mvs_sources}")
         if self.rate_hz <= 0:
             raise ValueError("depth.rate_hz must be positive")
+        if self.inject_delay_ms < 0:
+            raise ValueError(f"depth.inject_delay_ms must be >= 0, got {self.inject_delay_ms}")

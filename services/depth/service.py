@@ -130,6 +130,8 @@ def main(args: argparse.Namespace) -> int:
                 left, right = frame_images(frame, dc.left_camera, dc.right_camera)
                 with timer, lock:
                     res = pipe.process(stamp, left, right, poses.get(stamp))
+                    if dc.inject_delay_ms > 0:  # test/bench overload knob (docs/reliability.md)
+                        time.sleep(dc.inject_delay_ms / 1e3)
             except (ValueError, RuntimeError) as exc:  # e.g. a camera missing or images of the wrong size
                 dropped_bad += 1
                 log.warning("depth: frame %d dropped (%d so far): %s", stamp, dropped_bad, exc)

@@ -67,7 +67,7 @@ class LoopClosingBackend:
         """As ``BackendShell.process``, with corrected poses."""
         self._last_process = time.monotonic()
         msgs = self.shell.process(frame)
-        if msgs is None or msgs[0].status == "initialising":
+        if msgs is None or msgs[0].status in ("initialising", "reset"):
             return msgs
         state, kfs = msgs
         self._stamps.append(int(state.header.stamp_ns))

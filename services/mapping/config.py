@@ -64,3 +64,4 @@ class MappingConfig:
     field_period_s: float = param(2.0, "the current submap's near-surface field goes out on map/field this often (closed submaps once, when closed; <= 0: only closed ones)", "s")
     vertex_colors: bool = param(True, "colour published mesh vertices by the map's uncertainty sigma_map (eq. 7; blue 2 cm .. red 20 cm)")
     output_dir: str = param("", "folder for mesh.ply, submaps/*.ply and map.npz at exit ('' = write nothing)")
+    checkpoint_period_s: float = param(10.0, "with an output folder, map.npz is also saved (atomically: write, then rename) this often while running; a service the supervisor restarts resumes from it (0 = only at exit)", "s")

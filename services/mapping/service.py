@@ -9,7 +9,9 @@ Changed submaps are re-meshed within a time budget at most every ``mesh_period_s
 submap (``OccupancyField`` on ``map/field``, for the occupancy-to-point factors) goes out when the
 submap closes, and for the current submap every ``field_period_s``. At exit (SIGTERM/SIGINT) the
 map is meshed completely, published, and, if ``output_dir`` is set, written there: ``mesh.ply``
-(world), ``submaps/submap_NNN.ply`` (each in its own frame M), ``map.npz`` and ``mapping.json``.
+(world), ``submaps/submap_NNN.ply`` (each in its own frame M), ``map.npz`` and ``mapping.json``. With an
+output folder, ``map.npz`` is also checkpointed every ``checkpoint_period_s`` (atomic rename); a service
+restarted by the supervisor resumes from that checkpoint (see :func:`resume_map`, docs/reliability.md).
 """
 
 from __future__ import annotations
@@ -18,13 +20,14 @@ import argparse
 import collections
 import json
 import logging
+import os
 import time
 from pathlib import Path
 
 import numpy as np
 
 from services.mapping.config import MappingConfig
-from services.mapping.io import save_map, write_ply
+from services.mapping.io import MapFileError, load_map, save_map, write_ply
 from services.mapping.poses import PoseBuffer
 from services.mapping.submaps import SubmapMapper
 from services.system_config import load_system_config
@@ -56,6 +59,9 @@ class MappingLoop:
         self.fields_to_publish: set[int] = set()
 
     def on_state(self, msg: messages.EstimatorState) -> None:
+        if msg.status in ("initialising", "reset"):  # placeholders without a pose (e.g. a restarted back end)
+            self.counts["states_without_pose"] += 1
+            return
         self.poses.add(msg.header.stamp_ns, msg.T_WS)
 
     def on_keyframes(self, msg: messages.Keyframes) -> None:
@@ -148,6 +154,27 @@ class MappingLoop:
         (out_dir / "mapping.json").write_text(json.dumps(report, indent=1))
 
 
+def resume_map(loop: MappingLoop, out_dir: str | None) -> bool:
+    """After a supervisor restart (``$SIGMASLAM_RESTARTS`` > 0), continue from the last checkpoint
+    ``<out_dir>/map.npz``: same submaps, ids continue, everything is re-meshed and re-published. A first
+    start, or a restart without a readable checkpoint, begins an empty map (logged)."""
+    if int(os.environ.get("SIGMASLAM_RESTARTS", "0") or 0) <= 0 or not out_dir:
+        return False
+    path = Path(out_dir) / "map.npz"
+    try:
+        loop.mapper = load_map(path)
+    except (MapFileError, FileNotFoundError) as exc:
+        log.warning("mapping restarted without a usable checkpoint (%s): starting an empty map", exc)
+        loop.counts["resumed"] = 0
+        return False
+    loop.mapper.remesh(None)
+    loop.to_publish.update(sm.id for sm in loop.mapper.submaps)
+    loop.counts["resumed"] = 1
+    log.warning("mapping restarted: resumed %d submaps from %s", len(loop.mapper.submaps), path)
+    print(f"mapping: resumed {len(loop.mapper.submaps)} submaps from {path}", flush=True)
+    return True
+
+
 def main(args: argparse.Namespace) -> int:
     from transport.node import Node
     from transport.queues import Empty
@@ -162,6 +189,7 @@ def main(args: argparse.Namespace) -> int:
         return 2
     out_dir = args.out or cfg.output_dir
     loop = MappingLoop(cfg)
+    resume_map(loop, out_dir)
     from services.mapping.integrate import warm_up
 
     warm_up(cfg.sensor)
@@ -175,6 +203,8 @@ def main(args: argparse.Namespace) -> int:
         timer = node.timer("integrate", budget_ms=cfg.integrate_budget_ms)
         mesh_timer = node.timer("mesh")
         last_mesh = time.monotonic()
+        checkpoint_timer = node.timer("checkpoint")
+        last_checkpoint = time.monotonic()
         print(f"mapping: {cfg.depth_topic} -> {topics.SUBMAP.key}", flush=True)
         while not node.stopped:
             try:
@@ -195,6 +225,10 @@ def main(args: argparse.Namespace) -> int:
                 loop.fields_to_publish.add(loop.mapper.current.id)
             for m in loop.field_messages():
                 pub_field.publish(m)
+            if out_dir and cfg.checkpoint_period_s > 0 and time.monotonic() - last_checkpoint >= cfg.checkpoint_period_s:
+                last_checkpoint = time.monotonic()
+                with checkpoint_timer:
+                    save_map(loop.mapper, Path(out_dir) / "map.npz")
         # drain: everything received is integrated and meshed before exit
         for msg in depth.drain():
             loop.on_depth(msg)

@@ -22,3 +22,12 @@ class PlayerConfig:
     start_paused: bool = param(False, "wait for a 'resume' control command before the first message")
     max_frames: int = param(0, "stop after this many frames (0 = all)")
     end_linger_s: float = param(0.5, "stay on the bus this long after publishing sensors/end", "s")
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("lockstep", "rate"):
+            raise ValueError(f"player.mode must be 'lockstep' or 'rate', got {self.mode!r}")
+        if not self.rate > 0 or not self.lockstep_timeout_s > 0:
+            raise ValueError(f"player.rate and player.lockstep_timeout_s must be positive, got {self.rate}, "
+                             f"{self.lockstep_timeout_s}")
+        if self.max_frames < 0 or self.end_linger_s < 0:
+            raise ValueError("player.max_frames and player.end_linger_s must be >= 0")
