@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import time
 
 import numpy as np
@@ -45,9 +46,9 @@ def feature_message(out: TrackerOutput, seq: int) -> FeatureFrame:
 class FrontendShell:
     """Per-frame logic of the service without the transport (images in, FeatureFrame out)."""
 
-    def __init__(self, cfg, cameras) -> None:
+    def __init__(self, cfg, cameras, first_landmark_id: int = 0) -> None:
         self.cfg = cfg
-        self.tracker = MultiCameraTracker(cfg, cameras)
+        self.tracker = MultiCameraTracker(cfg, cameras, first_landmark_id)
         self.names = [c.name for c in cameras]
         self.gyro = GyroIntegrator()
         self.gyro_bias = np.zeros(3)
@@ -89,7 +90,9 @@ def main(args: argparse.Namespace) -> int:
     except (CalibrationError, FileNotFoundError) as exc:
         print(f"sigmaslam frontend: {exc}", flush=True)
         return 2
-    shell = FrontendShell(cfg.frontend, cameras)
+    # after a supervisor restart, landmark ids continue in a range of their own (2^40 ids per life)
+    restarts = int(os.environ.get("SIGMASLAM_RESTARTS", "0") or 0)
+    shell = FrontendShell(cfg.frontend, cameras, first_landmark_id=restarts << 40)
     fc = cfg.frontend
     with Node("frontend", cfg.transport) as node:
         imu = node.subscriber(topics.IMU)

@@ -74,7 +74,9 @@ class TrackerOutput:
 class MultiCameraTracker:
     """Feed :meth:`process` with each frame's images (in rig order) and the body rotation since the last frame."""
 
-    def __init__(self, cfg: FrontendConfig, cameras: list[CameraCalib]) -> None:
+    def __init__(self, cfg: FrontendConfig, cameras: list[CameraCalib], first_landmark_id: int = 0) -> None:
+        """``first_landmark_id``: ids are handed out from here on (a restarted frontend starts a fresh range so
+        that the back end never confuses its new tracks with the old ones)."""
         if not cameras:
             raise ValueError("the frontend needs at least one camera")
         self.cfg = cfg
@@ -83,7 +85,7 @@ class MultiCameraTracker:
         self._cams = [_CameraState() for _ in cameras]
         self._pairs = overlapping_pairs(self.cameras, cfg.min_view_overlap_cos)
         self._R_SC = [np.asarray(c.T_SC, float)[:3, :3] for c in cameras]
-        self._next_id = 0
+        self._next_id = int(first_landmark_id)
         self._last_stamp: int | None = None
         self._kf_id = -1
         self._kf_stamp: int | None = None
