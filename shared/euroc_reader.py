@@ -29,7 +29,12 @@ def read_sensor_yaml(path: Path, keys: tuple[str, ...] = ()) -> dict:
     text = path.read_text()
     if text.startswith("%YAML"):
         text = text.split("\n", 1)[1]
-    d = yaml.safe_load(text) or {}
+    try:
+        d = yaml.safe_load(text) or {}
+    except yaml.YAMLError as exc:
+        raise DatasetError(f"{path}: not valid YAML ({exc})") from None
+    if not isinstance(d, dict):
+        raise DatasetError(f"{path}: expected a mapping of keys, got {type(d).__name__}")
     for k in keys:
         if k not in d:
             raise DatasetError(f"{path}: missing key {k!r}")
@@ -43,7 +48,7 @@ class EurocDataset:
         if not root.is_dir():
             raise DatasetError(f"{p}: dataset folder not found")
         self.root = root
-        self.stats = {"frames_missing_camera": 0, "backwards_stamps": 0, "unreadable_images": 0}
+        self.stats = {"frames_missing_camera": 0, "backwards_stamps": 0, "unreadable_images": 0, "nonfinite_imu": 0}
         self.camera_names = sorted((d.name for d in root.glob("cam*") if d.is_dir()), key=lambda n: int(n[3:]))
         if not self.camera_names:
             raise DatasetError(f"{root}: no cam* folder")
@@ -66,6 +71,9 @@ class EurocDataset:
                 if ln.strip() and not ln.startswith("#")]
 
     def _monotonic(self, path: Path, stamps: list[int]) -> np.ndarray:
+        bad = next((t for t in stamps if not 0 <= t < 2**63), None)
+        if bad is not None:
+            raise DatasetError(f"{path}: timestamp {bad} is not a non-negative int64 [ns]")
         keep, last = [], None
         for i, t in enumerate(stamps):
             if last is not None and t <= last:
@@ -90,10 +98,17 @@ class EurocDataset:
         rows = self._csv(path)
         if any(len(r) != 7 for r in rows):
             raise DatasetError(f"{path}: expected 7 columns")
-        stamps = [int(r[0]) for r in rows]
-        keep = self._monotonic(path, stamps)
-        vals = np.array([[float(x) for x in r[1:]] for r in rows]).reshape(-1, 6)
-        return np.asarray(stamps, dtype=np.int64)[keep], vals[keep]
+        try:
+            stamps = [int(r[0]) for r in rows]
+            vals = np.array([[float(x) for x in r[1:]] for r in rows]).reshape(-1, 6)
+        except ValueError as e:
+            raise DatasetError(f"{path}: bad row ({e})") from None
+        finite = np.isfinite(vals).all(axis=1)
+        if not finite.all():  # NaN/inf samples are skipped (an IMU gap the estimator bridges or reports)
+            self.stats["nonfinite_imu"] = int((~finite).sum())
+            log.warning("%s: %d rows with NaN/inf values skipped", path, self.stats["nonfinite_imu"])
+        keep = self._monotonic(path, [t for t, ok in zip(stamps, finite) if ok])
+        return np.asarray(stamps, dtype=np.int64)[finite][keep], vals[finite][keep]
 
     def load_frame(self, stamp_ns: int) -> list[np.ndarray] | None:
         imgs = []

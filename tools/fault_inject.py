@@ -1,0 +1,223 @@
+"""Fault injection on a live pipeline: SIGKILL services in turn, or overload one, and measure the estimator.
+
+    python -m tools.fault_inject DATASET --out DIR [--kill depth,mapping,backend] [--rate 0.5] [--set k=v ...]
+
+Runs player (``--rate`` x sensor time), frontend, backend, depth (SGBM unless ``--set depth.method=network``)
+and mapping (``--out DIR``, checkpoints every 2 s) under :class:`services.supervisor.Supervisor` with restart
+'on-failure', on a private router and namespace. This process listens to estimator/state, sensors/frame,
+heartbeats and stats. Once the estimator tracks, it measures a baseline window, then for each service in
+``--kill``: SIGKILL its process, measure the estimator/state rate and latency while it is down, wait for a
+heartbeat from the new process (a new pid), and one more window. Writes ``DIR/faults.json`` and prints one
+line per fault. With no ``--kill`` it just measures (the overload case: ``--set depth.inject_delay_ms=500``).
+
+Latency = arrival of an estimator/state here - arrival of the sensors/frame with the same stamp here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import threading
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+
+from services.cli import SUBCOMMANDS
+from services.supervisor import ServiceSpec, Supervisor, validate
+from services.system_config import load_system_config
+from shared import topics
+from shared.config import to_yaml
+from transport.node import Node
+
+PIPELINE = ("frontend", "backend", "depth", "mapping")
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Probe:
+    """What this process sees on the bus, with arrival times (filled from Zenoh threads)."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.states: list[tuple[float, int, str]] = []  # (arrival, stamp, status)
+        self.frame_arrival: dict[int, float] = {}
+        self.heartbeats: dict[str, tuple[float, int]] = {}  # service -> (arrival, pid) of the newest
+        self.stats: dict[str, object] = {}
+
+    def on_state(self, m) -> None:
+        with self.lock:
+            self.states.append((time.monotonic(), int(m.header.stamp_ns), m.status))
+
+    def on_frame(self, m) -> None:
+        with self.lock:
+            self.frame_arrival[int(m.header.stamp_ns)] = time.monotonic()
+
+    def on_heartbeat(self, m) -> None:
+        if m.state == "running":
+            with self.lock:
+                self.heartbeats[m.service] = (time.monotonic(), int(m.pid))
+
+    def on_stats(self, m) -> None:
+        with self.lock:
+            self.stats[m.service] = m
+
+    def window(self, t0: float, t1: float) -> dict:
+        """State rate and latency over arrivals in [t0, t1)."""
+        with self.lock:
+            sel = [s for s in self.states if t0 <= s[0] < t1]
+            lat = [1e3 * (a - self.frame_arrival[st]) for a, st, _ in sel if st in self.frame_arrival]
+        tracking = [s for s in sel if s[2] in ("tracking", "imu_only")]
+        return {"t0": t0, "t1": t1, "states": len(sel), "rate_hz": len(sel) / max(t1 - t0, 1e-9),
+                "tracking_rate_hz": len(tracking) / max(t1 - t0, 1e-9),
+                "latency_p50_ms": float(np.median(lat)) if lat else None,
+                "latency_p99_ms": float(np.percentile(lat, 99)) if lat else None,
+                "statuses": sorted({s[2] for s in sel})}
+
+    def queue_drops(self) -> dict:
+        with self.lock:
+            return {name: {q: {"received": int(s.queue_received[k]), "dropped": int(s.queue_dropped[k])}
+                           for k, q in enumerate(s.queue_names)} for name, s in self.stats.items()}
+
+    def stages(self) -> dict:
+        with self.lock:
+            return {name: {st: {"count": int(s.stage_count[k]), "p50_ms": float(s.stage_p50_ms[k]),
+                                "overruns": int(s.stage_overruns[k])} for k, st in enumerate(s.stage_names)}
+                    for name, s in self.stats.items()}
+
+
+def build(dataset: str, out: Path, rate: float, sets: list[str]):
+    port = _free_port()
+    overrides = [f"transport.namespace=sigmaslam/faults-{uuid.uuid4().hex[:8]}", f"transport.connect=[tcp/127.0.0.1:{port}]",
+                 f"transport.router_listen=[tcp/127.0.0.1:{port}]", "depth.method=sgbm", "depth.rate_hz=5",
+                 "mapping.depth_topic=depth/stereo", "mapping.checkpoint_period_s=2", "loop.enabled=false",
+                 "transport.stats_period_s=0.5", *sets]
+    cfg = load_system_config(None, overrides)
+    cfg.rig.calibration = dataset
+    spec = dict(restart="on-failure", max_restarts=5, window_s=120.0, backoff_s=0.2)
+    services = [ServiceSpec(name="frontend", argv=["frontend"], **spec),
+                ServiceSpec(name="backend", argv=["backend"], **spec),
+                ServiceSpec(name="depth", argv=["depth"], **spec),
+                ServiceSpec(name="mapping", argv=["mapping", "--out", str(out / "map")], **spec),
+                ServiceSpec(name="player", argv=["player", dataset, "--rate", f"{rate:g}",
+                                                 "--wait-for", ",".join(PIPELINE)], restart="never")]
+    cfg.supervisor.services = services
+    cfg.supervisor.start_router = True
+    validate(cfg.supervisor, SUBCOMMANDS)
+    path = (out / "config.yaml").resolve()
+    path.write_text(to_yaml(cfg))
+    return cfg, path
+
+
+def wait_until(pred, timeout_s: float, step: float = 0.05) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(step)
+    return bool(pred())
+
+
+def run(dataset: str, out: Path, kill: list[str], rate: float, window_s: float, sets: list[str],
+        restart_timeout_s: float = 90.0, start_timeout_s: float = 180.0) -> dict:
+    out.mkdir(parents=True, exist_ok=True)
+    cfg, config_path = build(dataset, out, rate, sets)
+    sup = Supervisor(cfg.supervisor, config_path, out.resolve())
+    probe = Probe()
+    report: dict = {"dataset": dataset, "rate": rate, "window_s": window_s, "sets": sets, "faults": []}
+    with Node("faults", cfg.transport) as node:
+        node.subscriber(topics.STATE, policy="all", depth=100_000, handler=probe.on_state)
+        node.subscriber(topics.FRAME, handler=probe.on_frame)
+        node.subscriber(topics.HEARTBEAT, key="heartbeat/*", handler=probe.on_heartbeat)
+        node.subscriber(topics.STATS, key="stats/*", handler=probe.on_stats)
+        th = threading.Thread(target=sup.run, name="supervisor", daemon=True)
+        th.start()
+        try:
+            ok = wait_until(lambda: any(s[2] == "tracking" for s in probe.states), start_timeout_s)
+            report["started"] = ok
+            if not ok:
+                report["error"] = "the estimator never tracked"
+                return report
+            t = time.monotonic()
+            time.sleep(window_s)
+            report["baseline"] = probe.window(t, t + window_s)
+            print(f"[faults] baseline: {report['baseline']['rate_hz']:.1f} states/s, latency p50 "
+                  f"{report['baseline']['latency_p50_ms']} ms", flush=True)
+            for name in kill:
+                report["faults"].append(_kill_one(sup, probe, name, out, window_s, restart_timeout_s))
+            if not kill:  # overload/measure only: a second window
+                t = time.monotonic()
+                time.sleep(window_s)
+                report["measure"] = probe.window(t, t + window_s)
+        finally:
+            time.sleep(1.0)  # one more stats period
+            report["queues"] = probe.queue_drops()
+            report["stages"] = probe.stages()
+            report["restarts"] = {c.spec.name: c.tracker.total_restarts for c in sup.children}
+            sup.request_stop()
+            th.join(timeout=cfg.supervisor.shutdown_timeout_s * 2 + 10)
+    (out / "faults.json").write_text(json.dumps(report, indent=1))
+    return report
+
+
+def _kill_one(sup: Supervisor, probe: Probe, name: str, out: Path, window_s: float, restart_timeout_s: float) -> dict:
+    child = next(c for c in sup.children if c.spec.name == name)
+    if name == "mapping":  # kill it only once it has saved a checkpoint to resume from
+        wait_until(lambda: (out / "map" / "map.npz").exists(), 30.0)
+    old_pid = child.proc.pid
+    t_kill = time.monotonic()
+    os.kill(old_pid, signal.SIGKILL)
+    time.sleep(window_s)
+    down = probe.window(t_kill, t_kill + window_s)
+    back = wait_until(lambda: probe.heartbeats.get(name, (0, old_pid))[1] != old_pid, restart_timeout_s)
+    t_back = probe.heartbeats.get(name, (None,))[0]
+    res = {"service": name, "old_pid": old_pid, "new_pid": probe.heartbeats.get(name, (0, None))[1] if back else None,
+           "restarted": back, "restart_s": (t_back - t_kill) if back else None, "while_down": down}
+    if back and name == "backend":
+        wait_until(lambda: any(s[0] > t_back and s[2] == "tracking" for s in probe.states), restart_timeout_s)
+        with probe.lock:
+            after = [s for s in probe.states if s[0] > t_kill]
+        res["first_status_after_restart"] = after[0][2] if after else None
+        res["reset_seen"] = any(s[2] == "reset" for s in after)
+        tr = [s[0] for s in after if s[2] == "tracking"]
+        res["tracking_again_s"] = (tr[0] - t_kill) if tr else None
+    t = time.monotonic()
+    time.sleep(window_s)
+    res["after"] = probe.window(t, t + window_s)
+    print(f"[faults] SIGKILL {name} (pid {old_pid}): restarted={back} in {res['restart_s']} s; while down "
+          f"{down['rate_hz']:.1f} states/s (tracking {down['tracking_rate_hz']:.1f}), latency p50 "
+          f"{down['latency_p50_ms']} ms; after {res['after']['rate_hz']:.1f} states/s"
+          + (f"; reset seen {res.get('reset_seen')}, tracking again after {res.get('tracking_again_s')} s"
+             if name == "backend" else ""), flush=True)
+    return res
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("dataset")
+    p.add_argument("--out", required=True)
+    p.add_argument("--kill", default="", help="comma-separated services to SIGKILL in turn (of %s)" % ",".join(PIPELINE))
+    p.add_argument("--rate", type=float, default=0.5, help="player speed, x sensor time")
+    p.add_argument("--window-s", type=float, default=3.0, help="measurement window [s]")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    a = p.parse_args(argv)
+    kill = [k for k in a.kill.split(",") if k]
+    bad = [k for k in kill if k not in PIPELINE]
+    if bad:
+        p.error(f"--kill: unknown services {bad}")
+    rep = run(a.dataset, Path(a.out), kill, a.rate, a.window_s, a.set)
+    print(json.dumps({k: rep.get(k) for k in ("baseline", "measure", "restarts")}, indent=1), flush=True)
+    return 0 if rep.get("started") and all(f["restarted"] for f in rep["faults"]) else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
