@@ -97,7 +97,8 @@ def _probe(log: ArrivalLog, transport_cfg, stop: threading.Event, ready: threadi
 
 def run_once(dataset: Path, out: Path, rate: float, seconds: float, services: str, config: str | None,
              sets: list[str], timeout_s: float) -> dict:
-    """One measured pipeline run into ``out``; returns the raw measurements (see :func:`summarise`)."""
+    """One measured pipeline run into ``out`` (``rate`` <= 0: lockstep); returns the raw measurements (see
+    :func:`summarise`)."""
     from services import run_cmd
     from services.system_config import load_system_config
     from transport.stats import STAGE_LOG_ENV
@@ -117,7 +118,7 @@ def run_once(dataset: Path, out: Path, rate: float, seconds: float, services: st
     transport_cfg = load_system_config(config, overrides).transport
     frames = frames_within(dataset, seconds)
     args = argparse.Namespace(dataset=str(dataset), config=config, out=str(out / "run"), set=overrides,
-                              realtime=True, rate=rate, record=False, player_arg=[f"--max-frames={frames}"],
+                              realtime=rate > 0, rate=max(rate, 0.0), record=False, player_arg=[f"--max-frames={frames}"],
                               settle_s=5.0, timeout_s=timeout_s, final_timeout_s=120.0)
     log, stop, ready = ArrivalLog(), threading.Event(), threading.Event()
     probe = threading.Thread(target=_probe, args=(log, transport_cfg, stop, ready), name="bench-probe", daemon=True)
