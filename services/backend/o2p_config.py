@@ -1,0 +1,33 @@
+"""Configuration of the occupancy-to-point factors (paper eq. 5-7, sec. IV-C) in the back end."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from shared.config import param
+
+
+@dataclasses.dataclass
+class O2PConfig:
+    """Frame-to-map and map-to-map occupancy-to-point factors; off until shown to help."""
+
+    enabled: bool = param(False, "add occupancy-to-point factors to the back end's window (needs map/field and depth)")
+    frame_to_map: bool = param(True, "frame-to-map: live stereo depth of a window keyframe against its o(k)")
+    map_to_map: bool = param(True, "map-to-map: fused-depth points of a finished submap m against o(m)")
+    max_points_frame: int = param(200, "points per frame-to-map factor at most (the lowest-sigma ones)")
+    max_points_map: int = param(1000, "points per map-to-map factor at most (the lowest-sigma ones)")
+    min_points_in_field: int = param(100, "M_min: a target submap needs this many points inside its observed field")
+    min_covisible_landmarks: int = param(5, "landmarks a frame must share with a submap to count it covisible")
+    tukey_k: float = param(3.0, "Tukey threshold on the RMS whitened residual of a whole factor")
+    grad_min: float = param(1.0, "points where |grad L| is below this (saturated free space) drop out", "1/m")
+    depth_stamp_tolerance_ms: float = param(1.0, "a depth frame belongs to the window state with this stamp", "ms")
+    max_pending_depth: int = param(32, "depth frames waiting for their window state at most (oldest dropped)")
+    max_submaps: int = param(500, "finished submap fields kept at most (oldest dropped)")
+    landmark_history_s: float = param(600.0, "landmark ids of past frames kept this long for covisibility", "s")
+
+    def check(self) -> None:
+        if min(self.max_points_frame, self.max_points_map, self.min_points_in_field, self.max_pending_depth,
+               self.max_submaps) < 1:
+            raise ValueError("o2p point counts and buffer sizes must be >= 1")
+        if not (self.tukey_k > 0 and self.grad_min >= 0):
+            raise ValueError("o2p tukey_k must be > 0 and grad_min >= 0")

@@ -1,0 +1,209 @@
+"""Which occupancy-to-point factors the back end's window gets (paper sec. IV-C), transport-free.
+
+Inputs (fed by the back-end service): finished submaps' near-surface fields (``map/field``), live stereo
+depth frames (``depth/stereo``), the landmark ids of every feature frame, and optionally the fused-depth
+points of finished submaps (map-to-map).
+
+* **Frame-to-map**: a window state with a stereo depth frame at its stamp gets one factor with the
+  ``max_points_frame`` lowest-sigma pixels (one candidate per image cell, so the points spread) against
+  o(k). Depth arrives after the frame's own optimisation here (the networks are slower than the
+  tracker), so the factor joins the window at the next window optimisation while the state is still in
+  it, and stays until the state leaves.
+* **o(k)**: the oldest finished submap covisible with the frame (>= ``min_covisible_landmarks`` landmark
+  ids shared with the frames recorded during the submap's life) that has >= M_min of the points inside
+  its observed field at the current estimate.
+* **Target pose**: a submap follows the keyframe nearest its creation (as in the mapping service); when
+  that state is still in the window the factor acts on both poses, else the submap pose is held fixed at
+  the newest T_WM received (the factor then acts like a geometric loop closure on the frame).
+* **Map-to-map**: points of submap m (already in M_m) against o(m), attached to the newest window state
+  inside m's life (m moved rigidly with it); skipped when no window state lies in m's life.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import logging
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import X
+
+from services.backend.o2p_config import O2PConfig
+from services.backend.o2p_factor import OccupancyToPoint, trilinear_derivatives
+from services.mapping.export import field_of_message
+from services.mapping.query import BlockField
+from shared.geometry import inv_T
+
+log = logging.getLogger("sigmaslam.backend.o2p")
+
+
+def select_depth_points(depth: np.ndarray, sigma: np.ndarray, K: np.ndarray, max_points: int,
+                        cell_px: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Back-projected camera-frame points (N, 3) and sigmas (N,) of at most ``max_points`` valid pixels
+    with the lowest sigma, at most one per ``cell_px`` square (0: chosen so there are ~4 max_points cells)."""
+    depth = np.asarray(depth, np.float32)
+    sigma = np.asarray(sigma, np.float32)
+    if depth.ndim != 2 or depth.shape != sigma.shape:
+        raise ValueError(f"depth {depth.shape} and sigma {sigma.shape} must be equal 2-D arrays")
+    H, W = depth.shape
+    v, u = np.nonzero(np.isfinite(depth) & (depth > 0) & np.isfinite(sigma) & (sigma > 0))
+    if len(v) == 0:
+        return np.empty((0, 3)), np.empty(0)
+    cell = cell_px or max(1, int(np.sqrt(H * W / (4.0 * max_points))))
+    s = sigma[v, u]
+    cid = (v // cell) * (W // cell + 1) + u // cell
+    order = np.lexsort((s, cid))
+    first = order[np.r_[True, cid[order][1:] != cid[order][:-1]]]  # lowest sigma of each cell
+    # lowest sigma first; ties (e.g. a constant heuristic sigma) broken by a fixed shuffle so the points spread
+    tie = np.random.default_rng(0).permutation(len(first))
+    keep = first[np.lexsort((tie, s[first]))[:max_points]]
+    z = depth[v[keep], u[keep]].astype(np.float64)
+    p = np.column_stack([(u[keep] - K[0, 2]) / K[0, 0] * z, (v[keep] - K[1, 2]) / K[1, 1] * z, z])
+    return p, s[keep].astype(np.float64)
+
+
+@dataclasses.dataclass
+class _Submap:
+    id: int
+    field: BlockField
+    l_min: float
+    T_WM: np.ndarray
+    start_ns: int
+    end_ns: int
+    landmarks: np.ndarray  # sorted unique ids seen during the submap's life
+    points_M: np.ndarray | None = None  # map-to-map points in M and their sigmas
+    sigma: np.ndarray | None = None
+
+
+class OccupancyTerms:
+    """Keeps map and depth inputs; :meth:`factors` answers the factors of the current window."""
+
+    def __init__(self, cfg: O2PConfig) -> None:
+        cfg.check()
+        self.cfg = cfg
+        self.submaps: dict[int, _Submap] = {}
+        self._frames: collections.deque[tuple[int, np.ndarray]] = collections.deque()  # (stamp, landmark ids)
+        self._depth: collections.OrderedDict[int, tuple[np.ndarray, np.ndarray]] = collections.OrderedDict()  # stamp -> (p_S, sigma)
+        # (kind, state index, submap id) -> (factor data, gtsam factor) or None when no target was found
+        self._built: dict[tuple[str, int, int], tuple[OccupancyToPoint, gtsam.NonlinearFactor] | None] = {}
+        self._m2m_done: set[int] = set()
+        self.counts = collections.Counter()
+
+    # ------------------------------------------------------------------ inputs
+    def note_frame(self, stamp_ns: int, landmark_ids: np.ndarray) -> None:
+        self._frames.append((int(stamp_ns), np.unique(np.asarray(landmark_ids, np.int64))))
+        horizon = int(stamp_ns) - int(self.cfg.landmark_history_s * 1e9)
+        while self._frames and self._frames[0][0] < horizon:
+            self._frames.popleft()
+
+    def add_depth(self, stamp_ns: int, depth: np.ndarray, sigma: np.ndarray, K: np.ndarray, T_SC: np.ndarray) -> int:
+        """Select a frame's points now (body frame S); returns how many were kept."""
+        p_C, s = select_depth_points(depth, sigma, K, self.cfg.max_points_frame)
+        if len(p_C) < self.cfg.min_points_in_field:
+            self.counts["depth_too_few_points"] += 1
+            return 0
+        T_SC = np.asarray(T_SC, float)
+        self._depth[int(stamp_ns)] = (p_C @ T_SC[:3, :3].T + T_SC[:3, 3], s)
+        while len(self._depth) > self.cfg.max_pending_depth:
+            self._depth.popitem(last=False)
+            self.counts["depth_dropped_old"] += 1
+        return len(p_C)
+
+    def add_field(self, msg) -> None:
+        """A finished submap's field (shared.messages.OccupancyField); a repeat updates its pose."""
+        sid = int(msg.submap_id)
+        if sid in self.submaps:
+            self.submaps[sid].T_WM = np.asarray(msg.T_WM, float)
+            return
+        start = int(msg.header.stamp_ns)
+        end = self._frames[-1][0] if self._frames else start
+        ids = [i for t, i in self._frames if start <= t <= end]
+        lms = np.unique(np.concatenate(ids)) if ids else np.empty(0, np.int64)
+        self.submaps[sid] = _Submap(sid, field_of_message(msg), float(msg.l_min), np.asarray(msg.T_WM, float),
+                                    start, end, lms)
+        while len(self.submaps) > self.cfg.max_submaps:
+            self.submaps.pop(min(self.submaps))
+
+    def add_submap_points(self, submap_id: int, points_M: np.ndarray, sigma: np.ndarray) -> None:
+        sm = self.submaps.get(int(submap_id))
+        if sm is None:
+            self.counts["points_without_field"] += 1
+            return
+        order = np.argsort(np.asarray(sigma, float), kind="stable")[: self.cfg.max_points_map]
+        sm.points_M, sm.sigma = np.asarray(points_M, float)[order], np.asarray(sigma, float)[order]
+
+    # ------------------------------------------------------------------ factors
+    def _landmarks_near(self, stamp_ns: int) -> np.ndarray:
+        for t, ids in reversed(self._frames):
+            if t == stamp_ns:
+                return ids
+        return np.empty(0, np.int64)
+
+    def _target_pose(self, sm: _Submap, stamps: dict[int, int], values: gtsam.Values) -> dict:
+        """key_b/T_BM when the submap's anchor state is in the window, else the fixed T_WB = T_WM."""
+        tol = int(self.cfg.depth_stamp_tolerance_ms * 1e6)
+        for n, t in stamps.items():
+            if abs(t - sm.start_ns) <= tol and values.exists(X(n)):
+                return {"key_b": X(n), "T_BM": inv_T(values.atPose3(X(n)).matrix()) @ sm.T_WM}
+        return {"T_WB": sm.T_WM}
+
+    def _o(self, candidates: list[_Submap], p_A: np.ndarray, T_WA: np.ndarray, exclude: int = -1) -> _Submap | None:
+        """Oldest candidate with >= M_min of the points inside its observed field."""
+        for sm in sorted(candidates, key=lambda s: s.id):
+            if sm.id == exclude:
+                continue
+            q = (p_A @ T_WA[:3, :3].T + T_WA[:3, 3] - sm.T_WM[:3, 3]) @ sm.T_WM[:3, :3]
+            if int(trilinear_derivatives(sm.field, q)[3].sum()) >= self.cfg.min_points_in_field:
+                return sm
+        return None
+
+    def _make(self, sm: _Submap, p_A, sig, key_a, stamps, values) -> tuple[OccupancyToPoint, gtsam.NonlinearFactor] | None:
+        c = self.cfg
+        tgt = self._target_pose(sm, stamps, values)
+        if tgt.get("key_b") == key_a:
+            return None
+        f = OccupancyToPoint(sm.field, sm.l_min, p_A, sig, key_a=key_a, tukey_k=c.tukey_k, grad_min=c.grad_min, **tgt)
+        n_valid = f.n_valid(values) if "key_b" in tgt else int(f.evaluate(values.atPose3(key_a).matrix(), tgt["T_WB"]).valid.sum())
+        return (f, f.factor(n_valid)) if n_valid >= c.min_points_in_field else None
+
+    def _covisible(self, lms: np.ndarray, exclude: int = -1) -> list[_Submap]:
+        need = self.cfg.min_covisible_landmarks
+        return [sm for sm in self.submaps.values()
+                if sm.id != exclude and np.isin(lms, sm.landmarks, assume_unique=True).sum() >= need]
+
+    def factors(self, stamps: dict[int, int], values: gtsam.Values) -> list[gtsam.NonlinearFactor]:
+        """Factors for the window whose states are ``stamps`` (state index -> stamp) at estimate ``values``;
+        a factor is built once and kept while its state is in the window."""
+        c = self.cfg
+        live = {n for n in stamps if values.exists(X(n))}
+        self._built = {k: v for k, v in self._built.items() if k[1] in live}
+        if c.frame_to_map and self.submaps:
+            tol = int(c.depth_stamp_tolerance_ms * 1e6)
+            done = {k[1] for k in self._built if k[0] == "f2m"}
+            for n in sorted(live - done):
+                hit = [t for t in self._depth if abs(t - stamps[n]) <= tol]
+                if not hit:
+                    continue
+                p_S, sig = self._depth.pop(hit[0])
+                T_WA = values.atPose3(X(n)).matrix()
+                sm = self._o(self._covisible(self._landmarks_near(stamps[n])), p_S, T_WA)
+                built = None if sm is None else self._make(sm, p_S, sig, X(n), stamps, values)
+                self._built[("f2m", n, -1 if sm is None else sm.id)] = built
+                self.counts["frame_to_map" if built else "frame_to_map_no_target"] += 1
+        if c.map_to_map:
+            for m in [m for m in self.submaps.values() if m.points_M is not None and m.id not in self._m2m_done]:
+                self._m2m_done.add(m.id)
+                inside = [n for n in live if m.start_ns <= stamps[n] <= m.end_ns]
+                if not inside:
+                    self.counts["map_to_map_state_gone"] += 1
+                    continue
+                n = max(inside, key=lambda k: stamps[k])
+                T_WA = values.atPose3(X(n)).matrix()
+                T_AM = inv_T(T_WA) @ m.T_WM
+                p_A = m.points_M @ T_AM[:3, :3].T + T_AM[:3, 3]
+                o = self._o(self._covisible(m.landmarks, exclude=m.id), p_A, T_WA, exclude=m.id)
+                built = None if o is None else self._make(o, p_A, m.sigma, X(n), stamps, values)
+                self._built[("m2m", n, m.id)] = built
+                self.counts["map_to_map" if built else "map_to_map_no_target"] += 1
+        return [v[1] for v in self._built.values() if v is not None]
