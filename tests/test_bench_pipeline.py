@@ -1,0 +1,163 @@
+"""Pipeline bench: latency matching, summaries, budget table, stage logs, rate search, suite tables (known
+answers), and (e2e marker) a reduced real bench run whose bench.json has every stage and sane numbers."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from shared.messages import Header, StreamEnd
+from tools.bench_budgets import Budgets, check_budgets, format_table, load_budgets
+from tools.bench_pipeline import frames_within, next_rate, stage_summary
+from tools.pipeline_probe import ArrivalLog, map_latencies, matched_latencies, service_name, summary
+from tools.eval.suite_report import ate_table, mean_std, mesh_table, timing_table
+from transport.stats import STAGE_LOG_DTYPE, STAGE_LOG_ENV, StageTimer, StatsCollector, read_stage_log
+
+FULL = os.environ.get("SIGMASLAM_E2E", "") == "full"
+MS = 1_000_000
+
+
+def test_summary_percentiles():
+    s = summary(np.arange(1, 101))
+    assert s["n"] == 100 and s["median"] == pytest.approx(50.5) and s["max"] == 100
+    assert s["p90"] == pytest.approx(90.1) and s["p99"] == pytest.approx(99.01)
+    assert summary([np.nan]) == {"n": 0}
+
+
+def test_arrival_log_and_matched_latencies():
+    log = ArrivalLog()
+    clock = iter([1000 * MS, 1050 * MS, 1070 * MS, 1200 * MS]).__next__
+    h = log.handler("frame", clock=clock)
+    for stamp in (1, 2):
+        h(StreamEnd(header=Header(stamp_ns=stamp), source="x", frames_sent=0))
+    log.add("frame", 1, 5000 * MS)  # a later duplicate does not move the publish time
+    hs = log.handler("state", clock=clock)
+    hs(StreamEnd(header=Header(stamp_ns=1), source="x", frames_sent=0))  # 1070 - 1000 = 70 ms
+    hs(StreamEnd(header=Header(stamp_ns=9), source="x", frames_sent=0))  # never published: unmatched
+    from tools.pipeline_probe import first_arrivals
+
+    pub = first_arrivals(*log.get("frame"))
+    assert pub == {1: 1000 * MS, 2: 1050 * MS}
+    lat = matched_latencies(pub, *log.get("state"))
+    assert lat["latency_ms"].tolist() == [70.0] and lat["unmatched"] == 1
+
+
+def test_map_latency_is_first_submap_after_the_depth_frame():
+    pub = {10: 0, 20: 100 * MS, 30: 200 * MS}
+    depth_stamps = np.array([10, 20, 30])
+    depth_arr = np.array([300, 400, 1500]) * MS
+    submaps = np.array([350, 1000, 1000]) * MS  # none after 1500 ms: stamp 30 has no map latency yet
+    lat = map_latencies(pub, depth_stamps, depth_arr, submaps)
+    assert lat["stamp_ns"].tolist() == [10, 20]
+    assert lat["latency_ms"].tolist() == [350.0, 900.0]
+
+
+def test_service_name_from_cmdline():
+    assert service_name(["/x/python", "-m", "services.cli", "depth", "/run/config.yaml"]) == "depth"
+    assert service_name(["/x/python", "foo.py"]) is None
+
+
+def test_budgets_file_and_table():
+    b = load_budgets()
+    assert (b.estimator_frame_ms, b.depth_frame_ms, b.integrate_frame_ms, b.state_latency_p99_ms) == (33, 100, 50, 50)
+    res = {"stages": {"frontend.track": {"median_ms": 10.0}, "backend.optimise": {"median_ms": 20.0},
+                      "depth.depth": {"median_ms": 150.0}},
+           "latency_ms": {"state": {"p99": 60.0}}, "drops": {"estimator_frames": 0}}
+    rows = {r.name: r for r in check_budgets(res, Budgets())}
+    assert rows["frontend+backend per frame, median"].measured == 30.0
+    assert rows["frontend+backend per frame, median"].ok is True
+    assert rows["depth per frame, median"].ok is False
+    assert rows["occupancy integration per frame, median"].ok is None  # not measured
+    assert rows["sensor -> estimator/state latency, p99"].ok is False
+    assert rows["frames dropped by the estimator"].ok is True
+    table = format_table(list(rows.values()))
+    assert "| depth per frame, median | 150.00 | 100 | ms | OVER |" in table
+    assert "| occupancy integration per frame, median | n/a | 50 | ms | n/a |" in table
+
+
+def test_stage_log_records_every_item(tmp_path, monkeypatch):
+    monkeypatch.setenv(STAGE_LOG_ENV, str(tmp_path / "log"))
+    col = StatsCollector("svc")
+    t = col.add_stage(StageTimer("work", budget_ms=10.0))
+    for s in (0.005, 0.020, 0.001):
+        t.record(s)
+    rec = read_stage_log(tmp_path / "log" / "svc.work.bin")
+    assert rec.dtype == STAGE_LOG_DTYPE and rec["seconds"].tolist() == [0.005, 0.020, 0.001]
+    assert np.all(np.diff(rec["end_ns"]) >= 0)
+    s = stage_summary(rec, budget_ms=4.0)
+    assert s["n"] == 3 and s["median_ms"] == pytest.approx(5.0) and s["over_budget"] == 2
+
+
+def test_frames_within(tmp_path):
+    cam = tmp_path / "mav0" / "cam0"
+    cam.mkdir(parents=True)
+    cam.joinpath("data.csv").write_text("#timestamp [ns],filename\n" + "".join(
+        f"{1_000_000_000 + k * 50_000_000},{k}.png\n" for k in range(100)))
+    assert frames_within(tmp_path, 0) == 100
+    assert frames_within(tmp_path, 1.0) == 21  # 0, 50, ..., 1000 ms
+    with pytest.raises(FileNotFoundError):
+        frames_within(tmp_path / "nothing", 1.0)
+
+
+def test_next_rate_doubles_halves_then_bisects():
+    assert next_rate(None, None, 1.0) == 0.5  # first run failed (hi set by the caller) -> halve
+    assert next_rate(1.0, None, 1.0) == 2.0  # passing so far -> double
+    assert next_rate(1.0, 4.0, 4.0) == pytest.approx(2.0)  # geometric bisection
+
+
+def test_suite_tables_put_paper_numbers_beside_ours():
+    rows = {"V1_02": {"ate_causal_m": 0.0123, "ate_noncausal_m": None, "poses": 400, "accuracy_m": 0.05,
+                      "completeness": 0.5}, "XX_99": {}}
+    t = ate_table(rows)
+    assert "| V1_02 | 0.012 | - | 400 | 0.028 | 0.014 | 0.031 | 0.014 |" in t
+    assert "| XX_99 | - | - | - | - | - | - | - |" in t
+    m = mesh_table(rows)
+    assert "| V1_02 | 0.050 | 50.00 | 0.041 | 58.38 |" in m
+    assert mean_std([1.0, 3.0, np.nan]) == (2.0, 1.0, 2)
+    tt = timing_table({"occupancy update (per depth frame)": (10.0, 2.0, 5), "stereo network": None})
+    assert "| occupancy update (per depth frame) | 10.0 +- 2.0 | 5 | 11.6 +- 3.6 |" in tt
+    assert "| stereo network | - | - | 56.3 +- 24.1 |" in tt
+
+
+@pytest.mark.e2e
+def test_bench_pipeline_end_to_end(tmp_path):
+    """Reduced: 4 s of a small EuRoC-layout dataset (tests/e2e_dataset.py); full: 25 s of the default replica."""
+    from helpers_zenoh import REPO, child_env
+
+    if FULL:
+        from tools.synth.api import ensure_default_replica
+
+        data, seconds = ensure_default_replica(progress=False), 25.0
+    else:
+        import e2e_dataset
+
+        data, seconds = e2e_dataset.make_dataset(tmp_path / "data", "V1_02", start_s=0.0, seconds=4.0), 4.0
+    out = tmp_path / "bench"
+    proc = subprocess.run([sys.executable, "-m", "services.cli", "bench", "pipeline", str(data), "--out", str(out),
+                           "--seconds", str(seconds), "--timeout-s", "600"], cwd=REPO, env=child_env(),
+                          capture_output=True, text=True, timeout=900)
+    log = proc.stdout + proc.stderr
+    assert proc.returncode == 0, log[-3000:]
+    res = json.loads((out / "bench.json").read_text())
+    for stage in ("frontend.track", "backend.optimise", "depth.depth", "mapping.integrate"):
+        s = res["stages"][stage]
+        assert s["n"] >= 1 and 0 < s["median_ms"] <= s["p90_ms"] <= s["p99_ms"] < 60_000, (stage, s)
+    n_frames = res["frames_published"]
+    assert n_frames >= 0.8 * seconds * 20
+    assert res["stages"]["frontend.track"]["n"] <= n_frames
+    st = res["latency_ms"]["state"]
+    assert st["n"] >= 0.5 * n_frames and 0 < st["median"] < 30_000
+    assert res["latency_ms"]["depth"]["n"] >= 1 and res["latency_ms"]["depth"]["median"] > 0
+    for svc in ("frontend", "backend", "depth", "mapping", "player"):
+        p = res["processes"][svc]
+        assert 10 < p["rss_peak_mb"] < 16_000 and p["cpu_time_s"] > 0, (svc, p)
+    assert sum(p["cpu_mean_pct"] for p in res["processes"].values()) > 1
+    assert {c["name"] for c in res["checks"]} >= {"frontend+backend per frame, median", "depth per frame, median"}
+    for png in ("latency_time.png", "latency_hist.png", "compute_hist.png", "processes.png"):
+        assert (out / png).stat().st_size > 5000
+    assert "| check | measured | budget |" in proc.stdout
