@@ -11,6 +11,7 @@ from pathlib import Path
 
 from shared.config import from_dict, load_yaml, merge, param, parse_override
 from services.backend.config import BackendConfig
+from services.backend.o2p_config import O2PConfig
 from services.depth.config import DepthConfig
 from services.frontend.config import FrontendConfig
 from services.loop.config import LoopConfig
@@ -35,6 +36,7 @@ class SystemConfig:
     frontend: FrontendConfig = param(FrontendConfig(), "multi-camera feature tracker (sigmaslam frontend)")
     backend: BackendConfig = param(BackendConfig(), "visual-inertial estimator (sigmaslam backend)")
     loop: LoopConfig = param(LoopConfig(), "loop closure, pose graph, relocalisation, final BA (in sigmaslam backend)")
+    o2p: O2PConfig = param(O2PConfig(), "occupancy-to-point factors, frame-to-map and map-to-map (in sigmaslam backend; off by default)")
     depth: DepthConfig = param(DepthConfig(), "stereo/MVS depth with learned uncertainty (sigmaslam depth)")
     mapping: MappingConfig = param(MappingConfig(), "occupancy submapping (sigmaslam mapping)")
     player: PlayerConfig = param(PlayerConfig(), "dataset player: pacing of sensors/imu and sensors/frame (sigmaslam player)")

@@ -17,7 +17,7 @@ from shared.codec import Header, Message, array_field, register, scalar_field
 __all__ = [
     "Header", "ImuSample", "MultiCameraFrame", "FeatureFrame", "EstimatorState", "Keyframes",
     "DepthFrame", "SubmapMesh", "ServiceStats", "Heartbeat", "Control", "StreamEnd",
-    "KeyframeFeatures", "FinalTrajectory", "OccupancyField",
+    "KeyframeFeatures", "FinalTrajectory", "OccupancyField", "SubmapPoints",
 ]
 
 
@@ -200,3 +200,17 @@ class FinalTrajectory(Message):
     loops_verified: int = scalar_field("candidates PnP accepted")
     loops_accepted: int = scalar_field("loop factors added to the pose graph")
     relocalisations: int = scalar_field("relocalisations after a loss of tracking")
+
+
+# --- occupancy-to-point factors (type ids 90-99) ---
+
+
+@register(90)
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class SubmapPoints(Message):
+    """Lowest-sigma fused-depth points integrated into one submap, in its frame M_j (header.frame_id = 'M<j>',
+    header.stamp_ns = the submap's creation time), for its map-to-map occupancy-to-point factor (eq. 6-7)."""
+
+    submap_id: int = scalar_field("submap id")
+    points_M: object = array_field("points in the submap frame [m]", "float32", ("N", 3))
+    sigma: object = array_field("depth standard deviation of each point [m]", "float32", ("N",))

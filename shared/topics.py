@@ -42,9 +42,12 @@ TRAJECTORY_FINAL = Topic("estimator/trajectory_final", m.FinalTrajectory, "all",
                          "non-causal trajectory after the final bundle adjustment (end of stream)")
 MAP_FIELD = Topic("map/field", m.OccupancyField, "latest", 16,
                   "near-surface occupancy of a submap (L, w per voxel) for occupancy-to-point factors")
+MAP_O2P_POINTS = Topic("map/o2p_points", m.SubmapPoints, "all", 64,
+                       "lowest-sigma fused-depth points of a closed submap (map-to-map occupancy-to-point factors)")
 
 ALL: tuple[Topic, ...] = (IMU, FRAME, FEATURES, STATE, KEYFRAMES, DEPTH_STEREO, DEPTH_FUSED, SUBMAP,
-                          STATS, HEARTBEAT, CONTROL, STREAM_END, KEYFRAME_FEATURES, TRAJECTORY_FINAL, MAP_FIELD)
+                          STATS, HEARTBEAT, CONTROL, STREAM_END, KEYFRAME_FEATURES, TRAJECTORY_FINAL, MAP_FIELD,
+                          MAP_O2P_POINTS)
 
 
 def per_service(topic: Topic, service: str) -> str:

@@ -9,7 +9,8 @@ import pytest
 from gtsam.symbol_shorthand import X
 
 from services.backend.o2p_config import O2PConfig
-from services.backend.o2p_terms import OccupancyTerms, select_depth_points
+from services.backend.o2p_terms import OccupancyTerms
+from services.mapping.o2p_points import SubmapPointPool, select_depth_points
 from services.mapping.blocks import BlockStore
 from services.mapping.config import SensorModelConfig
 from services.mapping.export import field_message
@@ -126,3 +127,38 @@ def test_map_to_map_aligns_a_submap_to_the_oldest_covisible_one(room):
     assert len(fs) == 1 and terms.counts["map_to_map"] == 1
     rot, tr = err(solve(fs, values).atPose3(X(7)).matrix(), T_true)
     assert rot < 0.3 and tr < 0.01
+
+
+def test_submap_point_pool_keeps_spread_lowest_sigma_points_in_the_submap_frame(room):
+    _, renderer = room
+    Wf, Hf = 320, 240
+    Kf = intrinsics(Wf, Hf)
+    T_WM = view(0.5)
+    pool = SubmapPointPool(max_points=400, per_frame=150)
+    for a in (0.5, 1.0, 1.5, 2.0):
+        T_WC = view(a)
+        d = renderer.render(Kf, Wf, Hf, T_WC)
+        n = pool.add(3, d, (0.01 * d**2).astype(np.float32), Kf, inv_T(T_WM) @ T_WC)
+    assert n == 400
+    p_M, s = pool.pop(3)
+    assert pool.pop(3) is None
+    # the points lie on the room's surfaces: their distance to the mesh in world is ~0
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(room_scene()))
+    p_W = p_M @ T_WM[:3, :3].T + T_WM[:3, 3]
+    assert np.percentile(scene.compute_distance(o3d.core.Tensor(p_W.astype(np.float32))).numpy(), 99) < 1e-3
+    # spread: every 10 cm cube that any frame's candidates reached keeps a point (here > 100 cubes)
+    assert len(np.unique(np.floor(p_M / 0.1), axis=0)) > 100
+
+
+def test_submap_points_message_round_trip():
+    from shared import messages as m
+    from shared.codec import decode, encode
+
+    rng = np.random.default_rng(0)
+    msg = m.SubmapPoints(header=m.Header(stamp_ns=5, frame_id="M2"), submap_id=2,
+                         points_M=rng.normal(size=(7, 3)).astype(np.float32), sigma=np.full(7, 0.02, np.float32))
+    back = decode(encode(msg))
+    assert back.submap_id == 2 and np.array_equal(back.points_M, msg.points_M) and np.array_equal(back.sigma, msg.sigma)

@@ -115,6 +115,9 @@ class WindowedVioEstimator:
         # loop-closure hook (services/loop/history.py): called as f(self, old, new) before keyframe `old` is
         # marginalised, while the window's marginals still cover it
         self.on_marginalise = None
+        # extra-factor hook (occupancy-to-point, services/backend/o2p_terms.py): f(self) -> factors added to
+        # every window graph; they may only use the window's X keys
+        self.extra_factors = None
 
     # ---------------------------------------------------------------- input
     def add_imu(self, stamp_ns: int, omega_S: np.ndarray, acc_S: np.ndarray) -> None:
@@ -329,6 +332,9 @@ class WindowedVioEstimator:
             for s, obs in self._obs[lm].items():
                 for j, (c, xy) in enumerate(obs):
                     g.add(self._projection(lm, s, j, c, xy))
+        if self.extra_factors is not None:
+            for f in self.extra_factors(self):
+                g.add(f)
         return g
 
     def _reject_outliers(self) -> bool:

@@ -32,35 +32,11 @@ from gtsam.symbol_shorthand import X
 from services.backend.o2p_config import O2PConfig
 from services.backend.o2p_factor import OccupancyToPoint, trilinear_derivatives
 from services.mapping.export import field_of_message
+from services.mapping.o2p_points import select_depth_points  # noqa: F401 (also used by callers)
 from services.mapping.query import BlockField
 from shared.geometry import inv_T
 
 log = logging.getLogger("sigmaslam.backend.o2p")
-
-
-def select_depth_points(depth: np.ndarray, sigma: np.ndarray, K: np.ndarray, max_points: int,
-                        cell_px: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Back-projected camera-frame points (N, 3) and sigmas (N,) of at most ``max_points`` valid pixels
-    with the lowest sigma, at most one per ``cell_px`` square (0: chosen so there are ~4 max_points cells)."""
-    depth = np.asarray(depth, np.float32)
-    sigma = np.asarray(sigma, np.float32)
-    if depth.ndim != 2 or depth.shape != sigma.shape:
-        raise ValueError(f"depth {depth.shape} and sigma {sigma.shape} must be equal 2-D arrays")
-    H, W = depth.shape
-    v, u = np.nonzero(np.isfinite(depth) & (depth > 0) & np.isfinite(sigma) & (sigma > 0))
-    if len(v) == 0:
-        return np.empty((0, 3)), np.empty(0)
-    cell = cell_px or max(1, int(np.sqrt(H * W / (4.0 * max_points))))
-    s = sigma[v, u]
-    cid = (v // cell) * (W // cell + 1) + u // cell
-    order = np.lexsort((s, cid))
-    first = order[np.r_[True, cid[order][1:] != cid[order][:-1]]]  # lowest sigma of each cell
-    # lowest sigma first; ties (e.g. a constant heuristic sigma) broken by a fixed shuffle so the points spread
-    tie = np.random.default_rng(0).permutation(len(first))
-    keep = first[np.lexsort((tie, s[first]))[:max_points]]
-    z = depth[v[keep], u[keep]].astype(np.float64)
-    p = np.column_stack([(u[keep] - K[0, 2]) / K[0, 0] * z, (v[keep] - K[1, 2]) / K[1, 1] * z, z])
-    return p, s[keep].astype(np.float64)
 
 
 @dataclasses.dataclass
@@ -111,17 +87,20 @@ class OccupancyTerms:
         return len(p_C)
 
     def add_field(self, msg) -> None:
-        """A finished submap's field (shared.messages.OccupancyField); a repeat updates its pose."""
+        """A submap's field (shared.messages.OccupancyField): finished ones once, the growing one now and then;
+        a repeat replaces the field, pose, life span and landmark set of that submap."""
         sid = int(msg.submap_id)
-        if sid in self.submaps:
-            self.submaps[sid].T_WM = np.asarray(msg.T_WM, float)
-            return
+        old = self.submaps.get(sid)
         start = int(msg.header.stamp_ns)
-        end = self._frames[-1][0] if self._frames else start
+        end = max(self._frames[-1][0] if self._frames else start, start)
         ids = [i for t, i in self._frames if start <= t <= end]
         lms = np.unique(np.concatenate(ids)) if ids else np.empty(0, np.int64)
-        self.submaps[sid] = _Submap(sid, field_of_message(msg), float(msg.l_min), np.asarray(msg.T_WM, float),
-                                    start, end, lms)
+        if old is not None and len(old.landmarks):  # frames before the history horizon stay counted
+            lms = np.union1d(lms, old.landmarks)
+        sm = _Submap(sid, field_of_message(msg), float(msg.l_min), np.asarray(msg.T_WM, float), start, end, lms)
+        if old is not None:
+            sm.points_M, sm.sigma = old.points_M, old.sigma
+        self.submaps[sid] = sm
         while len(self.submaps) > self.cfg.max_submaps:
             self.submaps.pop(min(self.submaps))
 

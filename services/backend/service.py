@@ -24,7 +24,7 @@ from services.loop.backend_loop import LoopClosingBackend
 from services.system_config import load_system_config
 from shared import topics
 from shared.camera import CalibrationError
-from shared.messages import EstimatorState, FeatureFrame, Header, Keyframes
+from shared.messages import DepthFrame, EstimatorState, FeatureFrame, Header, Keyframes, OccupancyField
 from shared.rig import load_rig_config
 from transport.node import Node
 from transport.queues import Empty
@@ -48,6 +48,29 @@ class BackendShell:
         self.seq = 0
         self.newest_imu_ns = -1
         self.restarted = False  # set by main() after a supervisor restart: the first state says 'reset'
+        self.o2p = None  # OccupancyTerms when occupancy-to-point factors are on (enable_o2p)
+
+    def enable_o2p(self, cfg) -> None:
+        """Occupancy-to-point factors (services/backend/o2p_terms.py) in every window optimisation."""
+        from services.backend.o2p_terms import OccupancyTerms
+
+        self.o2p = terms = OccupancyTerms(cfg)
+        self.estimator.extra_factors = lambda est: terms.factors(est.stamps, est.values)
+
+    def add_map_input(self, msg) -> None:
+        """map/field (OccupancyField), depth/stereo (DepthFrame) or map/o2p_points (SubmapPoints) for o2p."""
+        if self.o2p is None:
+            return
+        try:
+            if isinstance(msg, DepthFrame):
+                self.o2p.add_depth(msg.header.stamp_ns, msg.depth, msg.sigma, msg.K, msg.T_SC)
+            elif isinstance(msg, OccupancyField):
+                self.o2p.add_field(msg)
+            else:
+                self.o2p.add_submap_points(msg.submap_id, msg.points_M, msg.sigma)
+        except ValueError as exc:
+            self.o2p.counts["dropped_bad_input"] += 1
+            log.warning("o2p input %s dropped: %s", type(msg).__name__, exc)
 
     def add_imu(self, sample) -> None:
         self.estimator.add_imu(int(sample.header.stamp_ns), sample.omega_S, sample.acc_S)
@@ -66,6 +89,8 @@ class BackendShell:
 
     def _process(self, frame: FeatureFrame) -> tuple[EstimatorState, Keyframes | None] | None:
         stamp = int(frame.header.stamp_ns)
+        if self.o2p is not None:
+            self.o2p.note_frame(stamp, frame.landmark_ids)
         try:
             res = self.estimator.process_frame(stamp, frame.landmark_ids, frame.camera_index, frame.uv,
                                                bool(frame.is_keyframe))
@@ -95,6 +120,8 @@ def main(args: argparse.Namespace) -> int:
     shell = BackendShell(bc, cameras)
     shell.restarted = int(os.environ.get("SIGMASLAM_RESTARTS", "0") or 0) > 0
     loop = LoopClosingBackend(shell, cfg.loop) if cfg.loop.enabled else None  # loop closure: services/loop
+    if cfg.o2p.enabled:
+        shell.enable_o2p(cfg.o2p)
     with Node("backend", cfg.transport) as node:
         imu = node.subscriber(topics.IMU)
         features = node.subscriber(topics.FEATURES)
@@ -104,6 +131,10 @@ def main(args: argparse.Namespace) -> int:
         ends = node.subscriber(topics.STREAM_END)
         final_pub = node.publisher(topics.TRAJECTORY_FINAL)
         timer = node.timer("optimise", budget_ms=bc.budget_ms)
+        map_inputs = []
+        if shell.o2p is not None:  # occupancy-to-point inputs; drained before each frame, never waited for
+            map_inputs = [node.subscriber(topics.MAP_FIELD, policy="all", depth=64),
+                          node.subscriber(topics.MAP_O2P_POINTS), node.subscriber(topics.DEPTH_STEREO, depth=8)]
         log.info("backend: %d cameras", len(cameras))
         while not node.stopped:
             try:
@@ -122,6 +153,9 @@ def main(args: argparse.Namespace) -> int:
                 time.sleep(0.002)
                 for s in imu.drain():
                     shell.add_imu(s)
+            for sub in map_inputs:
+                for m in sub.drain():
+                    shell.add_map_input(m)
             if loop is not None:
                 for kff in kf_features.drain():
                     loop.add_keyframe_features(kff)

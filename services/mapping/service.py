@@ -28,6 +28,7 @@ import numpy as np
 
 from services.mapping.config import MappingConfig
 from services.mapping.io import MapFileError, load_map, save_map, write_ply
+from services.mapping.o2p_points import SubmapPointPool
 from services.mapping.poses import PoseBuffer
 from services.mapping.submaps import SubmapMapper
 from services.system_config import load_system_config
@@ -57,6 +58,9 @@ class MappingLoop:
         self.integrate_ms: list[float] = []
         self.to_publish: set[int] = set()
         self.fields_to_publish: set[int] = set()
+        # map-to-map points (services/mapping/o2p_points.py), published once per closed submap
+        self.points = SubmapPointPool(cfg.o2p_points) if cfg.o2p_points > 0 else None
+        self.points_to_publish: set[int] = set()
 
     def on_state(self, msg: messages.EstimatorState) -> None:
         if msg.status in ("initialising", "reset"):  # placeholders without a pose (e.g. a restarted back end)
@@ -105,10 +109,14 @@ class MappingLoop:
                 continue
             self.integrate_ms.append(1e3 * (time.perf_counter() - t0))
             self.counts["integrated"] += 1
+            if self.points is not None:
+                T_WM = self.mapper.submaps[rep.submap_id].T_WM
+                self.points.add(rep.submap_id, msg.depth, msg.sigma, msg.K, np.linalg.inv(T_WM) @ T_WC)
             if rep.new_submap:
                 self.counts["submaps"] += 1
                 if rep.submap_id > 0:
                     self.fields_to_publish.add(rep.submap_id - 1)  # closed: its field is final
+                    self.points_to_publish.add(rep.submap_id - 1)
                 log.info("submap %d started (overlap %.2f)", rep.submap_id, rep.overlap)
             done += 1
         self.waiting = keep
@@ -135,6 +143,18 @@ class MappingLoop:
 
         out = [field_message(self.mapper.submaps[i], self.cfg.sensor.l_min) for i in sorted(self.fields_to_publish)]
         self.fields_to_publish.clear()
+        return out
+
+    def points_messages(self) -> list[messages.SubmapPoints]:
+        out = []
+        for sid in sorted(self.points_to_publish):
+            got = self.points.pop(sid) if self.points is not None else None
+            if got is not None:
+                sm = self.mapper.submaps[sid]
+                out.append(messages.SubmapPoints(header=Header(stamp_ns=sm.anchor_stamp_ns, frame_id=f"M{sid}"),
+                                                 submap_id=sid, points_M=got[0].astype(np.float32),
+                                                 sigma=got[1].astype(np.float32)))
+        self.points_to_publish.clear()
         return out
 
     def write_outputs(self, out_dir: Path) -> None:
@@ -199,6 +219,7 @@ def main(args: argparse.Namespace) -> int:
         depth = node.subscriber(DEPTH_TOPICS[cfg.depth_topic])
         pub = node.publisher(topics.SUBMAP)
         pub_field = node.publisher(topics.MAP_FIELD)
+        pub_points = node.publisher(topics.MAP_O2P_POINTS)
         last_field = time.monotonic()
         timer = node.timer("integrate", budget_ms=cfg.integrate_budget_ms)
         mesh_timer = node.timer("mesh")
@@ -225,6 +246,8 @@ def main(args: argparse.Namespace) -> int:
                 loop.fields_to_publish.add(loop.mapper.current.id)
             for m in loop.field_messages():
                 pub_field.publish(m)
+            for m in loop.points_messages():  # after the field: the back end pairs them by submap id
+                pub_points.publish(m)
             if out_dir and cfg.checkpoint_period_s > 0 and time.monotonic() - last_checkpoint >= cfg.checkpoint_period_s:
                 last_checkpoint = time.monotonic()
                 with checkpoint_timer:
