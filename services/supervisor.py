@@ -44,6 +44,8 @@ class ServiceSpec:
     window_s: float = param(60.0, "sliding window over which restarts are counted", "s")
     backoff_s: float = param(0.5, "delay before the first restart in the window; doubles with each further one", "s")
     backoff_max_s: float = param(10.0, "longest delay before a restart", "s")
+    nice: int = param(0, "OS scheduling niceness added to the process (0..19); e.g. 10 for depth and mapping so "
+                      "that, on a loaded CPU, the estimator's processes get the cores first")
 
 
 @dataclasses.dataclass
@@ -117,14 +119,19 @@ def validate(cfg: SupervisorConfig, known_commands: dict[str, object] | None = N
             raise ConfigError(f"{where}.argv[0]: {spec.argv[0]!r} is not a sigmaslam subcommand ({sorted(known_commands)})")
         if spec.restart not in RESTART_POLICIES:
             raise ConfigError(f"{where}.restart: {spec.restart!r} is not one of {list(RESTART_POLICIES)}")
+        if not 0 <= spec.nice <= 19:
+            raise ConfigError(f"{where}.nice: must be 0..19, got {spec.nice}")
         if spec.max_restarts < 0 or spec.window_s <= 0 or spec.backoff_s < 0:
             raise ConfigError(f"{where}: max_restarts >= 0, window_s > 0 and backoff_s >= 0 required")
 
 
 # ----------------------------------------------------------------------------- processes
 
-def _child_setup(parent_pid: int) -> None:
-    """preexec_fn: SIGTERM this child when the supervisor dies (Linux prctl PR_SET_PDEATHSIG)."""
+def _child_setup(parent_pid: int, nice: int = 0) -> None:
+    """preexec_fn: lower the child's priority by ``nice``; SIGTERM it when the supervisor dies (Linux prctl
+    PR_SET_PDEATHSIG)."""
+    if nice > 0:
+        os.nice(nice)
     if sys.platform.startswith("linux"):
         import ctypes
 
@@ -181,7 +188,7 @@ class Supervisor:
         env = self._env()
         env["SIGMASLAM_RESTARTS"] = str(child.tracker.total_restarts)  # > 0: a restart (the back end reports 'reset')
         child.proc = subprocess.Popen(child.argv, env=env, start_new_session=True,
-                                      preexec_fn=lambda: _child_setup(parent))
+                                      preexec_fn=lambda: _child_setup(parent, child.spec.nice))
         child.restart_at = None
         self._status(child, f"started pid {child.proc.pid}")
 

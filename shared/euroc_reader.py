@@ -23,12 +23,19 @@ class DatasetError(RuntimeError):
     """Missing/malformed dataset file or key; the message names the path."""
 
 
+def _read_text(path: Path) -> str:
+    try:
+        return path.read_text()
+    except UnicodeDecodeError as exc:
+        raise DatasetError(f"{path}: not a text file ({exc})") from None
+
+
 def read_sensor_yaml(path: Path, keys: tuple[str, ...] = ()) -> dict:
     if not path.is_file():
         raise DatasetError(f"{path}: sensor.yaml not found")
-    text = path.read_text()
-    if text.startswith("%YAML"):
-        text = text.split("\n", 1)[1]
+    text = _read_text(path)
+    if text.startswith("%YAML"):  # OpenCV's YAML 1.0 directive line, which PyYAML does not take
+        text = text.partition("\n")[2]
     try:
         d = yaml.safe_load(text) or {}
     except yaml.YAMLError as exc:
@@ -67,7 +74,7 @@ class EurocDataset:
     def _csv(self, path: Path) -> list[list[str]]:
         if not path.is_file():
             raise DatasetError(f"{path}: data.csv not found")
-        return [[x.strip() for x in ln.split(",")] for ln in path.read_text().splitlines()
+        return [[x.strip() for x in ln.split(",")] for ln in _read_text(path).splitlines()
                 if ln.strip() and not ln.startswith("#")]
 
     def _monotonic(self, path: Path, stamps: list[int]) -> np.ndarray:
@@ -91,6 +98,9 @@ class EurocDataset:
             stamps = [int(r[0]) for r in rows]
         except (ValueError, IndexError) as e:
             raise DatasetError(f"{path}: bad row ({e})") from None
+        short = next((i for i, r in enumerate(rows) if len(r) < 2 or not r[1]), None)
+        if short is not None:
+            raise DatasetError(f"{path}: data row {short} has no file name")
         return {stamps[i]: self.root / cam / "data" / rows[i][1] for i in self._monotonic(path, stamps)}
 
     def _read_imu(self):

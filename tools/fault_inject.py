@@ -95,7 +95,7 @@ class Probe:
                     for name, s in self.stats.items()}
 
 
-def build(dataset: str, out: Path, rate: float, sets: list[str]):
+def build(dataset: str, out: Path, rate: float, sets: list[str], nice: int = 10):
     port = _free_port()
     overrides = [f"transport.namespace=sigmaslam/faults-{uuid.uuid4().hex[:8]}", f"transport.connect=[tcp/127.0.0.1:{port}]",
                  f"transport.router_listen=[tcp/127.0.0.1:{port}]", "depth.method=sgbm", "depth.rate_hz=5",
@@ -106,8 +106,8 @@ def build(dataset: str, out: Path, rate: float, sets: list[str]):
     spec = dict(restart="on-failure", max_restarts=5, window_s=120.0, backoff_s=0.2)
     services = [ServiceSpec(name="frontend", argv=["frontend"], **spec),
                 ServiceSpec(name="backend", argv=["backend"], **spec),
-                ServiceSpec(name="depth", argv=["depth"], **spec),
-                ServiceSpec(name="mapping", argv=["mapping", "--out", str(out / "map")], **spec),
+                ServiceSpec(name="depth", argv=["depth"], nice=nice, **spec),
+                ServiceSpec(name="mapping", argv=["mapping", "--out", str(out / "map")], nice=nice, **spec),
                 ServiceSpec(name="player", argv=["player", dataset, "--rate", f"{rate:g}",
                                                  "--wait-for", ",".join(PIPELINE)], restart="never")]
     cfg.supervisor.services = services
@@ -128,7 +128,9 @@ def wait_until(pred, timeout_s: float, step: float = 0.05) -> bool:
 
 
 def run(dataset: str, out: Path, kill: list[str], rate: float, window_s: float, sets: list[str],
-        restart_timeout_s: float = 90.0, start_timeout_s: float = 180.0) -> dict:
+        restart_timeout_s: float = 90.0, start_timeout_s: float = 180.0, during=None) -> dict:
+    """``during(node, probe) -> dict``, if given, is called after the baseline window (e.g. to publish bad
+    input); its result goes into the report under 'during', then a 'measure' window follows."""
     out.mkdir(parents=True, exist_ok=True)
     cfg, config_path = build(dataset, out, rate, sets)
     sup = Supervisor(cfg.supervisor, config_path, out.resolve())
@@ -154,6 +156,8 @@ def run(dataset: str, out: Path, kill: list[str], rate: float, window_s: float, 
                   f"{report['baseline']['latency_p50_ms']} ms", flush=True)
             for name in kill:
                 report["faults"].append(_kill_one(sup, probe, name, out, window_s, restart_timeout_s))
+            if during is not None:
+                report["during"] = during(node, probe)
             if not kill:  # overload/measure only: a second window
                 t = time.monotonic()
                 time.sleep(window_s)
