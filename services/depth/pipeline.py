@@ -18,6 +18,7 @@ from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from services.depth.config import DepthConfig
@@ -105,7 +106,7 @@ class DepthPipeline:
             if t in self._views:
                 self._views[t].T_WC = T_WC
             elif t in self._recent:
-                left, _ = self.rect.rectify(self._recent[t], self._recent[t])
+                left = cv2.remap(self._recent[t], *self.rect.maps0, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
                 self._views[t] = _View(left, T_WC)
         while len(self._views) > self.cfg.keyframe_views:
             self._views.popitem(last=False)

@@ -128,7 +128,7 @@ def main(args: argparse.Namespace) -> int:
                     pipe.update_keyframes(kf.stamps_ns, kf.T_WS)
             try:
                 left, right = frame_images(frame, dc.left_camera, dc.right_camera)
-                with timer, lock:
+                with timer:  # process() reads only the keyframe views, which this thread alone changes
                     res = pipe.process(stamp, left, right, poses.get(stamp))
                     if dc.inject_delay_ms > 0:  # test/bench overload knob (docs/reliability.md)
                         time.sleep(dc.inject_delay_ms / 1e3)
