@@ -125,7 +125,6 @@ def heuristic_gains(root: Path, f_px: float, baseline_m: float, stereo_net, n_fr
 
 
 def main(args: argparse.Namespace) -> int:
-    import cv2
     import torch
 
     from services.depth import weights
