@@ -24,6 +24,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "frontend": ("services.frontend.service", "feature tracker: sensors/frame -> frontend/frame"),
     "backend": ("services.backend.service", "visual-inertial estimator: frontend/frame + sensors/imu -> estimator/state"),
     "player": ("services.player.service", "replay an EuRoC ASL folder onto the sensor topics (--lockstep, --realtime)"),
+    "demo": ("services.demo_cmd", "the README's main job: the whole pipeline on the bundled replica, with its figures"),
     "run": ("services.run_cmd", "run the pipeline on a dataset; write the trajectory, stats and ATE to --out DIR"),
     "viewer": ("services.viewer.service", "web viewer (viser): submap meshes, trajectories, live images, stats"),
     "depth": ("services.depth.service", "stereo + MVS depth with learned sigma, fused: sensors/frame -> depth/stereo, depth/fused"),
