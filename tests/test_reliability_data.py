@@ -190,3 +190,15 @@ def test_a_service_given_a_bad_config_exits_2_with_the_key_named(tmp_path):
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2, proc.stderr
     assert "mapping.checkpoint_period_s" in proc.stderr and "expected a number" in proc.stderr
+
+
+def test_a_restarted_recorder_never_overwrites_the_cut_recording(tmp_path):
+    from services.recorder.service import fresh_path
+
+    out = tmp_path / "run.mcap"
+    assert fresh_path(out) == out
+    out.write_bytes(b"cut by SIGKILL")
+    assert fresh_path(out) == tmp_path / "run.1.mcap"
+    (tmp_path / "run.1.mcap").write_bytes(b"")
+    assert fresh_path(out) == tmp_path / "run.2.mcap"
+    assert out.read_bytes() == b"cut by SIGKILL"

@@ -37,6 +37,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--recover", metavar="BROKEN.mcap", help="rebuild a complete indexed file from a cut one into --out, then exit")
 
 
+def fresh_path(out: Path) -> Path:
+    """``out``, or ``<stem>.<n><suffix>`` for the first free n when ``out`` exists: a recorder restarted after
+    a crash never overwrites the cut recording of its previous life (recover that with --recover)."""
+    if not out.exists():
+        return out
+    n = 1
+    while (alt := out.with_name(f"{out.stem}.{n}{out.suffix}")).exists():
+        n += 1
+    log.warning("%s exists (a previous recording, e.g. cut by a crash): recording to %s instead", out, alt)
+    return alt
+
+
 def default_output(output_dir: str) -> Path:
     return Path(output_dir) / f"sigmaslam-{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}-{os.getpid()}.mcap"
 
@@ -79,7 +91,7 @@ def main(args: argparse.Namespace) -> int:
     cfg = load_system_config(args.config, args.set)
     rc = cfg.recorder
     key = args.key or rc.key_expr or f"{cfg.transport.namespace.rstrip('/')}/**"
-    out = Path(args.out) if args.out else default_output(rc.output_dir)
+    out = fresh_path(Path(args.out) if args.out else default_output(rc.output_dir))
     try:
         writer = RecordingWriter(out, chunk_size_bytes=rc.chunk_size_bytes, compression=rc.compression,
                                  foxglove_mirror=rc.foxglove, config_yaml=to_yaml(cfg))
