@@ -34,6 +34,26 @@ def _atomic_write(path: Path, write) -> None:
             tmp.unlink()
 
 
+def remove_stale_temps(folder: str | Path) -> list[Path]:
+    """Delete ``.<name>.<pid>.tmp`` files of :func:`_atomic_write` left by processes that no longer run
+    (killed mid-save); returns what was removed. The completed files beside them are untouched."""
+    removed = []
+    for tmp in Path(folder).glob(".*.tmp") if Path(folder).is_dir() else []:
+        pid = tmp.name.rsplit(".", 2)[-2]
+        if not pid.isdigit() or int(pid) == os.getpid():
+            continue
+        try:
+            os.kill(int(pid), 0)
+            continue  # its writer is alive
+        except ProcessLookupError:
+            pass
+        except PermissionError:
+            continue
+        tmp.unlink(missing_ok=True)
+        removed.append(tmp)
+    return removed
+
+
 def save_map(mapper: SubmapMapper, path: str | Path) -> Path:
     """Write every submap (fields, poses, keyframe binding) and the configs to ``path`` (.npz)."""
     path = Path(path)

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from services.mapping.config import MappingConfig
-from services.mapping.io import MapFileError, load_map, save_map, write_ply
+from services.mapping.io import MapFileError, load_map, remove_stale_temps, save_map, write_ply
 from services.mapping.o2p_points import SubmapPointPool
 from services.mapping.poses import PoseBuffer
 from services.mapping.submaps import SubmapMapper
@@ -178,6 +178,9 @@ def resume_map(loop: MappingLoop, out_dir: str | None) -> bool:
     """After a supervisor restart (``$SIGMASLAM_RESTARTS`` > 0), continue from the last checkpoint
     ``<out_dir>/map.npz``: same submaps, ids continue, everything is re-meshed and re-published. A first
     start, or a restart without a readable checkpoint, begins an empty map (logged)."""
+    if out_dir:
+        for tmp in remove_stale_temps(out_dir):
+            log.warning("removed %s, left by a save that was killed", tmp)
     if int(os.environ.get("SIGMASLAM_RESTARTS", "0") or 0) <= 0 or not out_dir:
         return False
     path = Path(out_dir) / "map.npz"
