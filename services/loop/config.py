@@ -16,7 +16,7 @@ class LoopConfig:
     # --- place recognition ---
     min_age_s: float = param(10.0, "loop candidates are at least this much older than the query keyframe", "s")
     min_score: float = param(0.05, "least raw L1 bag-of-words score of a candidate")
-    min_normalised: float = param(0.8, "least score relative to the query's score with its predecessor keyframe")
+    min_normalised: float = param(0.6, "least score relative to the query's score with its predecessor keyframe")
     max_candidates: int = param(2, "candidates verified per query keyframe")
     # --- geometric verification ---
     max_hamming: int = param(50, "largest Hamming distance of a descriptor match", "bits")
