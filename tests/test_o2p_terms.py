@@ -162,3 +162,27 @@ def test_submap_points_message_round_trip():
                          points_M=rng.normal(size=(7, 3)).astype(np.float32), sigma=np.full(7, 0.02, np.float32))
     back = decode(encode(msg))
     assert back.submap_id == 2 and np.array_equal(back.points_M, msg.points_M) and np.array_equal(back.sigma, msg.sigma)
+
+
+def test_depth_between_keyframes_attaches_to_the_nearest_state(room):
+    """Depth at 5.1 s, window state at 5.0 s: points move into the state's frame by the estimates' relative
+    pose, and the factor still pulls the state onto the map (exact stamps only: no factor)."""
+    msg, renderer = room
+    T_k = view(2.0)
+    T_d = T_k @ make_T(so3_exp(np.array([0.0, 0.02, 0.0])), np.array([0.05, 0.0, 0.02]))  # 0.1 s of motion
+    T_k_est = perturbed(T_k, 5)
+    T_d_est = T_k_est @ inv_T(T_k) @ T_d  # odometry-consistent estimate of the depth frame
+    for attach_ms, expect in ((0.0, 0), (150.0, 1)):
+        terms = OccupancyTerms(O2PConfig(enabled=True, attach_tolerance_ms=attach_ms))
+        terms.note_frame(1 * S, np.arange(0, 50))
+        terms.add_field(msg)
+        terms.note_frame(5 * S, np.arange(10, 60))
+        terms.add_depth(5 * S + S // 10, renderer.render(K, W, H, T_d), np.full((H, W), 0.03, np.float32), K,
+                        np.eye(4), T_d_est)
+        values = gtsam.Values()
+        values.insert(X(5), gtsam.Pose3(T_k_est))
+        fs = terms.factors({5: 5 * S}, values)
+        assert len(fs) == expect
+    assert terms.counts["frame_to_map_attached"] == 1
+    rot, tr = err(solve(fs, values).atPose3(X(5)).matrix(), T_k)
+    assert rot < 0.3 and tr < 0.01

@@ -21,6 +21,9 @@ class O2PConfig:
     tukey_k: float = param(3.0, "Tukey threshold on the RMS whitened residual of a whole factor")
     grad_min: float = param(1.0, "points where |grad L| is below this (saturated free space) drop out", "1/m")
     depth_stamp_tolerance_ms: float = param(1.0, "a depth frame belongs to the window state with this stamp", "ms")
+    attach_tolerance_ms: float = param(150.0, "a depth frame without a window state at its stamp attaches to the nearest "
+                                       "window state this close, moved there by the relative pose of the two estimates "
+                                       "(depth runs at ~10 Hz, keyframes are sparser; 0: exact stamps only)", "ms")
     max_pending_depth: int = param(32, "depth frames waiting for their window state at most (oldest dropped)")
     max_submaps: int = param(500, "finished submap fields kept at most (oldest dropped)")
     landmark_history_s: float = param(600.0, "landmark ids of past frames kept this long for covisibility", "s")

@@ -4,7 +4,9 @@ Inputs (fed by the back-end service): finished submaps' near-surface fields (``m
 depth frames (``depth/stereo``), the landmark ids of every feature frame, and optionally the fused-depth
 points of finished submaps (map-to-map).
 
-* **Frame-to-map**: a window state with a stereo depth frame at its stamp gets one factor with the
+* **Frame-to-map**: a window state with a stereo depth frame at its stamp (or, within
+  ``attach_tolerance_ms``, the nearest one, moved into its body frame by the relative pose of the two
+  estimates) gets one factor with the
   ``max_points_frame`` lowest-sigma pixels (one candidate per image cell, so the points spread) against
   o(k). Depth arrives after the frame's own optimisation here (the networks are slower than the
   tracker), so the factor joins the window at the next window optimisation while the state is still in
@@ -60,7 +62,8 @@ class OccupancyTerms:
         self.cfg = cfg
         self.submaps: dict[int, _Submap] = {}
         self._frames: collections.deque[tuple[int, np.ndarray]] = collections.deque()  # (stamp, landmark ids)
-        self._depth: collections.OrderedDict[int, tuple[np.ndarray, np.ndarray]] = collections.OrderedDict()  # stamp -> (p_S, sigma)
+        # stamp -> (p_S, sigma, T_WS estimate at the stamp or None)
+        self._depth: collections.OrderedDict[int, tuple[np.ndarray, np.ndarray, np.ndarray | None]] = collections.OrderedDict()
         # (kind, state index, submap id) -> (factor data, gtsam factor) or None when no target was found
         self._built: dict[tuple[str, int, int], tuple[OccupancyToPoint, gtsam.NonlinearFactor] | None] = {}
         self._m2m_done: set[int] = set()
@@ -73,14 +76,16 @@ class OccupancyTerms:
         while self._frames and self._frames[0][0] < horizon:
             self._frames.popleft()
 
-    def add_depth(self, stamp_ns: int, depth: np.ndarray, sigma: np.ndarray, K: np.ndarray, T_SC: np.ndarray) -> int:
-        """Select a frame's points now (body frame S); returns how many were kept."""
+    def add_depth(self, stamp_ns: int, depth: np.ndarray, sigma: np.ndarray, K: np.ndarray, T_SC: np.ndarray,
+                  T_WS: np.ndarray | None = None) -> int:
+        """Select a frame's points now (body frame S); ``T_WS``: the estimate at its stamp (lets it attach to a
+        nearby window state); returns how many points were kept."""
         p_C, s = select_depth_points(depth, sigma, K, self.cfg.max_points_frame)
         if len(p_C) < self.cfg.min_points_in_field:
             self.counts["depth_too_few_points"] += 1
             return 0
         T_SC = np.asarray(T_SC, float)
-        self._depth[int(stamp_ns)] = (p_C @ T_SC[:3, :3].T + T_SC[:3, 3], s)
+        self._depth[int(stamp_ns)] = (p_C @ T_SC[:3, :3].T + T_SC[:3, 3], s, None if T_WS is None else np.asarray(T_WS, float))
         while len(self._depth) > self.cfg.max_pending_depth:
             self._depth.popitem(last=False)
             self.counts["depth_dropped_old"] += 1
@@ -159,13 +164,20 @@ class OccupancyTerms:
         self._built = {k: v for k, v in self._built.items() if k[1] in live}
         if c.frame_to_map and self.submaps:
             tol = int(c.depth_stamp_tolerance_ms * 1e6)
+            attach = int(c.attach_tolerance_ms * 1e6)
             done = {k[1] for k in self._built if k[0] == "f2m"}
             for n in sorted(live - done):
-                hit = [t for t in self._depth if abs(t - stamps[n]) <= tol]
-                if not hit:
+                gap = {t: abs(t - stamps[n]) for t, d in self._depth.items()
+                       if abs(t - stamps[n]) <= tol or (d[2] is not None and abs(t - stamps[n]) <= attach)}
+                if not gap:
                     continue
-                p_S, sig = self._depth.pop(hit[0])
+                t = min(gap, key=gap.get)
+                p_S, sig, T_WS = self._depth.pop(t)
                 T_WA = values.atPose3(X(n)).matrix()
+                if gap[t] > tol:  # move the points into the state's body frame by the estimated relative pose
+                    T_AS = inv_T(T_WA) @ T_WS
+                    p_S = p_S @ T_AS[:3, :3].T + T_AS[:3, 3]
+                    self.counts["frame_to_map_attached"] += 1
                 sm = self._o(self._covisible(self._landmarks_near(stamps[n])), p_S, T_WA)
                 built = None if sm is None else self._make(sm, p_S, sig, X(n), stamps, values)
                 self._built[("f2m", n, -1 if sm is None else sm.id)] = built

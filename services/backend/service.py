@@ -63,7 +63,8 @@ class BackendShell:
             return
         try:
             if isinstance(msg, DepthFrame):
-                self.o2p.add_depth(msg.header.stamp_ns, msg.depth, msg.sigma, msg.K, msg.T_SC)
+                T_WS = None if np.allclose(msg.T_WC, np.eye(4)) else msg.T_WC @ np.linalg.inv(msg.T_SC)
+                self.o2p.add_depth(msg.header.stamp_ns, msg.depth, msg.sigma, msg.K, msg.T_SC, T_WS)
             elif isinstance(msg, OccupancyField):
                 self.o2p.add_field(msg)
             else:
