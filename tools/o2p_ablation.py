@@ -141,12 +141,14 @@ def run_row(row: str, dataset: str, overrides: list[str], seconds: float, depth_
     if dense:
         res["o2p_counts"] = dict(be.o2p.counts)
     ds = EurocDataset(dataset)
+    align = None
     if ds.groundtruth_path is not None and len(stamps) >= 3:
         from tools.eval.ate import compute_ate
 
         gt = read_trajectory(ds.groundtruth_path)
         p = np.array(T_pub)[:, :3, 3]
-        res["ate_causal_m"] = compute_ate(gt.stamps_ns, gt.p_WS, np.array(stamps), p, mode="se3").rmse_m
+        ate = compute_ate(gt.stamps_ns, gt.p_WS, np.array(stamps), p, mode="se3")
+        res["ate_causal_m"], align = ate.rmse_m, ate.alignment
     scene = sorted(Path(dataset).glob("mav0/scene/*.ply"))
     if scene:
         from tools.eval.mesh import evaluate_points
@@ -154,8 +156,8 @@ def run_row(row: str, dataset: str, overrides: list[str], seconds: float, depth_
         t0 = time.perf_counter()
         mapper.remesh(None)
         v, _ = mapper.world_mesh()
-        if len(v):
-            ev = evaluate_points(np.asarray(v, float), _gt_points(scene[0]))
+        if len(v) and align is not None:  # the estimate's W into the ground truth's frame (the trajectory's alignment)
+            ev = evaluate_points(align.apply(np.asarray(v, float)), _gt_points(scene[0]))
             res["mesh_eval_s"] = round(time.perf_counter() - t0, 1)
             res.update({k: v_ for k, v_ in (ev if isinstance(ev, dict) else dataclasses.asdict(ev)).items()
                         if isinstance(v_, (int, float))})
