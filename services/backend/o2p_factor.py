@@ -110,6 +110,7 @@ class OccupancyToPoint:
         self.T_WB = None if T_WB is None else np.asarray(T_WB, np.float64)
         self.T_MB = np.linalg.inv(np.eye(4) if T_BM is None else np.asarray(T_BM, np.float64))
         self.tukey_k, self.grad_min = float(tukey_k), float(grad_min)
+        self._memo: tuple[bytes, O2PEvaluation] | None = None  # gtsam asks for the error and the Jacobians at one estimate
 
     @property
     def keys(self) -> list[int]:
@@ -154,7 +155,13 @@ class OccupancyToPoint:
         noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Tukey.Create(c), gtsam.noiseModel.Unit.Create(n))
 
         def error(this: gtsam.CustomFactor, values: gtsam.Values, H) -> np.ndarray:
-            ev = self.evaluate(*self._poses(values))
+            T_WA, T_WB = self._poses(values)
+            key = T_WA.tobytes() + T_WB.tobytes()
+            if self._memo is not None and self._memo[0] == key:
+                ev = self._memo[1]
+            else:
+                ev = self.evaluate(T_WA, T_WB)
+                self._memo = (key, ev)
             if H is not None:
                 jac = [j for k, j in ((self.key_a, ev.J_a), (self.key_b, ev.J_b)) if k is not None]
                 for i, j in enumerate(jac):
