@@ -93,16 +93,18 @@ class LoopClosingBackend:
         """Final bundle adjustment over every keyframe (None when too little was tracked)."""
         self.runner.drain()
         est = self.shell.estimator
-        records = self.history.records + self.history.capture_window(est)
+        window = self.history.capture_window(est)
+        records = self.history.records + window
         closer = self.runner.closer
+        late_loops, late_obs = closer.pending_for_final(window)
         c = closer.counts
         if len(records) < 2 or len(self._stamps) < 2:
             return None
         stamps = np.array(self._stamps, np.int64)
         T_raw = np.array(self._T_raw)
         if self.cfg.final_ba:
-            res = bundle_adjust(records, est.cameras, est.cfg.sigma_px, est.cfg.cauchy_k, closer.loops,
-                                self.cfg.final_ba_iterations, loop_observations=closer.loop_observations)
+            res = bundle_adjust(records, est.cameras, est.cfg.sigma_px, est.cfg.cauchy_k, closer.loops + late_loops,
+                                self.cfg.final_ba_iterations, loop_observations=closer.loop_observations + late_obs)
             T_final = follow_keyframes(stamps, T_raw, res.stamps_ns, res.T_WS)
             n_kf = len(res.stamps_ns)
             log.info("final BA: %d keyframes, %d landmarks, %d observations, error %.1f -> %.1f", n_kf,

@@ -196,6 +196,21 @@ class LoopCloser:
         self._last_solve_ns = int(stamp_ns)
         return True
 
+    def pending_for_final(self, window: list[KeyframeRecord]) -> tuple[list, list]:
+        """Loops (and their landmark observations) still waiting for a query keyframe that is in ``window`` (the
+        keyframes left in the estimator at the end of a run), for the final BA."""
+        by_stamp = {r.stamp_ns: r for r in window}
+        loops, obs = [], []
+        for lp in self._pending:
+            rec = by_stamp.get(lp.query_stamp_ns)
+            if rec is None or lp.old_state not in self._old:
+                continue
+            old = self._old[lp.old_state][2]
+            loops.append((old.state, rec.state, inv_T(old.T_WS) @ lp.T_WS_query, lp.covariance))
+            if lp.observations:
+                obs += [(rec.state, int(c), p, int(lm)) for c, p, lm in zip(*lp.observations)]
+        return loops, obs
+
     def correction(self) -> np.ndarray:
         return self.graph.correction()
 
