@@ -1,0 +1,69 @@
+"""The estimator (no transport) under bad IMU input: a gap, duplicated, backwards and NaN samples, and a frame
+whose IMU never came. Frames inside a gap are refused (ImuDataError: the service drops and counts them); once
+IMU resumes, the gap is bridged and it keeps tracking with a bounded error."""
+
+import numpy as np
+import pytest
+
+import vio_sim as sim
+from services.backend.config import BackendConfig
+from services.backend.estimator import BackendCamera, WindowedVioEstimator
+from services.backend.imu_factors import ImuDataError
+
+
+def _estimator(cams):
+    return WindowedVioEstimator(BackendConfig(), [BackendCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams])
+
+
+def test_imu_gap_duplicates_backwards_and_nan_samples():
+    rng = np.random.default_rng(3)
+    tr, cams, pts = sim.Trajectory(), sim.rig(2), sim.landmarks_cylinder(300, seed=2)
+    est = _estimator(cams)
+    st, om, ac = sim.imu(tr, 0.0, 5.1, 200.0, rng, gyro_nd=1.7e-4, acc_nd=2e-3)
+    gap = (st > 2.0e9) & (st < 2.3e9)  # 300 ms without IMU
+    t0 = 0.5
+    T0 = tr.T_WS(np.array([t0]))[0]
+    est.initialise(int(t0 * 1e9), T0[:3, :3], tr.velocity(np.array([t0]))[0], np.zeros(3), np.zeros(3),
+                   static=True, p_W=T0[:3, 3])
+    times = np.arange(t0, 5.0, 0.1)
+    errs, statuses, j = [], [], 0
+    refused = 0
+    frames_refused = []
+    for i, t in enumerate(times):
+        stamp = int(round(t * 1e9))
+        while j < len(st) and st[j] <= stamp:
+            if not gap[j]:
+                est.add_imu(int(st[j]), om[j], ac[j])
+                if j % 50 == 0:  # a duplicate, a backwards sample and a NaN sample now and then
+                    est.add_imu(int(st[j]), om[j], ac[j])
+                    est.add_imu(int(st[j]) - 10_000_000, om[j], ac[j])
+                    est.add_imu(int(st[j]) + 1, np.full(3, np.nan), ac[j])
+                    refused += 3
+            j += 1
+        ids, c, uv = sim.observe(tr.T_WS(np.array([t]))[0], pts, cams, 0.5, rng, 25)
+        try:
+            r = est.process_frame(stamp, ids, c, uv, is_keyframe=(i % 2 == 0))
+        except ImuDataError:  # inside the gap: the service drops the frame and counts it
+            frames_refused.append(t)
+            continue
+        statuses.append(r.status)
+        errs.append(np.linalg.norm(r.T_WS[:3, 3] - tr.T_WS(np.array([t]))[0][:3, 3]))
+    assert est.imu.dropped == refused
+    assert np.allclose(frames_refused, [2.1, 2.2]), frames_refused  # no IMU up to them yet; later frames bridge the gap
+    assert all(s == "tracking" for s in statuses[-10:]), statuses
+    assert max(errs) < 0.1, max(errs)  # the gap is bridged (vision holds the pose), no divergence
+
+
+def test_frame_without_imu_coverage_is_refused_not_fatal():
+    cams = sim.rig(2)
+    est = _estimator(cams)
+    est.initialise(0, np.eye(3), np.zeros(3), np.zeros(3), np.zeros(3), static=True)
+    for k in range(3):
+        est.add_imu(k * 5_000_000, np.zeros(3), np.array([0, 0, 9.81]))
+    with pytest.raises(ImuDataError, match="do not cover"):
+        est.process_frame(2_000_000_000, np.zeros(0, np.int64), np.zeros(0, np.int16), np.zeros((0, 2)))
+    # IMU arrives late, the next frame goes through
+    for k in range(3, 500):
+        est.add_imu(k * 5_000_000, np.zeros(3), np.array([0, 0, 9.81]))
+    r = est.process_frame(2_100_000_000, np.zeros(0, np.int64), np.zeros(0, np.int16), np.zeros((0, 2)))
+    assert r is not None and np.isfinite(r.T_WS).all()
