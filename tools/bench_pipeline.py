@@ -110,7 +110,8 @@ def run_once(dataset: Path, out: Path, rate: float, seconds: float, services: st
     port = _free_port()
     overrides = [f"transport.namespace=sigmaslam/bench-{uuid.uuid4().hex[:8]}",
                  f"transport.connect=[tcp/127.0.0.1:{port}]", f"transport.router_listen=[tcp/127.0.0.1:{port}]",
-                 "loop.final_ba=false"]  # the bench measures the real-time part; --set loop.final_ba=true to add it
+                 "loop.final_ba=false",  # the bench measures the real-time part; --set loop.final_ba=true to add it
+                 "supervisor.shutdown_timeout_s=120"]  # the mapper meshes and writes DIR/mesh.ply after SIGTERM
     if services != "config":
         names = [s for s in services.split(",") if s]
         overrides.append("supervisor.services=[" + ", ".join(f"{{name: {s}, argv: [{s}]}}" for s in names) + "]")

@@ -89,6 +89,9 @@ def evaluate_sequence(seq: str, replica: Path, run_dir: Path, out: Path, hilti_p
     if runs:
         trajectory_figure(out / "trajectory.png", seq, gt.p_WS, runs)
     mesh = run_dir / "mesh.ply"
+    if not mesh.is_file() and (run_dir / "map.npz").is_file():
+        mesh = mesh_from_checkpoint(run_dir)
+        row["mesh_source"] = "map.npz checkpoint (the mapper stopped before writing mesh.ply)"
     gt_mesh = replica / "mav0" / "scene" / "mesh.ply"
     if mesh.is_file() and gt_mesh.is_file():
         try:
@@ -97,6 +100,16 @@ def evaluate_sequence(seq: str, replica: Path, run_dir: Path, out: Path, hilti_p
         except (ValueError, RuntimeError) as exc:
             row["error_mesh"] = str(exc)
     return row
+
+
+def mesh_from_checkpoint(run_dir: Path) -> Path:
+    """World mesh of the mapper's last checkpoint (DIR/map.npz) as DIR/mesh_from_checkpoint.ply."""
+    from services.mapping.io import load_map, write_ply
+
+    mapper = load_map(run_dir / "map.npz")
+    mapper.remesh(None)
+    v, f = mapper.world_mesh()
+    return write_ply(run_dir / "mesh_from_checkpoint.ply", v, f)
 
 
 def pooled_timing(stage_dirs: list[Path]) -> dict:
@@ -139,7 +152,7 @@ def write_report(out: Path, rows: dict[str, dict], timing: dict, args) -> Path:
     for seq, r in rows.items():
         lines.append(f"### {seq}")
         lines.append("")
-        for key in ("error_causal", "error_noncausal", "error_mesh", "error_run"):
+        for key in ("error_causal", "error_noncausal", "error_mesh", "error_run", "mesh_source"):
             if key in r:
                 lines.append(f"- {key}: {r[key]}")
         if (out / seq / "trajectory.png").is_file():
