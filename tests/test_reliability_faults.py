@@ -74,3 +74,25 @@ def test_depth_overload_does_not_slow_the_estimator(tmp_path):
     d = slow["stages"]["depth"]["depth"]
     assert d["overruns"] >= 1 and d["p50_ms"] >= 600.0, d
     assert slow["queues"]["depth"]["sensors/frame"]["dropped"] > normal["queues"]["depth"]["sensors/frame"]["dropped"]
+
+
+@pytest.mark.e2e
+@pytest.mark.skipif(not FULL, reason="long form only (SIGMASLAM_E2E=full): the recorder writes ~15 MB/s of images")
+def test_sigkill_viewer_and_recorder(tmp_path):
+    """The viewer serves its page again after a restart; the recorder's cut file is kept beside the new one and
+    rebuilds with --recover."""
+    from services.cli import main as cli_main
+    from services.recorder.mcap_reader import read_recording
+
+    out = tmp_path / "vr"
+    rc, rep, text = _inject(out, "--with", "viewer,recorder", "--kill", "viewer,recorder", "--rate", "0.5",
+                            "--set", "recorder.foxglove=false")
+    assert rc == 0, text[-3000:]
+    by = {f["service"]: f for f in rep["faults"]}
+    assert by["viewer"]["restarted"] and by["viewer"]["http_ok"], by["viewer"]
+    assert by["recorder"]["restarted"] and by["recorder"]["recordings"] == ["recording.1.mcap", "recording.mcap"]
+    fixed = tmp_path / "fixed.mcap"
+    assert cli_main(["record", "--recover", str(out / "recording.mcap"), "--out", str(fixed)]) == 0
+    assert sum(1 for _ in read_recording(fixed)) > 100
+    for p in (out / "recording.mcap", out / "recording.1.mcap", fixed):
+        p.unlink()

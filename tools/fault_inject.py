@@ -34,6 +34,7 @@ from shared.config import to_yaml
 from transport.node import Node
 
 PIPELINE = ("frontend", "backend", "depth", "mapping")
+OPTIONAL = ("viewer", "recorder")  # started with --with; the viewer on a free port, the recorder to DIR/recording.mcap
 
 
 def _free_port() -> int:
@@ -95,12 +96,12 @@ class Probe:
                     for name, s in self.stats.items()}
 
 
-def build(dataset: str, out: Path, rate: float, sets: list[str], nice: int = 10):
+def build(dataset: str, out: Path, rate: float, sets: list[str], nice: int = 10, extra: tuple[str, ...] = ()):
     port = _free_port()
     overrides = [f"transport.namespace=sigmaslam/faults-{uuid.uuid4().hex[:8]}", f"transport.connect=[tcp/127.0.0.1:{port}]",
                  f"transport.router_listen=[tcp/127.0.0.1:{port}]", "depth.method=sgbm", "depth.rate_hz=5",
                  "mapping.depth_topic=depth/stereo", "mapping.checkpoint_period_s=2", "loop.enabled=false",
-                 "transport.stats_period_s=0.5", *sets]
+                 "transport.stats_period_s=0.5", f"viewer.port={_free_port()}", *sets]
     cfg = load_system_config(None, overrides)
     cfg.rig.calibration = dataset
     spec = dict(restart="on-failure", max_restarts=5, window_s=120.0, backoff_s=0.2)
@@ -109,7 +110,11 @@ def build(dataset: str, out: Path, rate: float, sets: list[str], nice: int = 10)
                 ServiceSpec(name="depth", argv=["depth"], nice=nice, **spec),
                 ServiceSpec(name="mapping", argv=["mapping", "--out", str(out / "map")], nice=nice, **spec),
                 ServiceSpec(name="player", argv=["player", dataset, "--rate", f"{rate:g}",
-                                                 "--wait-for", ",".join(PIPELINE)], restart="never")]
+                                                 "--wait-for", ",".join(PIPELINE + tuple(extra))], restart="never")]
+    if "viewer" in extra:
+        services.insert(0, ServiceSpec(name="viewer", argv=["viewer"], nice=nice, **spec))
+    if "recorder" in extra:
+        services.insert(0, ServiceSpec(name="recorder", argv=["record", "--out", str(out / "recording.mcap")], **spec))
     cfg.supervisor.services = services
     cfg.supervisor.start_router = True
     validate(cfg.supervisor, SUBCOMMANDS)
@@ -128,14 +133,15 @@ def wait_until(pred, timeout_s: float, step: float = 0.05) -> bool:
 
 
 def run(dataset: str, out: Path, kill: list[str], rate: float, window_s: float, sets: list[str],
-        restart_timeout_s: float = 90.0, start_timeout_s: float = 180.0, during=None) -> dict:
+        restart_timeout_s: float = 90.0, start_timeout_s: float = 180.0, during=None, extra: tuple[str, ...] = ()) -> dict:
     """``during(node, probe) -> dict``, if given, is called after the baseline window (e.g. to publish bad
     input); its result goes into the report under 'during', then a 'measure' window follows."""
     out.mkdir(parents=True, exist_ok=True)
-    cfg, config_path = build(dataset, out, rate, sets)
+    cfg, config_path = build(dataset, out, rate, sets, extra=tuple(extra))
+    report_extra = {"viewer_port": cfg.viewer.port} if "viewer" in extra else {}
     sup = Supervisor(cfg.supervisor, config_path, out.resolve())
     probe = Probe()
-    report: dict = {"dataset": dataset, "rate": rate, "window_s": window_s, "sets": sets, "faults": []}
+    report: dict = {"dataset": dataset, "rate": rate, "window_s": window_s, "sets": sets, "faults": [], **report_extra}
     with Node("faults", cfg.transport) as node:
         node.subscriber(topics.STATE, policy="all", depth=100_000, handler=probe.on_state)
         node.subscriber(topics.FRAME, handler=probe.on_frame)
@@ -194,6 +200,10 @@ def _kill_one(sup: Supervisor, probe: Probe, name: str, out: Path, window_s: flo
         res["reset_seen"] = any(s[2] == "reset" for s in after)
         tr = [s[0] for s in after if s[2] == "tracking"]
         res["tracking_again_s"] = (tr[0] - t_kill) if tr else None
+    if back and name == "viewer":  # the restarted viewer serves its page again on the same port
+        res["http_ok"] = wait_until(lambda: _http_ok(port), 30.0, 0.5) if (port := sup_port(sup)) else None
+    if name == "recorder":
+        res["recordings"] = sorted(p.name for p in out.glob("recording*.mcap"))
     t = time.monotonic()
     time.sleep(window_s)
     res["after"] = probe.window(t, t + window_s)
@@ -205,20 +215,39 @@ def _kill_one(sup: Supervisor, probe: Probe, name: str, out: Path, window_s: flo
     return res
 
 
+def sup_port(sup: Supervisor) -> int | None:
+    """The viewer's port, from the config file the supervisor hands to its children."""
+    from services.system_config import load_system_config as load
+
+    return load(sup.config_path).viewer.port
+
+
+def _http_ok(port: int) -> bool:
+    import urllib.request
+
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=2.0) as r:
+            return r.status == 200
+    except OSError:
+        return False
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("dataset")
     p.add_argument("--out", required=True)
-    p.add_argument("--kill", default="", help="comma-separated services to SIGKILL in turn (of %s)" % ",".join(PIPELINE))
+    p.add_argument("--kill", default="", help="comma-separated services to SIGKILL in turn (of %s)" % ",".join(PIPELINE + OPTIONAL))
+    p.add_argument("--with", dest="extra", default="", help="also run these (of %s)" % ",".join(OPTIONAL))
     p.add_argument("--rate", type=float, default=0.5, help="player speed, x sensor time")
     p.add_argument("--window-s", type=float, default=3.0, help="measurement window [s]")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     a = p.parse_args(argv)
     kill = [k for k in a.kill.split(",") if k]
-    bad = [k for k in kill if k not in PIPELINE]
+    extra = [k for k in a.extra.split(",") if k]
+    bad = [k for k in kill if k not in PIPELINE + tuple(extra)] + [k for k in extra if k not in OPTIONAL]
     if bad:
-        p.error(f"--kill: unknown services {bad}")
-    rep = run(a.dataset, Path(a.out), kill, a.rate, a.window_s, a.set)
+        p.error(f"--kill/--with: unknown or not started services {bad}")
+    rep = run(a.dataset, Path(a.out), kill, a.rate, a.window_s, a.set, extra=tuple(extra))
     print(json.dumps({k: rep.get(k) for k in ("baseline", "measure", "restarts")}, indent=1), flush=True)
     return 0 if rep.get("started") and all(f["restarted"] for f in rep["faults"]) else 1
 
