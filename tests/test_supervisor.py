@@ -123,8 +123,10 @@ def test_up_restarts_a_killed_child_and_stops_everything_on_sigterm(tmp_path):
         assert all(wait_for(lambda p=p: gone(p), 5.0) for p in children), up.text()
     finally:
         up.close()
-    # the recorder got SIGTERM and closed its file: it reads back, with the config the supervisor wrote
-    meta = read_metadata(out)
+    # the restarted recorder got SIGTERM and closed its file (rec.1.mcap: it never overwrites the cut rec.mcap
+    # of its killed predecessor): it reads back, with the config the supervisor wrote
+    assert out.exists()
+    meta = read_metadata(tmp_path / "rec.1.mcap")
     assert meta["supervisor"]["services"][0]["name"] == "rec"
     assert meta["transport"]["namespace"] == up.tcfg.namespace
 
