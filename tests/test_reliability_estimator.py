@@ -67,3 +67,46 @@ def test_frame_without_imu_coverage_is_refused_not_fatal():
         est.add_imu(k * 5_000_000, np.zeros(3), np.array([0, 0, 9.81]))
     r = est.process_frame(2_100_000_000, np.zeros(0, np.int64), np.zeros(0, np.int16), np.zeros((0, 2)))
     assert r is not None and np.isfinite(r.T_WS).all()
+
+
+def test_mapping_freezes_its_submaps_when_the_back_end_resets():
+    """After a 'reset' state the old submaps stop following keyframes (the new back end's ids mean other
+    keyframes, in another world frame) and the next depth frame starts a new submap."""
+    from services.mapping.config import MappingConfig
+    from services.mapping.service import MappingLoop
+    from shared.codec import Header
+    from shared.messages import DepthFrame, EstimatorState, Keyframes
+
+    loop = MappingLoop(MappingConfig())
+    K = np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])
+    depth = np.full((120, 160), 2.0, np.float32)
+
+    def state(t, status="tracking", x=0.0):
+        T = np.eye(4)
+        T[0, 3] = x
+        return EstimatorState(header=Header(stamp_ns=t), T_WS=T, v_W=np.zeros(3), gyro_bias=np.zeros(3),
+                              acc_bias=np.zeros(3), covariance=np.full((15, 15), np.nan), status=status)
+
+    def frame(t):
+        return DepthFrame(header=Header(stamp_ns=t), depth=depth, sigma=np.full_like(depth, 0.05), K=K,
+                          T_WC=np.eye(4), T_SC=np.eye(4), source="stereo")
+
+    for t in (1, 2, 3):
+        loop.on_state(state(t))
+        loop.on_depth(frame(t))
+    loop.process_waiting()
+    loop.on_keyframes(Keyframes(header=Header(stamp_ns=3), ids=np.array([0]), stamps_ns=np.array([1]),
+                                T_WS=np.eye(4)[None]))
+    assert len(loop.mapper.submaps) == 1 and loop.mapper.submaps[0].keyframe_id == 0
+    loop.on_state(state(10, "reset"))
+    loop.on_state(state(11, x=5.0))  # the new back end's world frame
+    loop.on_depth(frame(11))
+    loop.process_waiting()
+    assert len(loop.mapper.submaps) == 2 and loop.counts["estimator_resets"] == 1
+    old, new = loop.mapper.submaps
+    assert new.n_frames == 1 and np.allclose(new.T_WM[0, 3], 5.0)
+    # keyframe 0 of the new back end must not move the old submap
+    T = np.eye(4)
+    T[1, 3] = 3.0
+    moved = loop.mapper.update_keyframes(np.array([0]), np.array([11]), T[None])
+    assert old.id not in moved and np.allclose(old.T_WM, np.eye(4))

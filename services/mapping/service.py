@@ -58,12 +58,16 @@ class MappingLoop:
         self.integrate_ms: list[float] = []
         self.to_publish: set[int] = set()
         self.fields_to_publish: set[int] = set()
+        self.reset_pending = False
         # map-to-map points (services/mapping/o2p_points.py), published once per closed submap
         self.points = SubmapPointPool(cfg.o2p_points) if cfg.o2p_points > 0 else None
         self.points_to_publish: set[int] = set()
 
     def on_state(self, msg: messages.EstimatorState) -> None:
-        if msg.status in ("initialising", "reset"):  # placeholders without a pose (e.g. a restarted back end)
+        if msg.status == "reset":  # a restarted back end: new world frame and keyframe ids
+            self.poses = PoseBuffer(self.cfg.state_buffer)  # forget the old frame's poses (atomic swap)
+            self.reset_pending = True  # submaps are frozen in the main loop
+        if msg.status in ("initialising", "reset"):  # placeholders without a pose
             self.counts["states_without_pose"] += 1
             return
         self.poses.add(msg.header.stamp_ns, msg.T_WS)
@@ -84,6 +88,11 @@ class MappingLoop:
 
     def process_waiting(self, timer=None) -> int:
         """Integrate every waiting frame whose pose is known; drop those that waited too long."""
+        if self.reset_pending:
+            self.reset_pending = False
+            self.mapper.estimator_reset()
+            self.counts["estimator_resets"] += 1
+            log.warning("estimator reset: submaps so far frozen, the next frame starts a new submap")
         done = 0
         keep: collections.deque = collections.deque(maxlen=self.waiting.maxlen)
         while self.waiting:

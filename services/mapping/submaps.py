@@ -22,6 +22,9 @@ from services.mapping.sensor_model import prepare_depth
 from shared.geometry import inv_T
 
 
+FROZEN = -2  # keyframe_id of submaps made before an estimator reset: their keyframes no longer exist
+
+
 @dataclasses.dataclass
 class Submap:
     id: int
@@ -30,7 +33,7 @@ class Submap:
     store: BlockStore
     mesher: ChunkMesher
     n_frames: int = 0
-    keyframe_id: int = -1  # keyframe this submap follows (-1: not bound yet)
+    keyframe_id: int = -1  # keyframe this submap follows (-1: not bound yet; FROZEN: never moves again)
     T_KM: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
     pose_version: int = 0  # incremented when T_WM changes
     anchor_view: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # first frame: (depth 1/4 size, K, T_MC)
@@ -62,6 +65,14 @@ class SubmapMapper:
     @property
     def current(self) -> Submap | None:
         return self.submaps[-1] if self.submaps else None
+
+    def estimator_reset(self) -> None:
+        """The estimator restarted in a new world frame with new keyframe ids: freeze every existing submap
+        where it is (no keyframe follows it any more) and start a new submap with the next frame, so that no
+        submap mixes depth from two world frames."""
+        for sm in self.submaps:
+            sm.keyframe_id = FROZEN
+        self._force_new = True
 
     def new_submap(self, T_WM: np.ndarray, stamp_ns: int) -> Submap:
         sm = Submap(len(self.submaps), np.array(T_WM, float), int(stamp_ns), BlockStore(self.sensor.voxel_size_m),
@@ -106,8 +117,9 @@ class SubmapMapper:
         _check_inputs(K, T_WC, T_SC)
         cur = self.current
         ov = float("nan")
-        new = cur is None
-        if cur is not None and cur.n_frames >= self.cfg.min_frames:
+        new = cur is None or getattr(self, "_force_new", False)
+        self._force_new = False
+        if not new and cur.n_frames >= self.cfg.min_frames:
             ov = self.overlap(cur, d, K, T_WC)
             new = bool(ov < self.cfg.eps_vol)
         if new:
@@ -135,6 +147,8 @@ class SubmapMapper:
         tol_ns = self.cfg.keyframe_bind_tolerance_s * 1e9
         moved = []
         for sm in self.submaps:  # a loop over submaps (tens), not voxels
+            if sm.keyframe_id == FROZEN:
+                continue
             if sm.keyframe_id < 0:
                 i = int(np.argmin(np.abs(stamps_ns - sm.anchor_stamp_ns)))
                 if abs(int(stamps_ns[i]) - sm.anchor_stamp_ns) <= tol_ns:
