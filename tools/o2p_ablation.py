@@ -123,7 +123,8 @@ def run_row(row: str, dataset: str, overrides: list[str], seconds: float, depth_
                 d_m, s_m = fuse(d_s, s_s, *mvs)
         n_depth += 1
         if dense:
-            be.o2p.add_depth(stamp, d_s, s_s, pipe.K, pipe.T_SC, out[0].T_WS)  # as the service feeds depth/stereo
+            est = be.estimator  # as the service feeds depth/stereo
+            be.o2p.add_depth(stamp, d_s, s_s, pipe.K, pipe.T_SC, out[0].T_WS, est.stamps, est.values)
         rep = mapper.integrate(d_m, s_m, pipe.K, T_WC, pipe.T_SC, stamp)
         sm = mapper.submaps[rep.submap_id]
         pool.add(rep.submap_id, d_m, s_m, pipe.K, np.linalg.inv(sm.T_WM) @ T_WC)

@@ -77,15 +77,34 @@ class OccupancyTerms:
             self._frames.popleft()
 
     def add_depth(self, stamp_ns: int, depth: np.ndarray, sigma: np.ndarray, K: np.ndarray, T_SC: np.ndarray,
-                  T_WS: np.ndarray | None = None) -> int:
-        """Select a frame's points now (body frame S); ``T_WS``: the estimate at its stamp (lets it attach to a
-        nearby window state); returns how many points were kept."""
+                  T_WS: np.ndarray | None = None, stamps: dict[int, int] | None = None,
+                  values: gtsam.Values | None = None) -> int:
+        """Select a frame's points now (body frame S); returns how many points were kept.
+
+        ``T_WS``: the estimate at its stamp. With the window's ``stamps``/``values`` too, a frame without a
+        state of its own attaches now to the nearest window state within ``attach_tolerance_ms``, by the
+        relative pose of estimates from the same solve (later solves move both together); without them it
+        attaches when the factors are built."""
         p_C, s = select_depth_points(depth, sigma, K, self.cfg.max_points_frame)
         if len(p_C) < self.cfg.min_points_in_field:
             self.counts["depth_too_few_points"] += 1
             return 0
         T_SC = np.asarray(T_SC, float)
-        self._depth[int(stamp_ns)] = (p_C @ T_SC[:3, :3].T + T_SC[:3, 3], s, None if T_WS is None else np.asarray(T_WS, float))
+        p_S = p_C @ T_SC[:3, :3].T + T_SC[:3, 3]
+        key, T = int(stamp_ns), None if T_WS is None else np.asarray(T_WS, float)
+        if T is not None and stamps is not None and values is not None:
+            tol, attach = self.cfg.depth_stamp_tolerance_ms * 1e6, self.cfg.attach_tolerance_ms * 1e6
+            near = {n: abs(t - key) for n, t in stamps.items() if abs(t - key) <= attach and values.exists(X(n))}
+            if near:
+                n = min(near, key=near.get)
+                if near[n] > tol:
+                    T_AS = inv_T(values.atPose3(X(n)).matrix()) @ T
+                    p_S = p_S @ T_AS[:3, :3].T + T_AS[:3, 3]
+                    self.counts["frame_to_map_attached"] += 1
+                    if stamps[n] in self._depth:  # the state already has depth of its own or nearer
+                        return 0
+                key, T = stamps[n], None
+        self._depth[key] = (p_S, s, T)
         while len(self._depth) > self.cfg.max_pending_depth:
             self._depth.popitem(last=False)
             self.counts["depth_dropped_old"] += 1

@@ -64,7 +64,8 @@ class BackendShell:
         try:
             if isinstance(msg, DepthFrame):
                 T_WS = None if np.allclose(msg.T_WC, np.eye(4)) else msg.T_WC @ np.linalg.inv(msg.T_SC)
-                self.o2p.add_depth(msg.header.stamp_ns, msg.depth, msg.sigma, msg.K, msg.T_SC, T_WS)
+                est = self.estimator
+                self.o2p.add_depth(msg.header.stamp_ns, msg.depth, msg.sigma, msg.K, msg.T_SC, T_WS, est.stamps, est.values)
             elif isinstance(msg, OccupancyField):
                 self.o2p.add_field(msg)
             else:
