@@ -92,8 +92,7 @@ def pipeline_services(cfg, dataset: str, out: Path, realtime: bool, record: bool
                 continue
             s = dataclasses.replace(s, argv=["record", "--out", str(out / "recording.mcap")])
         elif s.argv[0] == "mapping":  # the map goes into the run folder: DIR/mesh.ply, DIR/submaps/, DIR/map.npz
-            # no restarts under run (restart 'never' below), so no periodic checkpoints either (docs/reliability.md)
-            s = dataclasses.replace(s, argv=["mapping", "--out", str(out), "--set", "mapping.checkpoint_period_s=0"])
+            s = dataclasses.replace(s, argv=["mapping", "--out", str(out)])
         services.append(dataclasses.replace(s, restart="never"))
     mode = ["--rate", f"{rate:g}"] if rate > 0 else (["--realtime"] if realtime else ["--lockstep"])
     wait = ["--wait-for", ",".join(s.name for s in services)] if services else []
