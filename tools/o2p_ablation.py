@@ -65,7 +65,7 @@ def _gt_points(path: Path) -> np.ndarray:
 
 
 def run_row(row: str, dataset: str, overrides: list[str], seconds: float, depth_every: int, heuristic_px: float,
-            stereo_cache: dict) -> dict:
+            stereo_cache: dict, mesh: bool = True) -> dict:
     cfg = load_system_config(None, overrides)
     if not cfg.rig.calibration:
         cfg.rig.calibration = dataset
@@ -151,7 +151,7 @@ def run_row(row: str, dataset: str, overrides: list[str], seconds: float, depth_
         ate = compute_ate(gt.stamps_ns, gt.p_WS, np.array(stamps), p, mode="se3")
         res["ate_causal_m"], align = ate.rmse_m, ate.alignment
     scene = sorted(Path(dataset).glob("mav0/scene/*.ply"))
-    if scene:
+    if scene and mesh:
         from tools.eval.mesh import evaluate_points
 
         t0 = time.perf_counter()
@@ -173,13 +173,14 @@ def main() -> None:
     p.add_argument("--rows", default=",".join(ROWS))
     p.add_argument("--heuristic-px", type=float, default=1.0, help="disparity sigma of the heuristic row [px]")
     p.add_argument("--set", action="append", default=[])
+    p.add_argument("--no-mesh", action="store_true", help="skip the mesh evaluation (slow on a loaded CPU)")
     p.add_argument("--out")
     a = p.parse_args()
     cache: dict = {}
     results = []
     for row in a.rows.split(","):
         t0 = time.perf_counter()
-        r = run_row(row, a.dataset, a.set, a.seconds, a.depth_every, a.heuristic_px, cache)
+        r = run_row(row, a.dataset, a.set, a.seconds, a.depth_every, a.heuristic_px, cache, not a.no_mesh)
         r["wall_s"] = round(time.perf_counter() - t0, 1)
         print(json.dumps(r, default=float), flush=True)
         results.append(r)
