@@ -19,6 +19,8 @@ class O2PConfig:
     min_points_in_field: int = param(100, "M_min: a target submap needs this many points inside its observed field")
     min_covisible_landmarks: int = param(5, "landmarks a frame must share with a submap to count it covisible")
     tukey_k: float = param(3.0, "Tukey threshold on the RMS whitened residual of a whole factor")
+    info_scale: float = param(1.0, "scales the information of every point (1: eq. 7 as it is; < 1 discounts depth errors "
+                              "correlated across a factor's points)")
     grad_min: float = param(1.0, "points where |grad L| is below this (saturated free space) drop out", "1/m")
     depth_stamp_tolerance_ms: float = param(1.0, "a depth frame belongs to the window state with this stamp", "ms")
     attach_tolerance_ms: float = param(150.0, "a depth frame without a window state at its stamp attaches to the nearest "
@@ -32,5 +34,5 @@ class O2PConfig:
         if min(self.max_points_frame, self.max_points_map, self.min_points_in_field, self.max_pending_depth,
                self.max_submaps) < 1:
             raise ValueError("o2p point counts and buffer sizes must be >= 1")
-        if not (self.tukey_k > 0 and self.grad_min >= 0):
-            raise ValueError("o2p tukey_k must be > 0 and grad_min >= 0")
+        if not (self.tukey_k > 0 and self.grad_min >= 0 and self.info_scale > 0):
+            raise ValueError("o2p tukey_k > 0, grad_min >= 0 and info_scale > 0 are required")

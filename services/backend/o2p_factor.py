@@ -20,7 +20,8 @@ differences inside every interpolation cell.
 
 Robustness: the Tukey loss acts on the norm of the whole N-vector (gtsam's Robust noise model reweights a
 factor as one block), with the threshold ``tukey_k * sqrt(n)`` for the n points valid when the factor is
-built: the factor switches off when the RMS whitened residual exceeds about ``tukey_k``.
+built: the factor switches off when the RMS whitened residual exceeds about ``tukey_k``. ``info_scale``
+(default 1) scales the information of every point (e.g. to discount errors correlated across the points).
 
 Points outside the target's observed field (any of the 8 interpolation voxels unknown) or in saturated
 free space (``|grad L| < grad_min``) give a zero residual row with zero Jacobians: they drop out.
@@ -90,7 +91,7 @@ class OccupancyToPoint:
     def __init__(self, field: BlockField, l_min: float, p_A: np.ndarray, sigma_d: np.ndarray, *,
                  key_a: int | None = None, key_b: int | None = None, T_WA: np.ndarray | None = None,
                  T_WB: np.ndarray | None = None, T_BM: np.ndarray | None = None, tukey_k: float = 3.0,
-                 grad_min: float = 1.0) -> None:
+                 grad_min: float = 1.0, info_scale: float = 1.0) -> None:
         p_A = np.asarray(p_A, np.float64).reshape(-1, 3)
         sigma_d = np.broadcast_to(np.asarray(sigma_d, np.float64), (len(p_A),)).copy()
         if len(p_A) == 0:
@@ -110,6 +111,9 @@ class OccupancyToPoint:
         self.T_WB = None if T_WB is None else np.asarray(T_WB, np.float64)
         self.T_MB = np.linalg.inv(np.eye(4) if T_BM is None else np.asarray(T_BM, np.float64))
         self.tukey_k, self.grad_min = float(tukey_k), float(grad_min)
+        if not info_scale > 0:
+            raise ValueError(f"info_scale must be > 0, got {info_scale}")
+        self._sqrt_info = float(np.sqrt(info_scale))  # 1: eq. 7 as it is
         self._memo: tuple[bytes, O2PEvaluation] | None = None  # gtsam asks for the error and the Jacobians at one estimate
 
     @property
@@ -129,8 +133,9 @@ class OccupancyToPoint:
         valid &= g2 >= self.grad_min**2
         s2 = self.sigma_d**2
         D = np.sqrt(self.l_min**2 + 9.0 * g2 * s2)
-        r = np.where(valid, 3.0 * L / D, 0.0)
-        dr_dq = (3.0 / D)[:, None] * g - (27.0 * L * s2 / D**3)[:, None] * _hessian_times(mixed, g)
+        k = self._sqrt_info
+        r = np.where(valid, 3.0 * k * L / D, 0.0)
+        dr_dq = (3.0 * k / D)[:, None] * g - (27.0 * k * L * s2 / D**3)[:, None] * _hessian_times(mixed, g)
         dr_dq[~valid] = 0.0
         c = dr_dq @ R_MB  # d r / d z_B
         a = c @ R_WB.T @ R_WA  # d r / d (point in A)
@@ -151,7 +156,7 @@ class OccupancyToPoint:
     def factor(self, n_valid: int | None = None) -> gtsam.CustomFactor:
         """The gtsam factor (N rows, Tukey on the whole vector with threshold tukey_k sqrt(n_valid))."""
         n = len(self.p_A)
-        c = self.tukey_k * np.sqrt(max(1, n if n_valid is None else n_valid))
+        c = self.tukey_k * self._sqrt_info * np.sqrt(max(1, n if n_valid is None else n_valid))
         noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Tukey.Create(c), gtsam.noiseModel.Unit.Create(n))
 
         def error(this: gtsam.CustomFactor, values: gtsam.Values, H) -> np.ndarray:

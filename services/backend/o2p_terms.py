@@ -166,7 +166,8 @@ class OccupancyTerms:
         tgt = self._target_pose(sm, stamps, values)
         if tgt.get("key_b") == key_a:
             return None
-        f = OccupancyToPoint(sm.field, sm.l_min, p_A, sig, key_a=key_a, tukey_k=c.tukey_k, grad_min=c.grad_min, **tgt)
+        f = OccupancyToPoint(sm.field, sm.l_min, p_A, sig, key_a=key_a, tukey_k=c.tukey_k, grad_min=c.grad_min,
+                           info_scale=c.info_scale, **tgt)
         n_valid = f.n_valid(values) if "key_b" in tgt else int(f.evaluate(values.atPose3(key_a).matrix(), tgt["T_WB"]).valid.sum())
         return (f, f.factor(n_valid)) if n_valid >= c.min_points_in_field else None
 
