@@ -47,6 +47,7 @@ def _run_pipeline(dataset: Path, args: argparse.Namespace, viewer_overrides: lis
 
 
 def _mesh_figures(out: Path, dataset: Path) -> dict | None:
+    from tools.eval.ate import run_alignment
     from tools.eval.mesh import evaluate_mesh_files
 
     est = out / "mesh.ply"
@@ -54,8 +55,13 @@ def _mesh_figures(out: Path, dataset: Path) -> dict | None:
     if not est.is_file() or not gt.is_file():
         print(f"[sigmaslam demo] no mesh evaluation ({est if not est.is_file() else gt} missing)", flush=True)
         return None
+    T0 = None
+    try:  # the run's world frame into the ground truth's, by the causal trajectory's SE(3) alignment
+        T0 = run_alignment(out / "trajectory_causal.txt", dataset / "mav0" / "state_groundtruth_estimate0" / "data.csv")
+    except (ValueError, OSError) as exc:
+        print(f"[sigmaslam demo] mesh evaluated without trajectory alignment ({exc})", flush=True)
     # ground truth sampled at the 1 cm evaluation resolution (the protocol downsamples to 1 cm anyway)
-    res = evaluate_mesh_files(est, gt, gt_sample_spacing_m=0.01, out_dir=out / "mesh_eval")
+    res = evaluate_mesh_files(est, gt, gt_sample_spacing_m=0.01, out_dir=out / "mesh_eval", T_gt_est_init=T0)
     return res.summary()
 
 

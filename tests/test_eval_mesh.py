@@ -39,6 +39,32 @@ def test_partial_estimate_completeness_and_icp_removes_an_offset():
     assert no_icp.accuracy_m > 0.01  # the shift, less its part along the surface
 
 
+def test_run_frame_estimate_needs_the_trajectory_alignment(tmp_path):
+    """A map in a SLAM run's own world frame (yawed and shifted by metres) is only comparable after the
+    trajectory's alignment: with it the accuracy is that of the mesh, without it ICP cannot reach it."""
+    from scipy.spatial.transform import Rotation
+
+    from tools.eval.ate import compute_ate
+
+    box = o3d.geometry.TriangleMesh.create_box(2.0, 1.0, 0.5)
+    o3d.io.write_triangle_mesh(str(tmp_path / "gt.ply"), box)
+    T_run_gt = np.eye(4)
+    T_run_gt[:3, :3] = Rotation.from_euler("z", 70, degrees=True).as_matrix()
+    T_run_gt[:3, 3] = [3.0, -1.5, 0.2]
+    est = o3d.geometry.TriangleMesh(box).subdivide_midpoint(4).transform(T_run_gt)
+    o3d.io.write_triangle_mesh(str(tmp_path / "est.ply"), est)
+    # the same motion seen by a trajectory: ground-truth positions and the run's positions of them
+    p_gt = np.random.default_rng(3).uniform(-1, 1, (50, 3))
+    p_run = p_gt @ T_run_gt[:3, :3].T + T_run_gt[:3, 3]
+    stamps = np.arange(50, dtype=np.int64) * 50_000_000
+    T0 = compute_ate(stamps, p_gt, stamps, p_run, mode="se3").alignment.matrix()
+    aligned = evaluate_mesh_files(tmp_path / "est.ply", tmp_path / "gt.ply", T_gt_est_init=T0)
+    assert aligned.accuracy_m < 0.005 and aligned.completeness > 0.99
+    np.testing.assert_allclose(aligned.T_gt_est @ T_run_gt, np.eye(4), atol=1e-3)
+    unaligned = evaluate_mesh_files(tmp_path / "est.ply", tmp_path / "gt.ply")
+    assert unaligned.accuracy_m > 0.5
+
+
 def test_error_colours_ramp():
     c = error_colors(np.array([0.0, 0.05, 0.2]), max_m=0.1)
     assert c.tolist() == [[0, 0, 255], [0, 255, 0], [255, 0, 0]]

@@ -24,6 +24,13 @@ class Alignment:
     def apply(self, p: np.ndarray) -> np.ndarray:
         return self.scale * p @ self.R.T + self.t
 
+    def matrix(self) -> np.ndarray:
+        """4x4 homogeneous form (scale folded into the rotation block): ground-truth frame <- estimate frame."""
+        T = np.eye(4)
+        T[:3, :3] = self.scale * self.R
+        T[:3, 3] = self.t
+        return T
+
 
 @dataclasses.dataclass(frozen=True)
 class AteResult:
@@ -115,3 +122,12 @@ def compute_ate(gt_stamps_ns: np.ndarray, gt_p: np.ndarray, est_stamps_ns: np.nd
     err = np.linalg.norm(al.apply(p_est) - p_gt, axis=1)
     return AteResult(float(np.sqrt(np.mean(err ** 2))), float(err.mean()), float(np.median(err)), float(err.max()),
                      len(err), al, err, stamps)
+
+
+def run_alignment(est_path, gt_path, mode: str = "se3") -> np.ndarray:
+    """4x4 transform taking a run's world frame into the ground truth's, from the run's trajectory file
+    (TUM or EuRoC CSV) aligned to the ground truth: what puts the run's map next to the ground-truth mesh."""
+    from shared.euroc import read_trajectory
+
+    est, gt = read_trajectory(est_path), read_trajectory(gt_path)
+    return compute_ate(gt.stamps_ns, gt.p_WS, est.stamps_ns, est.p_WS, mode=mode).alignment.matrix()

@@ -127,13 +127,22 @@ def _top_view_png(v: np.ndarray, colors: np.ndarray, path: Path, size: int = 102
 
 
 def evaluate_mesh_files(est_path: str | Path, gt_path: str | Path, voxel_m: float = 0.01, icp: bool = True,
-                        gt_sample_spacing_m: float = 0.005, out_dir: str | Path | None = None) -> MeshEvalResult:
-    """The paper's protocol on two files; with ``out_dir`` also error_mesh.ply, error_top.png, mesh_eval.json."""
+                        gt_sample_spacing_m: float = 0.005, out_dir: str | Path | None = None,
+                        T_gt_est_init: np.ndarray | None = None) -> MeshEvalResult:
+    """The paper's protocol on two files; with ``out_dir`` also error_mesh.ply, error_top.png, mesh_eval.json.
+
+    ``T_gt_est_init`` first moves the estimate into the ground truth's frame (e.g. the run's trajectory
+    alignment, :func:`tools.eval.ate.run_alignment`); ICP then refines from there. A SLAM run's world frame is
+    its own (gravity-aligned, arbitrary yaw and origin), so without it ICP starts metres away.
+    """
     import json
 
     est = load_points(est_path)
+    T0 = np.eye(4) if T_gt_est_init is None else np.asarray(T_gt_est_init, float)
+    est = est @ T0[:3, :3].T + T0[:3, 3]
     gt = load_points(gt_path, gt_sample_spacing_m)
     res = evaluate_points(est, gt, voxel_m, icp)
+    res = dataclasses.replace(res, T_gt_est=res.T_gt_est @ T0)
     if out_dir is not None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)

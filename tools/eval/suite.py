@@ -95,7 +95,8 @@ def evaluate_sequence(seq: str, replica: Path, run_dir: Path, out: Path, hilti_p
     gt_mesh = replica / "mav0" / "scene" / "mesh.ply"
     if mesh.is_file() and gt_mesh.is_file():
         try:
-            m = evaluate_mesh_files(mesh, gt_mesh, out_dir=out / "mesh")
+            T0 = runs["causal"][0].alignment.matrix() if "causal" in runs else None  # run frame -> GT frame
+            m = evaluate_mesh_files(mesh, gt_mesh, out_dir=out / "mesh", T_gt_est_init=T0)
             row.update(accuracy_m=m.accuracy_m, completeness=m.completeness, mesh_points=m.n_est)
         except (ValueError, RuntimeError) as exc:
             row["error_mesh"] = str(exc)
