@@ -79,6 +79,11 @@ class BoundedQueue(Generic[T]):
             self._received += n
             self._dropped += n
 
+    def count_shed(self, n: int = 1) -> None:
+        """Count items the consumer took from the queue and discarded (e.g. skipped to catch up)."""
+        with self._cond:
+            self._dropped += n
+
     def count_received(self, n: int = 1) -> None:
         """Count items delivered elsewhere (a subscriber in callback mode bypasses the queue)."""
         with self._cond:

@@ -52,3 +52,5 @@ class BackendConfig:
     # --- service ---
     budget_ms: float = param(18.0, "per-frame budget of the optimisation stage (stats topic)", "ms")
     imu_wait_s: float = param(0.5, "how long a feature frame waits for the IMU samples up to its time", "s")
+    max_backlog_frames: int = param(4, "when more feature frames than this wait, the oldest non-keyframes are "
+                                    "skipped (counted as drops) so the causal pose stays current; 0: never skip")

@@ -13,9 +13,11 @@ import dataclasses
 import logging
 import os
 import time
+from collections import deque
 
 import numpy as np
 
+from services.backend.backlog import shed_backlog
 from services.backend.estimator import BackendInputError, WindowedVioEstimator, camera_from_calib
 from services.backend.imu_factors import ImuDataError
 from services.frontend.undistort import LookupCamera
@@ -138,15 +140,24 @@ def main(args: argparse.Namespace) -> int:
             map_inputs = [node.subscriber(topics.MAP_FIELD, policy="all", depth=64),
                           node.subscriber(topics.MAP_O2P_POINTS), node.subscriber(topics.DEPTH_STEREO, depth=8)]
         log.info("backend: %d cameras", len(cameras))
+        pending: deque = deque()  # frames taken from the queue, oldest first
         while not node.stopped:
-            try:
-                frame = features.get(timeout=0.1)
-            except Empty:
-                for s in imu.drain():
-                    shell.add_imu(s)
-                if loop is not None and (final := loop.poll_end(ends.drain())) is not None:
-                    final_pub.publish(final)
-                continue
+            if not pending:
+                try:
+                    pending.append(features.get(timeout=0.1))
+                except Empty:
+                    for s in imu.drain():
+                        shell.add_imu(s)
+                    if loop is not None and (final := loop.poll_end(ends.drain())) is not None:
+                        final_pub.publish(final)
+                    continue
+            pending.extend(features.drain())
+            kept, skipped = shed_backlog(pending, bc.max_backlog_frames)
+            if skipped:
+                features.queue.count_shed(skipped)
+                log.warning("backend: %d frames behind, skipped %d non-keyframes to catch up", len(pending), skipped)
+            pending = deque(kept)
+            frame = pending.popleft()
             stamp = int(frame.header.stamp_ns)
             deadline = time.monotonic() + bc.imu_wait_s
             for s in imu.drain():

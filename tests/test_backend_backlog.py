@@ -1,0 +1,32 @@
+from dataclasses import dataclass
+
+from services.backend.backlog import shed_backlog
+from transport.queues import BoundedQueue
+
+
+@dataclass
+class F:
+    seq: int
+    is_keyframe: bool = False
+
+
+def test_keeps_newest_and_every_keyframe_in_order():
+    frames = [F(i, is_keyframe=i in (1, 4)) for i in range(10)]
+    kept, skipped = shed_backlog(frames, 3)
+    assert [f.seq for f in kept] == [1, 4, 7, 8, 9]
+    assert skipped == 5
+
+
+def test_no_skipping_within_the_bound_or_when_disabled():
+    frames = [F(i) for i in range(4)]
+    assert shed_backlog(frames, 4) == (frames, 0)
+    assert shed_backlog(frames * 5, 0) == (frames * 5, 0)
+
+
+def test_shed_items_count_as_drops_not_as_new_arrivals():
+    q = BoundedQueue("all", 64, "frontend/frame")
+    for i in range(6):
+        q.put(F(i))
+    kept, skipped = shed_backlog(q.drain(), 2)
+    q.count_shed(skipped)
+    assert q.counters()[:2] == (6, 4)
