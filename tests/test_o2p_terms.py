@@ -190,3 +190,26 @@ def test_depth_between_keyframes_attaches_to_the_nearest_state(room):
             assert terms.counts["frame_to_map_attached"] == 1
             rot, tr = err(solve(fs, values).atPose3(X(5)).matrix(), T_k)
             assert rot < 0.3 and tr < 0.01
+
+
+def test_target_state_leaving_the_window_holds_the_submap_fixed(room):
+    """Submap 0 anchored on window state 1: the factor acts on both poses; when state 1 leaves the window the
+    factor stays (submap held at its T_WM) instead of referring to a missing key."""
+    msg, renderer = room
+    T_true = view(2.0)
+    terms = OccupancyTerms(O2PConfig(enabled=True))
+    for t in range(1, 4):
+        terms.note_frame(t * S, np.arange(0, 50))
+    terms.add_field(msg)  # created at 1 s, T_WM = identity
+    terms.note_frame(5 * S, np.arange(10, 60))
+    terms.add_depth(5 * S, renderer.render(K, W, H, T_true), np.full((H, W), 0.03, np.float32), K, np.eye(4))
+    values = gtsam.Values()
+    values.insert(X(1), gtsam.Pose3(np.eye(4)))
+    values.insert(X(5), gtsam.Pose3(perturbed(T_true, 4)))
+    fs = terms.factors({1: 1 * S, 5: 5 * S}, values)
+    assert len(fs) == 1 and set(fs[0].keys()) == {X(1), X(5)}
+    values.erase(X(1))
+    fs = terms.factors({5: 5 * S}, values)
+    assert len(fs) == 1 and list(fs[0].keys()) == [X(5)] and terms.counts["factor_target_fixed"] == 1
+    rot, tr = err(solve(fs, values).atPose3(X(5)).matrix(), T_true)
+    assert rot < 0.3 and tr < 0.01

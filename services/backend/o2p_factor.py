@@ -156,6 +156,7 @@ class OccupancyToPoint:
     def factor(self, n_valid: int | None = None) -> gtsam.CustomFactor:
         """The gtsam factor (N rows, Tukey on the whole vector with threshold tukey_k sqrt(n_valid))."""
         n = len(self.p_A)
+        self.n_valid_built = n if n_valid is None else int(n_valid)
         c = self.tukey_k * self._sqrt_info * np.sqrt(max(1, n if n_valid is None else n_valid))
         noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Tukey.Create(c), gtsam.noiseModel.Unit.Create(n))
 

@@ -171,6 +171,16 @@ class OccupancyTerms:
         n_valid = f.n_valid(values) if "key_b" in tgt else int(f.evaluate(values.atPose3(key_a).matrix(), tgt["T_WB"]).valid.sum())
         return (f, f.factor(n_valid)) if n_valid >= c.min_points_in_field else None
 
+    def _refixed(self, f: OccupancyToPoint, submap_id: int) -> tuple[OccupancyToPoint, gtsam.NonlinearFactor] | None:
+        sm = self.submaps.get(submap_id)
+        if sm is None:
+            self.counts["factor_target_gone"] += 1
+            return None
+        g = OccupancyToPoint(f.field, f.l_min, f.p_A, f.sigma_d, key_a=f.key_a, T_WB=sm.T_WM, tukey_k=f.tukey_k,
+                             grad_min=f.grad_min, info_scale=f._sqrt_info**2)
+        self.counts["factor_target_fixed"] += 1
+        return g, g.factor(f.n_valid_built)
+
     def _covisible(self, lms: np.ndarray, exclude: int = -1) -> list[_Submap]:
         need = self.cfg.min_covisible_landmarks
         return [sm for sm in self.submaps.values()
@@ -182,6 +192,9 @@ class OccupancyTerms:
         c = self.cfg
         live = {n for n in stamps if values.exists(X(n))}
         self._built = {k: v for k, v in self._built.items() if k[1] in live}
+        for k, v in list(self._built.items()):  # a target state left the window: hold that submap where it is now
+            if v is not None and v[0].key_b is not None and not values.exists(v[0].key_b):
+                self._built[k] = self._refixed(v[0], k[2])
         if c.frame_to_map and self.submaps:
             tol = int(c.depth_stamp_tolerance_ms * 1e6)
             attach = int(c.attach_tolerance_ms * 1e6)
@@ -215,6 +228,6 @@ class OccupancyTerms:
                 p_A = m.points_M @ T_AM[:3, :3].T + T_AM[:3, 3]
                 o = self._o(self._covisible(m.landmarks, exclude=m.id), p_A, T_WA, exclude=m.id)
                 built = None if o is None else self._make(o, p_A, m.sigma, X(n), stamps, values)
-                self._built[("m2m", n, m.id)] = built
+                self._built[("m2m", n, -1 if o is None else o.id)] = built  # keyed by the target, like f2m
                 self.counts["map_to_map" if built else "map_to_map_no_target"] += 1
         return [v[1] for v in self._built.values() if v is not None]
