@@ -52,17 +52,22 @@ def test_map_save_killed_mid_write_leaves_the_previous_complete_map(tmp_path):
     mid_write = 0
     tries = 8 if FULL else 3
     for _ in range(tries):
+        before = set(tmp_path.glob(".map.npz.*.tmp"))  # left by earlier kills
         proc = subprocess.Popen([sys.executable, "-c", SAVER, str(path)], cwd=REPO, env=child_env(),
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
             line = proc.stdout.readline()  # the first save is complete
             assert line.startswith("saved"), proc.stderr.read()
-            time.sleep(float(rng.uniform(0.0, 0.5)))
-            tmp_files = list(tmp_path.glob(".map.npz.*.tmp"))
+            time.sleep(float(rng.uniform(0.0, 0.3)))
+            # then kill as soon as a new file is being written (or after 3 s, wherever the saver is)
+            deadline = time.monotonic() + 3.0
+            while not set(tmp_path.glob(".map.npz.*.tmp")) - before and time.monotonic() < deadline:
+                time.sleep(0.001)
             os.kill(proc.pid, signal.SIGKILL)
         finally:
             proc.wait(timeout=30)
-        mid_write += bool(tmp_files)
+        # a temporary file left behind means the kill landed before the rename: mid-write
+        mid_write += bool(set(tmp_path.glob(".map.npz.*.tmp")) - before)
         mapper = load_map(path)
         assert len(mapper.submaps) >= 1 and mapper.submaps[0].store.n_blocks > 0
     # the kills landed at least once while a new file was being written (else the test proved nothing)
