@@ -23,17 +23,9 @@ from shared.euroc import read_tum
 from shared.geometry import pose_from_pq
 from shared.messages import EstimatorState, Keyframes, SubmapMesh
 from transport.node import Node
-from transport.session import open_session
+from transport.session import open_session, free_local_port
 
 log = logging.getLogger("sigmaslam.demo")
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def load_submaps(out: Path) -> list[SubmapMesh]:
@@ -72,7 +64,7 @@ def load_states(path: Path) -> list[EstimatorState]:
 
 
 def serve_run(out: Path, config: str | None, overrides: list[str], seconds: float) -> None:
-    port = _free_port()
+    port = free_local_port()
     cfg = load_system_config(config, [*overrides, f"transport.connect=[tcp/127.0.0.1:{port}]",
                                       f"transport.router_listen=[tcp/127.0.0.1:{port}]",
                                       "transport.namespace=sigmaslam/demo-serve"])

@@ -43,6 +43,7 @@ from shared.euroc import PoseSeries, read_trajectory, write_euroc_csv, write_tum
 from shared.geometry import R_to_quat_wxyz
 from transport.node import Node
 from transport.queues import Empty
+from transport.session import free_local_port
 
 log = logging.getLogger("sigmaslam.run")
 
@@ -69,14 +70,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--timeout-s", type=float, default=0.0, help="give up after this long (0: no limit) [s]")
     p.add_argument("--final-timeout-s", type=float, default=600.0, help="wait this long for the back end's final "
                    "bundle adjustment (estimator/trajectory_final) after the stream ended [s]")
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def pipeline_services(cfg, dataset: str, out: Path, realtime: bool, record: bool,
@@ -199,7 +192,7 @@ def main(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     dataset = str(Path(args.dataset).resolve())
-    port = _free_port()
+    port = free_local_port()
     run_id = uuid.uuid4().hex[:8]
     overrides = [f"transport.namespace=sigmaslam/run-{run_id}", f"transport.connect=[tcp/127.0.0.1:{port}]",
                  f"transport.router_listen=[tcp/127.0.0.1:{port}]", *args.set]

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -14,16 +13,12 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 from transport.config import TransportConfig
-from transport.session import open_session
+from transport.session import free_local_port, open_session
 
 REPO = Path(__file__).resolve().parents[1]
 
 
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+free_port = free_local_port  # the one helper; tests import it under this name
 
 
 def service_config(port: int, **overrides: object) -> TransportConfig:

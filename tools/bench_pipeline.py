@@ -32,6 +32,7 @@ import numpy as np
 from tools.bench_budgets import check_budgets, format_table, load_budgets
 from tools.pipeline_probe import (ArrivalLog, ProcessSampler, first_arrivals, map_latencies, matched_latencies,
                                   summary)
+from transport.session import free_local_port
 
 SERVICES = ("frontend", "backend", "depth", "mapping")
 # (service, queue) pairs whose drops are frames lost by the estimator
@@ -74,14 +75,6 @@ def frames_within(dataset: Path, seconds: float) -> int:
     return int(np.sum(stamps - stamps[0] <= int(seconds * 1e9)))
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _probe(log: ArrivalLog, transport_cfg, stop: threading.Event, ready: threading.Event) -> None:
     from shared import topics
     from transport.node import Node
@@ -107,7 +100,7 @@ def run_once(dataset: Path, out: Path, rate: float, seconds: float, services: st
     stage_dir = out / "stage_log"
     shutil.rmtree(stage_dir, ignore_errors=True)
     stage_dir.mkdir()
-    port = _free_port()
+    port = free_local_port()
     overrides = [f"transport.namespace=sigmaslam/bench-{uuid.uuid4().hex[:8]}",
                  f"transport.connect=[tcp/127.0.0.1:{port}]", f"transport.router_listen=[tcp/127.0.0.1:{port}]",
                  "loop.final_ba=false",  # the bench measures the real-time part; --set loop.final_ba=true to add it

@@ -33,7 +33,7 @@ import numpy as np
 from shared.messages import Header, ImuSample, MultiCameraFrame, DepthFrame
 from transport.config import TransportConfig
 from transport.pubsub import Publisher, Subscriber
-from transport.session import open_session
+from transport.session import open_session, free_local_port
 
 REPO = Path(__file__).resolve().parents[1]
 TARGETS = {"frame_shm_p50_ms": 1.0, "frame_shm_p99_ms": 3.0, "rtt_64B_p50_ms": 0.3}
@@ -268,16 +268,8 @@ def measure_frames(args: argparse.Namespace, connect: str, payload: str, shm: bo
                 delivered=delivered, drops=lost + sub.dropped, latencies_ms=[round(x / 1e6, 4) for x in latencies], out_of_order=int(np.sum(np.diff(seqs) <= 0)) if seqs else 0)
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def benchmark(args: argparse.Namespace) -> dict:
-    port = args.port or _free_port()
+    port = args.port or free_local_port()
     connect = f"tcp/127.0.0.1:{port}"
     router_cfg = TransportConfig(router_listen=[connect], shared_memory=True)
     result = {"host": platform.node(), "cpus": os.cpu_count(), "python": platform.python_version(),

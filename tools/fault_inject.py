@@ -32,17 +32,10 @@ from services.system_config import load_system_config
 from shared import topics
 from shared.config import to_yaml
 from transport.node import Node
+from transport.session import free_local_port
 
 PIPELINE = ("frontend", "backend", "depth", "mapping")
 OPTIONAL = ("viewer", "recorder")  # started with --with; the viewer on a free port, the recorder to DIR/recording.mcap
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class Probe:
@@ -97,11 +90,11 @@ class Probe:
 
 
 def build(dataset: str, out: Path, rate: float, sets: list[str], nice: int = 10, extra: tuple[str, ...] = ()):
-    port = _free_port()
+    port = free_local_port()
     overrides = [f"transport.namespace=sigmaslam/faults-{uuid.uuid4().hex[:8]}", f"transport.connect=[tcp/127.0.0.1:{port}]",
                  f"transport.router_listen=[tcp/127.0.0.1:{port}]", "depth.method=sgbm", "depth.rate_hz=5",
                  "mapping.depth_topic=depth/stereo", "mapping.checkpoint_period_s=2", "loop.enabled=false",
-                 "transport.stats_period_s=0.5", f"viewer.port={_free_port()}", *sets]
+                 "transport.stats_period_s=0.5", f"viewer.port={free_local_port()}", *sets]
     cfg = load_system_config(None, overrides)
     cfg.rig.calibration = dataset
     spec = dict(restart="on-failure", max_restarts=5, window_s=120.0, backoff_s=0.2)

@@ -38,3 +38,12 @@ def zenoh_config(cfg: TransportConfig, role: str = "service") -> zenoh.Config:
 def open_session(cfg: TransportConfig, role: str = "service") -> zenoh.Session:
     """Open a session; use it as a context manager (``with open_session(cfg) as s:``)."""
     return zenoh.open(zenoh_config(cfg, role))
+
+
+def free_local_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago (for a private router of a run or a test)."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
