@@ -29,6 +29,16 @@ from shared.config import ConfigError, param
 
 log = logging.getLogger("sigmaslam.up")
 
+RESTARTS_ENV = "SIGMASLAM_RESTARTS"  # set in each child: how often the supervisor restarted that service
+
+
+def restart_count() -> int:
+    """In a supervised service: how many times it was restarted (0 at its first start or unsupervised)."""
+    try:
+        return max(0, int(os.environ.get(RESTARTS_ENV, "0") or 0))
+    except ValueError:
+        return 0
+
 RESTART_POLICIES = ("on-failure", "always", "never")
 
 
@@ -186,7 +196,7 @@ class Supervisor:
     def _start(self, child: Child) -> None:
         parent = os.getpid()
         env = self._env()
-        env["SIGMASLAM_RESTARTS"] = str(child.tracker.total_restarts)  # > 0: a restart (the back end reports 'reset')
+        env[RESTARTS_ENV] = str(child.tracker.total_restarts)  # > 0: a restart (the back end reports 'reset')
         child.proc = subprocess.Popen(child.argv, env=env, start_new_session=True,
                                       preexec_fn=lambda: _child_setup(parent, child.spec.nice))
         child.restart_at = None

@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
-import os
 import time
 from collections import deque
 
@@ -24,6 +23,7 @@ from services.frontend.undistort import LookupCamera
 from services.backend.outputs import keyframes_message, state_message
 from services.loop.backend_loop import LoopClosingBackend
 from services.system_config import load_system_config
+from services.supervisor import restart_count
 from shared import topics
 from shared.camera import CalibrationError
 from shared.messages import DepthFrame, EstimatorState, FeatureFrame, Header, Keyframes, OccupancyField
@@ -122,7 +122,7 @@ def main(args: argparse.Namespace) -> int:
         return 2
     bc = cfg.backend
     shell = BackendShell(bc, cameras)
-    shell.restarted = int(os.environ.get("SIGMASLAM_RESTARTS", "0") or 0) > 0
+    shell.restarted = restart_count() > 0
     loop = LoopClosingBackend(shell, cfg.loop) if cfg.loop.enabled else None  # loop closure: services/loop
     if cfg.o2p.enabled:
         shell.enable_o2p(cfg.o2p)

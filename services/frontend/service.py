@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import time
 
 import numpy as np
@@ -19,6 +18,7 @@ from services.frontend.gyro import GyroIntegrator
 from services.frontend.tracker import FrontendInputError, MultiCameraTracker, TrackerOutput
 from services.loop.frontend_hook import keyframe_features_message
 from services.system_config import load_system_config
+from services.supervisor import restart_count
 from shared import topics
 from shared.camera import CalibrationError
 from shared.messages import FeatureFrame, Header, MultiCameraFrame
@@ -91,7 +91,7 @@ def main(args: argparse.Namespace) -> int:
         print(f"sigmaslam frontend: {exc}", flush=True)
         return 2
     # after a supervisor restart, landmark ids continue in a range of their own (2^40 ids per life)
-    restarts = int(os.environ.get("SIGMASLAM_RESTARTS", "0") or 0)
+    restarts = restart_count()
     shell = FrontendShell(cfg.frontend, cameras, first_landmark_id=restarts << 40)
     fc = cfg.frontend
     with Node("frontend", cfg.transport) as node:

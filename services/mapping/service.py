@@ -20,7 +20,6 @@ import argparse
 import collections
 import json
 import logging
-import os
 import time
 from pathlib import Path
 
@@ -32,6 +31,7 @@ from services.mapping.o2p_points import SubmapPointPool
 from services.mapping.poses import PoseBuffer
 from services.mapping.submaps import SubmapMapper
 from services.system_config import load_system_config
+from services.supervisor import restart_count
 from shared import messages, topics
 from shared.codec import Header
 
@@ -190,7 +190,7 @@ def resume_map(loop: MappingLoop, out_dir: str | None) -> bool:
     if out_dir:
         for tmp in remove_stale_temps(out_dir):
             log.warning("removed %s, left by a save that was killed", tmp)
-    if int(os.environ.get("SIGMASLAM_RESTARTS", "0") or 0) <= 0 or not out_dir:
+    if restart_count() <= 0 or not out_dir:
         return False
     path = Path(out_dir) / "map.npz"
     try:
