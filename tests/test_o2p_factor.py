@@ -10,33 +10,17 @@ from gtsam.symbol_shorthand import X
 
 from services.backend.o2p_factor import OccupancyToPoint, trilinear_derivatives
 from services.mapping.blocks import BlockStore
-from services.mapping.config import SensorModelConfig
-from services.mapping.integrate import integrate
 from services.mapping.query import BlockField, interpolate, near_surface_field
-from services.mapping.sensor_model import prepare_depth
 from shared.geometry import inv_T, make_T, so3_exp
-from tools.raycast_depth import DepthRenderer, intrinsics, look_at, room_scene
+from tests.o2p_room import H, K, W, mapped_room, view
 
-W, H = 160, 120
-K = intrinsics(W, H)
 SIGMA = 0.02
-
-
-def view(a: float) -> np.ndarray:
-    eye = np.array([3.0 + 0.8 * np.cos(a), 2.5 + 0.8 * np.sin(a), 1.5])
-    return look_at(eye, eye + np.array([np.cos(a + 0.5), np.sin(a + 0.5), -0.3]))
 
 
 @pytest.fixture(scope="module")
 def room():
     """Occupancy of a box room with a box inside, integrated from ray-cast depth (map frame = world)."""
-    renderer = DepthRenderer(room_scene())
-    cfg = SensorModelConfig()
-    store = BlockStore(cfg.voxel_size_m)
-    for a in np.linspace(0, 2 * np.pi, 12, endpoint=False):
-        T = view(a)
-        d, s, _ = prepare_depth(renderer.render(K, W, H, T), np.full((H, W), SIGMA, np.float32), cfg)
-        integrate(store, d, s, K, T, cfg)
+    store, renderer, cfg = mapped_room(SIGMA)
     return near_surface_field(store), renderer, cfg
 
 

@@ -12,33 +12,19 @@ from services.backend.o2p_config import O2PConfig
 from services.backend.o2p_terms import OccupancyTerms
 from services.mapping.o2p_points import SubmapPointPool, select_depth_points
 from services.mapping.blocks import BlockStore
-from services.mapping.config import SensorModelConfig
 from services.mapping.export import field_message
-from services.mapping.integrate import integrate
 from services.mapping.mesh import ChunkMesher
-from services.mapping.sensor_model import prepare_depth
 from services.mapping.submaps import Submap
 from shared.geometry import inv_T, make_T, so3_exp
-from tools.raycast_depth import DepthRenderer, intrinsics, look_at, room_scene
+from tests.o2p_room import H, K, W, mapped_room, view
+from tools.raycast_depth import intrinsics, room_scene
 
-W, H = 160, 120
-K = intrinsics(W, H)
 S = 1_000_000_000  # 1 s in ns
-
-
-def view(a: float) -> np.ndarray:
-    eye = np.array([3.0 + 0.8 * np.cos(a), 2.5 + 0.8 * np.sin(a), 1.5])
-    return look_at(eye, eye + np.array([np.cos(a + 0.5), np.sin(a + 0.5), -0.3]))
 
 
 @pytest.fixture(scope="module")
 def room():
-    renderer = DepthRenderer(room_scene())
-    cfg = SensorModelConfig()
-    store = BlockStore(cfg.voxel_size_m)
-    for a in np.linspace(0, 2 * np.pi, 12, endpoint=False):
-        d, s, _ = prepare_depth(renderer.render(K, W, H, view(a)), np.full((H, W), 0.02, np.float32), cfg)
-        integrate(store, d, s, K, view(a), cfg)
+    store, renderer, cfg = mapped_room(0.02)
     msg = field_message(Submap(0, np.eye(4), 1 * S, store, ChunkMesher(4)), cfg.l_min)
     return msg, renderer
 
