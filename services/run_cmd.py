@@ -39,8 +39,7 @@ from services.supervisor import ServiceSpec, Supervisor, validate
 from services.system_config import load_system_config
 from shared import topics
 from shared.config import to_yaml
-from shared.euroc import PoseSeries, read_trajectory, write_euroc_csv, write_tum
-from shared.geometry import R_to_quat_wxyz
+from shared.euroc import series_from_matrices, PoseSeries, read_trajectory, write_euroc_csv, write_tum
 from transport.node import Node
 from transport.queues import Empty
 from transport.session import free_local_port
@@ -146,8 +145,7 @@ def _trajectory(states) -> PoseSeries:
     stamps = np.array([s.header.stamp_ns for s in good], np.int64)
     order = np.argsort(stamps, kind="stable")
     T = np.array([s.T_WS for s in good]).reshape(-1, 4, 4)[order]
-    q = np.array([R_to_quat_wxyz(t[:3, :3]) for t in T]).reshape(-1, 4)
-    return PoseSeries(stamps[order], T[:, :3, 3], q)
+    return series_from_matrices(stamps[order], T)
 
 
 def stats_summary(col: _Collector) -> dict:

@@ -148,3 +148,12 @@ def read_trajectory(path: str | Path) -> PoseSeries:
     if name.endswith((".txt", ".tum")):
         return read_tum(path)
     return read_euroc_csv(path)
+
+
+def series_from_matrices(stamps_ns, T_WS) -> PoseSeries:
+    """A PoseSeries from stamps (N,) [ns] and body poses T_WS (N, 4, 4)."""
+    from shared.geometry import R_to_quat_wxyz
+
+    T = np.asarray(T_WS, dtype=np.float64).reshape(-1, 4, 4)
+    return PoseSeries(np.asarray(stamps_ns, dtype=np.int64).reshape(-1), T[:, :3, 3].copy(),
+                      R_to_quat_wxyz(T[:, :3, :3]).reshape(-1, 4))

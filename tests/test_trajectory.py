@@ -42,3 +42,17 @@ def test_static_is_static():
     t = np.arange(1_100_000_000, 10_000_000_000, 50_000_000, dtype=np.int64)
     assert np.abs(traj.velocity(t)).max() < 1e-9
     assert np.abs(traj.body_rate(t)).max() < 1e-9
+
+
+def test_series_from_matrices_round_trips_poses():
+    from scipy.spatial.transform import Rotation
+
+    from shared.euroc import series_from_matrices
+    from shared.geometry import make_T, pose_from_pq
+
+    R = Rotation.random(20, random_state=5).as_matrix()
+    t = np.random.default_rng(5).normal(size=(20, 3))
+    T = make_T(R, t)
+    s = series_from_matrices(np.arange(20) * 5_000_000, T)
+    assert s.stamps_ns.dtype == np.int64 and len(s) == 20
+    np.testing.assert_allclose(pose_from_pq(s.p_WS, s.q_WS_wxyz), T, atol=1e-12)

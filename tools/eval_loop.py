@@ -23,15 +23,9 @@ from services.frontend.service import FrontendShell
 from services.loop.backend_loop import LoopClosingBackend
 from services.loop.frontend_hook import keyframe_features_message
 from services.system_config import load_system_config
-from shared.euroc import PoseSeries, read_trajectory, write_tum
+from shared.euroc import series_from_matrices, read_trajectory, write_tum
 from shared.euroc_reader import EurocDataset
-from shared.geometry import R_to_quat_wxyz
 from shared.messages import ImuSample
-
-
-def _series(stamps, T) -> PoseSeries:
-    T = np.asarray(T).reshape(-1, 4, 4)
-    return PoseSeries(np.asarray(stamps, np.int64), T[:, :3, 3], np.array([R_to_quat_wxyz(t[:3, :3]) for t in T]))
 
 
 def run(dataset: str, overrides: list[str], max_frames: int = 0, loop: bool = True) -> tuple[dict, dict]:
@@ -74,16 +68,16 @@ def run(dataset: str, overrides: list[str], max_frames: int = 0, loop: bool = Tr
            "backend_p99_ms": 1e3 * float(np.percentile(t_be, 99)),
            "backend_cpu_median_ms": 1e3 * float(np.median(c_be)), "backend_cpu_p99_ms": 1e3 * float(np.percentile(c_be, 99)),
            "loop": loop}
-    trajs = {"causal": _series(stamps, T_pub)}
+    trajs = {"causal": series_from_matrices(stamps, T_pub)}
     if lb is not None:
         t0 = time.perf_counter()
         final = lb.finish()
         res["final_ba_s"] = time.perf_counter() - t0
         res["loops"] = lb.counts
         res["pose_graph_solve_ms"] = [round(x, 1) for x in lb.runner.closer.solve_ms]
-        trajs["raw"] = _series(lb._stamps, lb._T_raw)
+        trajs["raw"] = series_from_matrices(lb._stamps, lb._T_raw)
         if final is not None:
-            trajs["final"] = _series(final.stamps_ns, final.T_WS)
+            trajs["final"] = series_from_matrices(final.stamps_ns, final.T_WS)
             res["final_keyframes"] = final.keyframes
         lb.close()
     if ds.groundtruth_path is not None:

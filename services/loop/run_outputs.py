@@ -5,10 +5,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import numpy as np
 
-from shared.euroc import PoseSeries, write_euroc_csv, write_tum
-from shared.geometry import R_to_quat_wxyz
+from shared.euroc import series_from_matrices, PoseSeries, write_euroc_csv, write_tum
 from transport.queues import Empty
 
 
@@ -24,9 +22,7 @@ def wait_final(subscriber, timeout_s: float, stopped=lambda: False):
 
 
 def final_series(msg) -> PoseSeries:
-    T = np.asarray(msg.T_WS, float).reshape(-1, 4, 4)
-    q = np.array([R_to_quat_wxyz(t[:3, :3]) for t in T]).reshape(-1, 4)
-    return PoseSeries(np.asarray(msg.stamps_ns, np.int64), T[:, :3, 3], q)
+    return series_from_matrices(msg.stamps_ns, msg.T_WS)
 
 
 def write_final(out: Path, msg) -> PoseSeries:

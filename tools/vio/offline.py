@@ -18,9 +18,8 @@ import numpy as np
 from services.backend.service import BackendShell
 from services.frontend.service import FrontendShell
 from services.system_config import load_system_config
-from shared.euroc import PoseSeries, read_trajectory, write_tum
+from shared.euroc import series_from_matrices, read_trajectory, write_tum
 from shared.euroc_reader import EurocDataset
-from shared.geometry import R_to_quat_wxyz
 from shared.messages import ImuSample
 from shared.rig import load_rig_config
 
@@ -59,8 +58,7 @@ def run(dataset: str, config: str | None, overrides: list[str], max_frames: int 
                 print(frames, st.status, np.round(st.T_WS[:3, 3], 3), f"fe {1e3 * (t1 - t0):.1f} be {1e3 * (t2 - t1):.1f} ms",
                       be.estimator.window_counts(), flush=True)
     stamps = np.array([s.header.stamp_ns for s in states], np.int64)
-    T = np.array([s.T_WS for s in states]).reshape(-1, 4, 4)
-    traj = PoseSeries(stamps, T[:, :3, 3], np.array([R_to_quat_wxyz(t[:3, :3]) for t in T]).reshape(-1, 4))
+    traj = series_from_matrices(stamps, np.array([s.T_WS for s in states]))
     res = {"frames": frames, "poses": len(stamps), "frontend_median_ms": 1e3 * float(np.median(t_fe)),
            "backend_median_ms": 1e3 * float(np.median(t_be)),
            "sum_median_ms": 1e3 * float(np.median(np.array(t_fe) + np.array(t_be))),
