@@ -48,6 +48,9 @@ def camera_walk(scene, rng: np.random.Generator, frames: int) -> np.ndarray:
 
 def render_scene(args: tuple[str, int, int, str]) -> str:
     split, seed, frames, out = args
+    path = Path(out) / split / f"scene_{seed:05d}.npz"
+    if path.exists():  # deterministic per seed: an existing scene is the same scene
+        return str(path) + " (kept)"
     rng = np.random.default_rng(seed)
     scene = random_scene(rng, n_boxes=int(rng.integers(3, 9)), n_spheres=int(rng.integers(1, 5)))
     T_WC = camera_walk(scene, rng, frames)
@@ -61,10 +64,11 @@ def render_scene(args: tuple[str, int, int, str]) -> str:
         left.append(img0)
         right.append(img1)
         depth.append(d0)
-    path = Path(out) / split / f"scene_{seed:05d}.npz"
     path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(path, left=np.stack(left), right=np.stack(right), depth=np.stack(depth), T_WC=T_WC,
+    tmp = path.with_name(path.stem + ".tmp.npz")  # rename at the end: a killed render leaves no half file
+    np.savez_compressed(tmp, left=np.stack(left), right=np.stack(right), depth=np.stack(depth), T_WC=T_WC,
                         K=K_RECT, baseline_m=BASELINE_M)
+    tmp.replace(path)
     return str(path)
 
 
@@ -87,7 +91,9 @@ def main(argv: list[str] | None = None) -> int:
     (Path(a.out) / "dataset.json").write_text(json.dumps({
         "command": "python -m tools.depth.make_dataset " + " ".join(argv or __import__("sys").argv[1:]),
         "generator": "tools/depth/scenes.py", "split_seed0": SPLIT_SEED0, "frames": a.frames,
-        "K": K_RECT.tolist(), "baseline_m": BASELINE_M, "size": SIZE}, indent=1))
+        "K": K_RECT.tolist(), "baseline_m": BASELINE_M, "size": SIZE,
+        "scenes": {split: f"seeds {SPLIT_SEED0[split]}-{SPLIT_SEED0[split] + n - 1}" if n else "none"
+                   for split, n in (("train", a.train), ("val", a.val), ("test", a.test))}}, indent=1))
     return 0
 
 
