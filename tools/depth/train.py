@@ -29,7 +29,7 @@ from services.depth.views import select_sources
 
 
 def load_split(root: Path, split: str) -> list[dict]:
-    files = sorted((root / split).glob("scene_*.npz"))
+    files = sorted(f for f in (root / split).glob("scene_*.npz") if not f.name.endswith(".tmp.npz"))
     if not files:
         raise SystemExit(f"{root / split}: no scene_*.npz (render them: python -m tools.depth.make_dataset)")
     return [dict(np.load(f)) | {"name": f.stem} for f in files]
@@ -184,7 +184,7 @@ def main(argv: list[str] | None = None) -> int:
         torch.nn.utils.clip_grad_norm_(net.parameters(), 5.0)
         opt.step()
         step += 1
-        if step % 200 == 0 and len(list((root / "train").glob("scene_*.npz"))) > len(train):
+        if step % 200 == 0 and len(list((root / "train").glob("scene_?????.npz"))) > len(train):
             train = load_split(root, "train")  # scenes still rendering when training started join in
         smooth = loss.item() if smooth is None else 0.95 * smooth + 0.05 * loss.item()
         curve.write(f"{step},{elapsed:.1f},{lr:.3g},{loss.item():.5f}\n")
