@@ -17,7 +17,7 @@ from shared.codec import Header, Message, array_field, register, scalar_field
 __all__ = [
     "Header", "ImuSample", "MultiCameraFrame", "FeatureFrame", "EstimatorState", "Keyframes",
     "DepthFrame", "SubmapMesh", "ServiceStats", "Heartbeat", "Control", "StreamEnd",
-    "KeyframeFeatures", "FinalTrajectory", "OccupancyField", "SubmapPoints",
+    "KeyframeFeatures", "FinalTrajectory", "OccupancyField", "SubmapPoints", "Landmarks",
 ]
 
 
@@ -214,3 +214,19 @@ class SubmapPoints(Message):
     submap_id: int = scalar_field("submap id")
     points_M: object = array_field("points in the submap frame [m]", "float32", ("N", 3))
     sigma: object = array_field("depth standard deviation of each point [m]", "float32", ("N",))
+
+
+# --- estimator landmarks (type ids 100-109) ---
+
+
+@register(100)
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Landmarks(Message):
+    """Well-constrained landmarks of the estimator's window after a keyframe's optimisation (triangulated,
+    finite, >= 2 window observations), in W (header.frame_id = 'W', header.stamp_ns = that keyframe's time).
+    Sparse depth prior of the MVS network (sec. IV-D) and the viewer's landmark layer."""
+
+    ids: object = array_field("landmark ids (the frontend's)", "int64", ("N",))
+    p_W: object = array_field("landmark positions in world [m]", "float64", ("N", 3))
+    num_observations: object = array_field("observations of the landmark in the window", "int32", ("N",))
+    last_seen_ns: object = array_field("time of the newest window keyframe observing the landmark [ns]", "int64", ("N",))

@@ -44,10 +44,12 @@ MAP_FIELD = Topic("map/field", m.OccupancyField, "latest", 16,
                   "near-surface occupancy of a submap (L, w per voxel) for occupancy-to-point factors")
 MAP_O2P_POINTS = Topic("map/o2p_points", m.SubmapPoints, "all", 64,
                        "lowest-sigma fused-depth points of a closed submap (map-to-map occupancy-to-point factors)")
+LANDMARKS = Topic("estimator/landmarks", m.Landmarks, "latest", 4,
+                  "well-constrained window landmarks after each keyframe optimisation (MVS prior, viewer)")
 
 ALL: tuple[Topic, ...] = (IMU, FRAME, FEATURES, STATE, KEYFRAMES, DEPTH_STEREO, DEPTH_FUSED, SUBMAP,
                           STATS, HEARTBEAT, CONTROL, STREAM_END, KEYFRAME_FEATURES, TRAJECTORY_FINAL, MAP_FIELD,
-                          MAP_O2P_POINTS)
+                          MAP_O2P_POINTS, LANDMARKS)
 
 
 def per_service(topic: Topic, service: str) -> str:

@@ -167,3 +167,34 @@ def test_results_convert_to_messages():
     assert np.array_equal(msg.T_WS, r.T_WS) and np.array_equal(msg.covariance, r.covariance)
     kf = decode(encode(keyframes_message(r, seq=7)))
     assert np.array_equal(kf.ids, r.keyframe_ids) and kf.T_WS.shape == (len(r.keyframe_ids), 4, 4)
+
+
+def test_keyframes_carry_window_landmarks_close_to_ground_truth():
+    from services.backend.outputs import landmarks_message
+    from shared.codec import decode, encode
+
+    cfg = BackendConfig(compute_covariance=False)
+    times, res, gt, est, _ = _run(3.0, sim.rig(2), cfg=cfg)
+    pts = sim.landmarks_cylinder(300, seed=2)  # the points _run observes; landmark id = row
+    with_lm = [r for r in res if r is not None and r.landmarks is not None]
+    # only keyframes (every second frame here, plus the first) carry landmarks
+    assert 0 < len(with_lm) <= len(res) // 2 + 1
+    kf_stamps = {int(round(t * 1e9)) for i, t in enumerate(times) if i % 2 == 0}
+    assert {r.stamp_ns for r in with_lm} <= kf_stamps
+    lm = with_lm[-1].landmarks
+    assert len(lm.ids) > 20 and len(np.unique(lm.ids)) == len(lm.ids) and np.all(np.diff(lm.ids) > 0)
+    assert np.all(lm.num_observations >= 2) and np.isfinite(lm.p_W).all()
+    assert set(lm.last_seen_ns.tolist()) <= {with_lm[-1].stamp_ns, *with_lm[-1].keyframe_stamps_ns.tolist()}
+    assert (lm.last_seen_ns == with_lm[-1].stamp_ns).sum() > 10  # most are seen in the newest keyframe
+    err = np.linalg.norm(lm.p_W - pts[lm.ids], axis=1)
+    assert np.median(err) < 0.05 and np.percentile(err, 90) < 0.2, (np.median(err), np.percentile(err, 90))
+    # the bound keeps the most recently seen, then most observed ones
+    few = est.window_landmarks(max_count=10)
+    full = est.window_landmarks()
+    assert len(few.ids) == 10 and np.isin(few.ids, full.ids).all()
+    assert few.last_seen_ns.min() >= np.sort(full.last_seen_ns)[::-1][9]
+    # on the wire
+    msg = decode(encode(landmarks_message(with_lm[-1], seq=3)))
+    assert msg.header.stamp_ns == with_lm[-1].stamp_ns and msg.header.frame_id == "W"
+    assert np.array_equal(msg.ids, lm.ids) and np.array_equal(msg.p_W, lm.p_W)
+    assert landmarks_message(next(r for r in res if r is not None and r.landmarks is None), seq=0) is None

@@ -90,9 +90,10 @@ def test_backend_service_states_blank_second_and_bad_frame(tmp_path):
                 feat_pub = node.publisher(topics.FEATURES)
                 states = node.subscriber(topics.STATE, policy="all", depth=1000)
                 kfs = node.subscriber(topics.KEYFRAMES, policy="all", depth=1000)
+                lms = node.subscriber(topics.LANDMARKS, policy="all", depth=1000)
                 _await_heartbeat(node, "backend")
                 j = 0
-                got = {}
+                got, sent = {}, {}
                 for i, (t, T) in enumerate(zip(times, gt)):
                     stamp = int(round(t * 1e9))
                     while j < len(st) and st[j] <= stamp + 10_000_000:
@@ -103,6 +104,7 @@ def test_backend_service_states_blank_second_and_bad_frame(tmp_path):
                         ids, c, uv = np.zeros(0, np.int64), np.zeros(0, np.int16), np.zeros((0, 2), np.float32)
                     else:
                         ids, c, uv = sim.observe(T, pts, cams, 0.3, rng, 25)
+                    sent[stamp] = (ids, c, uv)
                     feat_pub.publish(FeatureFrame(header=Header(stamp_ns=stamp, seq=i, frame_id="rig"),
                                                   landmark_ids=ids, camera_index=c, uv=uv,
                                                   p_W_init=np.full((len(ids), 3), np.nan), is_keyframe=(i % 2 == 0)))
@@ -121,6 +123,8 @@ def test_backend_service_states_blank_second_and_bad_frame(tmp_path):
                     assert stamp in got, f"no state for frame {i}"
                     assert proc.poll() is None
                 keyframes = kfs.drain()
+                time.sleep(0.2)
+                landmarks = lms.drain()
         finally:
             log = _stop(proc)
     res = [got[int(round(t * 1e9))] for t in times]
@@ -138,6 +142,22 @@ def test_backend_service_states_blank_second_and_bad_frame(tmp_path):
     assert all(res[k].status == "imu_only" for k in np.flatnonzero(blank))
     assert all(r.status == "tracking" for r in res[-10:])
     assert len(keyframes) > 10 and all(np.all(np.diff(k.ids) > 0) for k in keyframes)
+    # estimator/landmarks after keyframes: well constrained, in the frame of the published states (they reproject
+    # onto the pixels observed in their keyframe through that keyframe's published pose)
+    assert len(landmarks) > 10
+    kf_stamps = {int(round(t * 1e9)) for i, t in enumerate(times) if i % 2 == 0}
+    assert all(lm.header.stamp_ns in kf_stamps for lm in landmarks)
+    errs = []
+    for lm in landmarks[-5:]:
+        stamp = lm.header.stamp_ns
+        assert len(lm.ids) > 20 and np.all(lm.num_observations >= 2) and np.isfinite(lm.p_W).all()
+        ids, c, uv = sent[stamp]
+        for k in np.flatnonzero(lm.last_seen_ns == stamp):
+            for o in np.flatnonzero(ids == lm.ids[k]):
+                T_CW = np.linalg.inv(got[stamp].T_WS @ cams[c[o]].T_SC)
+                p_C = T_CW[:3, :3] @ lm.p_W[k] + T_CW[:3, 3]
+                errs.append(np.linalg.norm(cams[c[o]].project(p_C[None])[0] - uv[o]))
+    assert len(errs) > 50 and np.median(errs) < 1.5, (len(errs), np.median(errs))
 
 
 def test_frontend_service_tracks_rendered_frames(tmp_path):

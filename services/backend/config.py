@@ -24,6 +24,8 @@ class BackendConfig:
     min_depth_m: float = param(0.1, "landmarks closer to a camera than this are rejected (cheirality)", "m")
     max_depth_m: float = param(60.0, "landmarks farther than this from every observing camera are rejected", "m")
     max_landmarks: int = param(400, "landmarks kept in the window at most (oldest dropped first)")
+    max_published_landmarks: int = param(2000, "landmarks in one estimator/landmarks message at most (those seen "
+                                         "most recently, then most often, are kept)")
     # --- IMU (continuous-time densities; an ImuCalib passed to the estimator overrides them) ---
     gravity_m_s2: float = param(9.81, "magnitude of gravity along -z of W", "m/s^2")
     gyro_noise_density: float = param(1.6968e-4 * 5, "gyro white-noise density (inflated over the datasheet)", "rad/s/sqrt(Hz)")

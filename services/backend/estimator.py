@@ -21,12 +21,15 @@ Design choices:
   computed for keyframes (NaN for other frames unless ``compute_covariance``). With
   ``motion_only_between_keyframes`` (and no per-frame covariance) a non-keyframe frame solves only its own
   state against the window held fixed (:mod:`services.backend.motion_only`); the window is optimised at keyframes.
+* **Landmark output**: after a keyframe's optimisation the result carries the window's well-constrained
+  landmarks (:meth:`WindowedVioEstimator.window_landmarks`), published as ``estimator/landmarks``.
 * **No features**: the window keeps its IMU chain (keyframes still come at ``max_keyframe_interval_s``),
   the state is propagated by the IMU factors, status ``imu_only``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 import gtsam
 import numpy as np
@@ -59,6 +62,17 @@ class FrameResult:
     keyframe_stamps_ns: np.ndarray
     keyframe_T_WS: np.ndarray
     num_landmarks: int
+    landmarks: WindowLandmarks | None = None  # after a keyframe's optimisation (None for other frames)
+
+
+@dataclass(frozen=True)
+class WindowLandmarks:
+    """Well-constrained landmarks of the window: triangulated, finite, >= 2 observations (N rows each)."""
+
+    ids: np.ndarray  # (N,) int64
+    p_W: np.ndarray  # (N,3) [m]
+    num_observations: np.ndarray  # (N,) int32, observations in the window
+    last_seen_ns: np.ndarray  # (N,) int64, stamp of the newest window state that observes the landmark
 
 
 def to_message_covariance(cov_gtsam: np.ndarray, R_WS: np.ndarray) -> np.ndarray:
@@ -215,6 +229,8 @@ class WindowedVioEstimator:
             except RuntimeError:
                 self.failed_optimisations += 1
         result = self._result(n, cov, status)
+        if keyframe:
+            result = dataclasses.replace(result, landmarks=self.window_landmarks())
         if n != last_kf:
             if keyframe:
                 self.keyframes.append(n)
@@ -433,6 +449,28 @@ class WindowedVioEstimator:
             keyframe_ids=np.array(kfs, np.int64), keyframe_stamps_ns=np.array([self.stamps[k] for k in kfs], np.int64),
             keyframe_T_WS=np.array([self.values.atPose3(X(k)).matrix() for k in kfs]),
             num_landmarks=len(self._in_graph))
+
+    def window_landmarks(self, max_count: int | None = None) -> WindowLandmarks:
+        """The window's well-constrained landmarks at the current estimate, at most ``max_count`` (default
+        ``cfg.max_published_landmarks``): those last seen most recently, then seen most often, are kept."""
+        limit = self.cfg.max_published_landmarks if max_count is None else max_count
+        ids, p, nobs, last = [], [], [], []
+        for lm in self._in_graph:
+            by_state = self._obs.get(lm, {})
+            n_obs = sum(len(o) for o in by_state.values())
+            if n_obs < 2 or not self.values.exists(L(lm)):
+                continue
+            ids.append(lm)
+            p.append(self.values.atPoint3(L(lm)))
+            nobs.append(n_obs)
+            last.append(max(self.stamps[s] for s in by_state))
+        ids, nobs, last = np.array(ids, np.int64), np.array(nobs, np.int32), np.array(last, np.int64)
+        p = np.array(p, np.float64).reshape(-1, 3)
+        ok = np.isfinite(p).all(axis=1)
+        ids, p, nobs, last = ids[ok], p[ok], nobs[ok], last[ok]
+        order = np.lexsort((ids, -nobs, -last))[:max(0, int(limit))]  # newest first, then most observed
+        order = order[np.argsort(ids[order])]  # published in id order
+        return WindowLandmarks(ids[order], p[order], nobs[order], last[order])
 
     # ---------------------------------------------------------------- introspection
     def window_counts(self) -> dict[str, int]:

@@ -1,5 +1,5 @@
 """``sigmaslam backend [CONFIG]``: sensors/imu (keep-all) + frontend/frame -> estimator/state (every frame),
-estimator/keyframes (after each optimisation).
+estimator/keyframes (after each optimisation), estimator/landmarks (after each keyframe's optimisation).
 
 Thin shell around :class:`services.backend.estimator.WindowedVioEstimator`. A feature frame waits up to
 ``backend.imu_wait_s`` for the IMU samples up to its time (they travel on their own topic); a frame the
@@ -20,13 +20,13 @@ from services.backend.backlog import shed_backlog
 from services.backend.estimator import BackendInputError, WindowedVioEstimator, camera_from_calib
 from services.backend.imu_factors import ImuDataError
 from services.frontend.undistort import LookupCamera
-from services.backend.outputs import keyframes_message, state_message
+from services.backend.outputs import keyframes_message, landmarks_message, state_message
 from services.loop.backend_loop import LoopClosingBackend
 from services.system_config import load_system_config
 from services.supervisor import restart_count
 from shared import topics
 from shared.camera import CalibrationError
-from shared.messages import DepthFrame, EstimatorState, FeatureFrame, Header, Keyframes, OccupancyField
+from shared.messages import DepthFrame, EstimatorState, FeatureFrame, Header, Keyframes, Landmarks, OccupancyField
 from shared.rig import load_rig_config
 from transport.node import Node
 from transport.queues import Empty
@@ -51,6 +51,7 @@ class BackendShell:
         self.newest_imu_ns = -1
         self.restarted = False  # set by main() after a supervisor restart: the first state says 'reset'
         self.o2p = None  # OccupancyTerms when occupancy-to-point factors are on (enable_o2p)
+        self.landmarks: Landmarks | None = None  # of the last keyframe processed, until take_landmarks()
 
     def enable_o2p(self, cfg) -> None:
         """Occupancy-to-point factors (services/backend/o2p_terms.py) in every window optimisation."""
@@ -109,8 +110,14 @@ class BackendShell:
             self.seq += 1
             return msg, None
         msgs = state_message(res, self.seq), keyframes_message(res, self.seq)
+        self.landmarks = landmarks_message(res, self.seq)
         self.seq += 1
         return msgs
+
+    def take_landmarks(self) -> Landmarks | None:
+        """estimator/landmarks of the last frame processed if it was a keyframe (once)."""
+        msg, self.landmarks = self.landmarks, None
+        return msg
 
 
 def main(args: argparse.Namespace) -> int:
@@ -131,6 +138,7 @@ def main(args: argparse.Namespace) -> int:
         features = node.subscriber(topics.FEATURES)
         state_pub = node.publisher(topics.STATE)
         kf_pub = node.publisher(topics.KEYFRAMES)
+        lm_pub = node.publisher(topics.LANDMARKS)
         kf_features = node.subscriber(topics.KEYFRAME_FEATURES)
         ends = node.subscriber(topics.STREAM_END)
         final_pub = node.publisher(topics.TRAJECTORY_FINAL)
@@ -178,4 +186,6 @@ def main(args: argparse.Namespace) -> int:
                 state_pub.publish(msgs[0])
                 if msgs[1] is not None:
                     kf_pub.publish(msgs[1])
+            if (lms := (shell if loop is None else loop).take_landmarks()) is not None:
+                lm_pub.publish(lms)
     return 0

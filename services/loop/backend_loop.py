@@ -21,7 +21,7 @@ from services.loop.final_ba import bundle_adjust, follow_keyframes
 from services.loop.history import attach
 from services.loop.loop_closer import LoopCloser, ThreadedLoopCloser
 from services.loop.verification import FeatureSet
-from shared.messages import EstimatorState, FinalTrajectory, Header, KeyframeFeatures, Keyframes
+from shared.messages import EstimatorState, FinalTrajectory, Header, KeyframeFeatures, Keyframes, Landmarks
 
 log = logging.getLogger("sigmaslam.loop")
 
@@ -49,6 +49,7 @@ class LoopClosingBackend:
         self._end_ns: int | None = None
         self._finished = False
         self._last_process = time.monotonic()
+        self._T_last = np.eye(4)  # the correction applied to the last state
 
     @property
     def counts(self) -> dict[str, int]:
@@ -75,7 +76,7 @@ class LoopClosingBackend:
         self.runner.submit_status(int(state.header.stamp_ns), state.status)
         if not self.cfg.correct_state:
             return msgs
-        T = self.runner.correction()
+        T = self._T_last = self.runner.correction()
         state = corrected_state(state, T)
         if kfs is not None:
             ids, stamps, poses = kfs.ids, kfs.stamps_ns, np.einsum("ij,njk->nik", T, kfs.T_WS)
@@ -88,6 +89,15 @@ class LoopClosingBackend:
             kfs = Keyframes(header=kfs.header, ids=np.asarray(ids, np.int64), stamps_ns=np.asarray(stamps, np.int64),
                             T_WS=np.ascontiguousarray(poses, np.float64))
         return state, kfs
+
+    def take_landmarks(self) -> Landmarks | None:
+        """As ``BackendShell.take_landmarks``, moved by the correction applied to the last state."""
+        msg = self.shell.take_landmarks()
+        if msg is None or not self.cfg.correct_state:
+            return msg
+        T = self._T_last
+        return Landmarks(header=msg.header, ids=msg.ids, p_W=msg.p_W @ T[:3, :3].T + T[:3, 3],
+                         num_observations=msg.num_observations, last_seen_ns=msg.last_seen_ns)
 
     def finish(self, seq: int = 0) -> FinalTrajectory | None:
         """Final bundle adjustment over every keyframe (None when too little was tracked)."""
