@@ -106,6 +106,49 @@ def test_residual_and_jacobians_match_finite_differences(room):
     assert np.allclose(-b, w * ev.r) and np.allclose(A, w * np.hstack([ev.J_a, ev.J_b]))
 
 
+def test_effective_points_cap_scales_rows_and_keeps_jacobians_exact(room):
+    """N_eff caps a factor at the information of N_eff independent points: rows scaled by sqrt(N_eff / n),
+    the Jacobians of the gtsam factor still match central differences of its error."""
+    field, renderer, cfg = room
+    T_WA = perturb(view(1.3), 0.01, 0.01, 5)
+    p_A = frame_points(renderer, view(1.3), step=5)
+    sig = np.random.default_rng(2).uniform(0.01, 0.05, len(p_A))
+    values = gtsam.Values()
+    values.insert(X(0), gtsam.Pose3(T_WA))
+    full = OccupancyToPoint(field, cfg.l_min, p_A, sig, key_a=X(0), T_WB=np.eye(4))
+    capped = OccupancyToPoint(field, cfg.l_min, p_A, sig, key_a=X(0), T_WB=np.eye(4), effective_points=20)
+    n = full.n_valid(values)
+    assert n > 100
+    A0, b0 = full.factor(n).linearize(values).jacobian()
+    fac = capped.factor(n)
+    A1, b1 = fac.linearize(values).jacobian()
+    s = np.sqrt(20 / n)
+    assert np.allclose(A1, s * A0) and np.allclose(b1, s * b0)  # same Tukey weight: threshold scales with s
+    assert np.isclose(np.trace(A1.T @ A1) / np.trace(A0.T @ A0), 20 / n)
+    # Jacobian of the capped factor's rows vs central differences of its error (before Tukey); after
+    # factor() the evaluation carries the cap
+    ev = capped.evaluate(T_WA, np.eye(4))
+    assert np.allclose(ev.r, s * full.evaluate(T_WA, np.eye(4)).r)
+    h = 1e-6
+    fd = np.zeros((len(p_A), 6))
+    for k in range(6):
+        xi = np.zeros(6)
+        xi[k] = h
+        rs = []
+        for sgn in (1, -1):
+            v = gtsam.Values()
+            v.insert(X(0), gtsam.Pose3(T_WA @ gtsam.Pose3.Expmap(sgn * xi).matrix()))
+            rs.append(fac.unwhitenedError(v))
+        fd[:, k] = (rs[0] - rs[1]) / (2 * h)
+    rel = np.linalg.norm(fd - ev.J_a, axis=1) / (np.linalg.norm(ev.J_a, axis=1) + 1e-3)
+    assert np.median(rel[ev.valid]) < 1e-4 and np.mean(rel[ev.valid] < 1e-3) > 0.97
+    # a cap above the point count changes nothing
+    assert np.allclose(OccupancyToPoint(field, cfg.l_min, p_A, sig, key_a=X(0), T_WB=np.eye(4),
+                                        effective_points=10 * n).factor(n).linearize(values).jacobian()[0], A0)
+    with pytest.raises(ValueError):
+        OccupancyToPoint(field, cfg.l_min, p_A, sig, key_a=X(0), T_WB=np.eye(4), effective_points=-1)
+
+
 def solve(graph, values):
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(50)

@@ -21,6 +21,9 @@ class O2PConfig:
     tukey_k: float = param(3.0, "Tukey threshold on the RMS whitened residual of a whole factor")
     info_scale: float = param(1.0, "scales the information of every point (1: eq. 7 as it is; < 1 discounts depth errors "
                               "correlated across a factor's points)")
+    effective_points: float = param(0.0, "N_eff: a factor carries at most the information of this many independent points "
+                                    "(depth errors are correlated across an image; rows scaled by min(1, N_eff / n_valid)); "
+                                    "0: no cap (eq. 7 as it is)")
     grad_min: float = param(1.0, "points where |grad L| is below this (saturated free space) drop out", "1/m")
     depth_stamp_tolerance_ms: float = param(1.0, "a depth frame belongs to the window state with this stamp", "ms")
     attach_tolerance_ms: float = param(150.0, "a depth frame without a window state at its stamp attaches to the nearest "
@@ -34,5 +37,5 @@ class O2PConfig:
         if min(self.max_points_frame, self.max_points_map, self.min_points_in_field, self.max_pending_depth,
                self.max_submaps) < 1:
             raise ValueError("o2p point counts and buffer sizes must be >= 1")
-        if not (self.tukey_k > 0 and self.grad_min >= 0 and self.info_scale > 0):
-            raise ValueError("o2p tukey_k > 0, grad_min >= 0 and info_scale > 0 are required")
+        if not (self.tukey_k > 0 and self.grad_min >= 0 and self.info_scale > 0 and self.effective_points >= 0):
+            raise ValueError("o2p tukey_k > 0, grad_min >= 0, info_scale > 0 and effective_points >= 0 are required")

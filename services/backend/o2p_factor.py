@@ -21,7 +21,15 @@ differences inside every interpolation cell.
 Robustness: the Tukey loss acts on the norm of the whole N-vector (gtsam's Robust noise model reweights a
 factor as one block), with the threshold ``tukey_k * sqrt(n)`` for the n points valid when the factor is
 built: the factor switches off when the RMS whitened residual exceeds about ``tukey_k``. ``info_scale``
-(default 1) scales the information of every point (e.g. to discount errors correlated across the points).
+(default 1) scales the information of every point.
+
+Correlated depth errors: eq. 7 treats the N points as independent, but a network's depth errors are
+correlated across an image (and across the frames fused into a submap), so N points do not carry N times the
+information of one. ``effective_points`` (N_eff > 0) caps a factor at the information of N_eff independent
+points: with n points valid when the factor is built, every row is scaled by ``sqrt(min(1, N_eff / n))``
+(a constant of the factor, so the Jacobians stay exact). For equicorrelated errors with correlation rho,
+the information of n points about a common offset is that of n / (1 + (n - 1) rho) -> 1 / rho independent
+ones, so N_eff ~ 1 / rho.
 
 Points outside the target's observed field (any of the 8 interpolation voxels unknown) or in saturated
 free space (``|grad L| < grad_min``) give a zero residual row with zero Jacobians: they drop out.
@@ -91,7 +99,7 @@ class OccupancyToPoint:
     def __init__(self, field: BlockField, l_min: float, p_A: np.ndarray, sigma_d: np.ndarray, *,
                  key_a: int | None = None, key_b: int | None = None, T_WA: np.ndarray | None = None,
                  T_WB: np.ndarray | None = None, T_BM: np.ndarray | None = None, tukey_k: float = 3.0,
-                 grad_min: float = 1.0, info_scale: float = 1.0) -> None:
+                 grad_min: float = 1.0, info_scale: float = 1.0, effective_points: float = 0.0) -> None:
         p_A = np.asarray(p_A, np.float64).reshape(-1, 3)
         sigma_d = np.broadcast_to(np.asarray(sigma_d, np.float64), (len(p_A),)).copy()
         if len(p_A) == 0:
@@ -111,9 +119,10 @@ class OccupancyToPoint:
         self.T_WB = None if T_WB is None else np.asarray(T_WB, np.float64)
         self.T_MB = np.linalg.inv(np.eye(4) if T_BM is None else np.asarray(T_BM, np.float64))
         self.tukey_k, self.grad_min = float(tukey_k), float(grad_min)
-        if not info_scale > 0:
-            raise ValueError(f"info_scale must be > 0, got {info_scale}")
-        self._sqrt_info = float(np.sqrt(info_scale))  # 1: eq. 7 as it is
+        if not (info_scale > 0 and effective_points >= 0):
+            raise ValueError(f"info_scale > 0 and effective_points >= 0 are required, got {info_scale}, {effective_points}")
+        self.info_scale, self.effective_points = float(info_scale), float(effective_points)
+        self._sqrt_info = float(np.sqrt(info_scale))  # 1: eq. 7 as it is; the N_eff cap joins in factor()
         self._memo: tuple[bytes, O2PEvaluation] | None = None  # gtsam asks for the error and the Jacobians at one estimate
 
     @property
@@ -153,11 +162,20 @@ class OccupancyToPoint:
         T_WA, T_WB = self._poses(values) if values is not None else (self.T_WA, self.T_WB)
         return int(self.evaluate(T_WA, T_WB).valid.sum())
 
+    def row_scale(self, n_valid: int) -> float:
+        """Information scale of every row of a factor built with ``n_valid`` points: info_scale, times
+        min(1, N_eff / n_valid) when ``effective_points`` caps the factor."""
+        cap = min(1.0, self.effective_points / max(1, n_valid)) if self.effective_points > 0 else 1.0
+        return self.info_scale * cap
+
     def factor(self, n_valid: int | None = None) -> gtsam.CustomFactor:
-        """The gtsam factor (N rows, Tukey on the whole vector with threshold tukey_k sqrt(n_valid))."""
+        """The gtsam factor (N rows, Tukey on the whole vector with threshold tukey_k sqrt(n_valid) in units of
+        the unscaled residual); rows scaled by :meth:`row_scale`."""
         n = len(self.p_A)
         self.n_valid_built = n if n_valid is None else int(n_valid)
-        c = self.tukey_k * self._sqrt_info * np.sqrt(max(1, n if n_valid is None else n_valid))
+        self._sqrt_info = float(np.sqrt(self.row_scale(self.n_valid_built)))
+        self._memo = None
+        c = self.tukey_k * self._sqrt_info * np.sqrt(max(1, self.n_valid_built))
         noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Tukey.Create(c), gtsam.noiseModel.Unit.Create(n))
 
         def error(this: gtsam.CustomFactor, values: gtsam.Values, H) -> np.ndarray:

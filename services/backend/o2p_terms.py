@@ -167,7 +167,7 @@ class OccupancyTerms:
         if tgt.get("key_b") == key_a:
             return None
         f = OccupancyToPoint(sm.field, sm.l_min, p_A, sig, key_a=key_a, tukey_k=c.tukey_k, grad_min=c.grad_min,
-                           info_scale=c.info_scale, **tgt)
+                           info_scale=c.info_scale, effective_points=c.effective_points, **tgt)
         n_valid = f.n_valid(values) if "key_b" in tgt else int(f.evaluate(values.atPose3(key_a).matrix(), tgt["T_WB"]).valid.sum())
         return (f, f.factor(n_valid)) if n_valid >= c.min_points_in_field else None
 
@@ -177,7 +177,7 @@ class OccupancyTerms:
             self.counts["factor_target_gone"] += 1
             return None
         g = OccupancyToPoint(f.field, f.l_min, f.p_A, f.sigma_d, key_a=f.key_a, T_WB=sm.T_WM, tukey_k=f.tukey_k,
-                             grad_min=f.grad_min, info_scale=f._sqrt_info**2)
+                             grad_min=f.grad_min, info_scale=f.info_scale, effective_points=f.effective_points)
         self.counts["factor_target_fixed"] += 1
         return g, g.factor(f.n_valid_built)
 
