@@ -79,7 +79,12 @@ def test_depth_service_end_to_end(tmp_path, frame_data):
                         Subscriber(session, f"{ns}/stats/depth", m.ServiceStats, "all", 256, handler=stats.append)]
                 p_frame = Publisher(session, f"{ns}/{topics.FRAME.key}", m.MultiCameraFrame, tcfg, block=True)
                 p_state = Publisher(session, f"{ns}/{topics.STATE.key}", m.EstimatorState, tcfg, block=True)
+                p_lm = Publisher(session, f"{ns}/{topics.LANDMARKS.key}", m.Landmarks, tcfg, block=True)
                 assert p_frame.wait_for_subscribers(10.0) and p_state.wait_for_subscribers(10.0)
+                assert p_lm.wait_for_subscribers(10.0)
+                p_lm.publish(m.Landmarks(header=Header(stamp_ns=900, frame_id="W"), ids=np.arange(3, dtype=np.int64),
+                                         p_W=np.ones((3, 3)), num_observations=np.full(3, 2, np.int32),
+                                         last_seen_ns=np.full(3, 900, np.int64)))
                 # 1. a posed frame
                 p_state.publish(_state(1_000, T_WS))
                 time.sleep(0.1)
@@ -116,6 +121,9 @@ def test_depth_service_end_to_end(tmp_path, frame_data):
                         return 0
                     return int(s.queue_dropped[list(s.queue_names).index(topics.FRAME.key)])
                 assert wait_for(lambda: frame_drops() >= 5, 10.0), frame_drops()
+                # the landmarks were received; the MVS prior counters are reported (no MVS with SGBM)
+                q = dict(zip(stats[-1].queue_names, zip(stats[-1].queue_received, stats[-1].queue_dropped)))
+                assert q[topics.LANDMARKS.key] == (1, 0) and q["mvs_frames"] == (0, 0) and "mvs_prior_points" in q
                 assert len(stereo) - n_before < 15
                 proc.send_signal(signal.SIGTERM)
                 proc.wait(timeout=30)

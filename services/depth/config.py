@@ -25,6 +25,10 @@ class DepthConfig:
     mvs_min_baseline_m: float = param(0.03, "least distance between any two MVS views", "m")
     mvs_max_baseline_m: float = param(1.0, "largest distance of a source view from the reference", "m")
     mvs_max_angle_deg: float = param(35.0, "largest angle between the optical axes of source and reference", "deg")
+    prior_max_points: int = param(300, "landmark pixels in the MVS network's sparse depth prior at most (trained "
+                                  "with 20-300; 0: no prior)")
+    prior_max_age_s: float = param(1.0, "landmarks enter the prior only when last seen within this long of the "
+                                   "frame (older ones may be occluded)", "s")
     keyframe_views: int = param(12, "posed keyframe images kept as MVS source candidates")
     frame_history: int = param(60, "recent raw left images kept to attach to keyframes announced later")
     pose_wait_s: float = param(0.1, "how long a frame waits for its estimator state before going out unposed", "s")
@@ -50,5 +54,8 @@ class DepthConfig:
             raise ValueError(f"depth.mvs_sources must be 1..7, got {self.mvs_sources}")
         if self.rate_hz <= 0:
             raise ValueError("depth.rate_hz must be positive")
+        if self.prior_max_points < 0 or not self.prior_max_age_s >= 0:
+            raise ValueError(f"depth.prior_max_points and depth.prior_max_age_s must be >= 0, got "
+                             f"{self.prior_max_points}, {self.prior_max_age_s}")
         if self.inject_delay_ms < 0:
             raise ValueError(f"depth.inject_delay_ms must be >= 0, got {self.inject_delay_ms}")

@@ -6,6 +6,7 @@ on posed keyframes when available, fuse (eq. 14).
     pipe = DepthPipeline(cfg, cam_left, cam_right)
     pipe.remember_frame(stamp_ns, raw_left)              # every frame (cheap), for keyframes announced later
     pipe.update_keyframes(stamps_ns, T_WS)               # after each optimisation
+    pipe.update_landmarks(p_W, last_seen_ns, num_obs)    # estimator/landmarks: the MVS prior
     out = pipe.process(stamp_ns, raw_left, raw_right, T_WS)   # T_WS None when unknown
     out.stereo, out.mvs, out.fused                       # (depth, sigma) float32 (H,W) [m], NaN invalid
 
@@ -22,6 +23,7 @@ import cv2
 import numpy as np
 
 from services.depth.config import DepthConfig
+from services.depth.prior import landmark_prior
 from services.depth.sgbm import SgbmParams, sgbm_depth
 from services.depth.uncertainty import disparity_to_depth, fuse, logdepth_to_depth
 from services.depth.views import select_sources
@@ -38,6 +40,7 @@ class DepthResult:
     T_WC: np.ndarray | None
     method: str
     n_sources: int
+    n_prior: int = 0  # landmark pixels in the MVS prior
 
 
 @dataclass
@@ -61,6 +64,8 @@ class DepthPipeline:
         self.stereo_gain = self.mvs_gain = 1.0
         self._recent: OrderedDict[int, np.ndarray] = OrderedDict()
         self._views: OrderedDict[int, _View] = OrderedDict()
+        self._landmarks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # p_W, last_seen_ns, num_obs
+        self.prior_rejected = 0  # landmarks not in the prior (outside the view or depth range, or over the cap)
         if self.method == "network":
             self._load_networks()
 
@@ -115,6 +120,26 @@ class DepthPipeline:
     def n_keyframe_views(self) -> int:
         return len(self._views)
 
+    def update_landmarks(self, p_W: np.ndarray, last_seen_ns: np.ndarray, num_observations: np.ndarray) -> None:
+        """The estimator's latest landmarks (replacing the previous ones): the MVS network's sparse prior."""
+        p_W = np.asarray(p_W, np.float64).reshape(-1, 3)
+        last, nobs = np.asarray(last_seen_ns, np.int64).reshape(-1), np.asarray(num_observations).reshape(-1)
+        if len(last) != len(p_W) or len(nobs) != len(p_W):
+            raise ValueError(f"landmarks: {len(p_W)} positions, {len(last)} stamps, {len(nobs)} counts")
+        self._landmarks = (p_W, last, nobs)
+
+    def mvs_prior(self, stamp_ns: int, T_WC: np.ndarray) -> np.ndarray | None:
+        """Sparse prior depth (H,W) [m] (0: none) of the frame at ``stamp_ns``, pose T_WC: the landmarks seen
+        within ``depth.prior_max_age_s`` of it, projected (services/depth/prior.py); None without landmarks."""
+        if self._landmarks is None or self.mvs_net is None or self.cfg.prior_max_points <= 0:
+            return None
+        p_W, last, nobs = self._landmarks
+        recent = np.abs(last - int(stamp_ns)) <= self.cfg.prior_max_age_s * 1e9
+        pr = landmark_prior(p_W[recent], T_WC, self.K, (self.cfg.height, self.cfg.width), self.mvs_net.min_depth,
+                            self.mvs_net.max_depth, self.cfg.prior_max_points, nobs[recent])
+        self.prior_rejected += pr.rejected + int((~recent).sum())
+        return pr.depth
+
     # ------------------------------------------------------------------ per frame
     def stereo(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Depth and sigma [m] of a rectified pair, by the configured method."""
@@ -167,6 +192,8 @@ class DepthPipeline:
         left, right = self.rect.rectify(raw_left, raw_right)
         stereo = self.stereo(left, right)
         T_WC = None if T_WS is None else np.asarray(T_WS) @ self.T_SC
-        mvs, n_src = (None, 0) if T_WC is None else self.mvs(left, T_WC)
+        prior = None if T_WC is None else self.mvs_prior(stamp_ns, T_WC)
+        mvs, n_src = (None, 0) if T_WC is None else self.mvs(left, T_WC, prior)
         fused = stereo if mvs is None else fuse(*stereo, *mvs)
-        return DepthResult(stereo, mvs, fused, T_WC, self.method, n_src)
+        n_prior = 0 if prior is None or mvs is None else int(np.count_nonzero(prior))
+        return DepthResult(stereo, mvs, fused, T_WC, self.method, n_src, n_prior)

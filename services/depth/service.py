@@ -1,4 +1,5 @@
-"""``sigmaslam depth [CONFIG]``: sensors/frame + estimator/state + estimator/keyframes -> depth/stereo and
+"""``sigmaslam depth [CONFIG]``: sensors/frame + estimator/state + estimator/keyframes + estimator/landmarks
+(keep-latest; the MVS network's sparse prior) -> depth/stereo and
 depth/fused (DepthFrame: depth, sigma, K and T_SC of the rectified left camera, T_WC when the estimator
 knows the frame's pose, identity otherwise).
 
@@ -104,6 +105,12 @@ def main(args: argparse.Namespace) -> int:
         if pipe.mvs_net is not None:
             node.subscriber(topics.FRAME, handler=remember)
         keyframes = node.subscriber(topics.KEYFRAMES)
+        landmarks = node.subscriber(topics.LANDMARKS, depth=1)
+        # counters in stats/depth, reported as queues: frames with MVS depth; landmark pixels in their priors
+        # (received: total, dropped: landmarks left out, depth: pixels in the last MVS frame's prior)
+        prior = {"frames": 0, "points": 0, "last": 0}
+        node.stats.add_queue("mvs_frames", lambda: (prior["frames"], 0, 0))
+        node.stats.add_queue("mvs_prior_points", lambda: (prior["points"], pipe.prior_rejected, prior["last"]))
         pub_stereo = node.publisher(topics.DEPTH_STEREO)
         pub_fused = node.publisher(topics.DEPTH_FUSED)
         timer = node.timer("depth", budget_ms=dc.budget_ms)
@@ -126,6 +133,12 @@ def main(args: argparse.Namespace) -> int:
             for kf in keyframes.drain():
                 with lock:
                     pipe.update_keyframes(kf.stamps_ns, kf.T_WS)
+            for lm in landmarks.drain()[-1:]:
+                try:
+                    pipe.update_landmarks(lm.p_W, lm.last_seen_ns, lm.num_observations)
+                except ValueError as exc:
+                    landmarks.queue.count_drop()
+                    log.warning("depth: landmarks %d dropped: %s", lm.header.stamp_ns, exc)
             try:
                 left, right = frame_images(frame, dc.left_camera, dc.right_camera)
                 with timer:  # process() reads only the keyframe views, which this thread alone changes
@@ -136,6 +149,13 @@ def main(args: argparse.Namespace) -> int:
                 dropped_bad += 1
                 log.warning("depth: frame %d dropped (%d so far): %s", stamp, dropped_bad, exc)
                 continue
+            if res.mvs is not None:
+                prior["frames"] += 1
+                prior["points"] += res.n_prior
+                prior["last"] = res.n_prior
+                if prior["frames"] % 50 == 1:
+                    log.info("depth: MVS prior of %d landmark pixels (mean %.1f over %d MVS frames)", res.n_prior,
+                             prior["points"] / prior["frames"], prior["frames"])
             name = f"{dc.left_camera}_rect"
             pub_stereo.publish(depth_message(res, "stereo", pipe, stamp, seq, name))
             pub_fused.publish(depth_message(res, "fused", pipe, stamp, seq, name))
