@@ -26,6 +26,15 @@ class BackendConfig:
     max_landmarks: int = param(400, "landmarks kept in the window at most (oldest dropped first)")
     max_published_landmarks: int = param(2000, "landmarks in one estimator/landmarks message at most (those seen "
                                          "most recently, then most often, are kept)")
+    # --- monocular rig (rig.cameras names one camera; services/backend/still.py) ---
+    mono_still_flow_px: float = param(1.0, "one camera: a frame whose features moved less than this (median, raw "
+                                      "image motion) since the last keyframe stands still: relative-pose and "
+                                      "zero-velocity factors keep the pose while nothing can be triangulated; "
+                                      "0 = off", "px")
+    mono_still_min_features: int = param(20, "one camera: features shared with the keyframe needed to call it still")
+    mono_still_sigma_rot_rad: float = param(2e-3, "one camera: rotation sigma of the still relative-pose factor", "rad")
+    mono_still_sigma_pos_m: float = param(2e-3, "one camera: translation sigma of the still relative-pose factor", "m")
+    mono_still_sigma_vel_m_s: float = param(0.01, "one camera: sigma of the zero-velocity prior of a still frame", "m/s")
     # --- IMU (continuous-time densities; an ImuCalib passed to the estimator overrides them) ---
     gravity_m_s2: float = param(9.81, "magnitude of gravity along -z of W", "m/s^2")
     gyro_noise_density: float = param(1.6968e-4 * 5, "gyro white-noise density (inflated over the datasheet)", "rad/s/sqrt(Hz)")

@@ -40,6 +40,7 @@ from services.backend.cameras import BackendCamera, camera_from_calib  # noqa: F
 from services.backend.config import BackendConfig
 from services.backend.imu_factors import ImuBuffer, imu_factor, make_bias, make_params, predict
 from services.backend.motion_only import optimise_latest
+from services.backend.still import still_factors, still_motion
 from services.backend.triangulation import triangulate_checked
 
 
@@ -119,6 +120,8 @@ class WindowedVioEstimator:
         self._obs: dict[int, dict[int, list[tuple[int, np.ndarray]]]] = {}  # landmark -> state -> [(cam, xy)]
         self._in_graph: set[int] = set()
         self._proj_cache: dict[tuple[int, int, int], gtsam.NonlinearFactor] = {}
+        self._still: dict[int, list[gtsam.NonlinearFactor]] = {}  # one camera: factors of a still state (still.py)
+        self.still_frames = 0
         self._next = 0
         self.initialised = False
         self.dropped_observations = 0
@@ -193,6 +196,7 @@ class WindowedVioEstimator:
         self._first_frame_pending = False
         self._add_observations(n, ids, cams, uv)
         last_kf = self.keyframes[-1]
+        self._add_still(n, last_kf)
         keyframe = (n == last_kf or is_keyframe
                     or stamp_ns - self.stamps[last_kf] >= self.cfg.max_keyframe_interval_s * 1e9)
         if not keyframe and self.cfg.motion_only_between_keyframes and not self.cfg.compute_covariance:
@@ -245,6 +249,7 @@ class WindowedVioEstimator:
         """Non-keyframe: solve the newest state alone against the fixed window, report it, drop it."""
         lms = [lm for lm in self._in_graph if n in self._obs[lm]]
         proj = [self._projection(lm, n, j, c, xy) for lm in lms for j, (c, xy) in enumerate(self._obs[lm][n])]
+        proj += self._still.get(n, [])
         try:
             upd = optimise_latest(self.values, k, n, self._imu_factors[n], proj, lms, self.cfg.lm_max_iterations)
             self.values.update(upd)
@@ -289,6 +294,23 @@ class WindowedVioEstimator:
             xy = self.cameras[c].undistort(uv[m])
             for lm, p in zip(ids[m], xy):
                 self._obs.setdefault(int(lm), {}).setdefault(n, []).append((int(c), np.asarray(p, float)))
+
+    def _add_still(self, n: int, k: int) -> None:
+        """One camera: relative-pose and zero-velocity factors keyframe k -> state n when the image stands still."""
+        c = self.cfg
+        if len(self.cameras) != 1 or n == k or c.mono_still_flow_px <= 0:
+            return
+        xy_k, xy_n = [], []
+        for by_state in self._obs.values():
+            if k in by_state and n in by_state:
+                xy_k.append(by_state[k][0][1])
+                xy_n.append(by_state[n][0][1])
+        still = still_motion(np.reshape(xy_k, (-1, 2)), np.reshape(xy_n, (-1, 2)), float(self._focal[0]),
+                             self._T_SC[0][:3, :3], c.mono_still_flow_px, c.mono_still_min_features)
+        if still is not None:
+            self._still[n] = still_factors(k, n, still, c.mono_still_sigma_rot_rad, c.mono_still_sigma_pos_m,
+                                           c.mono_still_sigma_vel_m_s)
+            self.still_frames += 1
 
     def _views(self, lm: int):
         """(T_CW (K,4,4), xy (K,2), focal (K,)) of all window observations of a landmark."""
@@ -344,6 +366,9 @@ class WindowedVioEstimator:
             g.add(self._imu_factors[k])
         if n != self.keyframes[-1]:
             g.add(self._imu_factors[n])
+        for k in self._still:
+            for f in self._still[k]:
+                g.add(f)
         for lm in self._in_graph:
             for s, obs in self._obs[lm].items():
                 for j, (c, xy) in enumerate(obs):
@@ -408,6 +433,7 @@ class WindowedVioEstimator:
             if sum(len(o) for o in self._obs[lm].values()) < 2:
                 self._drop_landmark(lm)
         self._imu_factors.pop(n, None)
+        self._still.pop(n, None)
         for key in _state_keys(n):
             self.values.erase(key)
         del self.stamps[n]
@@ -436,6 +462,7 @@ class WindowedVioEstimator:
         self._priors = [gtsam.LinearContainerFactor(jf, lin)]
         self.keyframes.pop(0)
         self._imu_factors.pop(new, None)
+        self._still.pop(new, None)  # refers to the old state; the marginal prior holds its information
         self._remove_state(old)
 
     def _result(self, n: int, cov: np.ndarray, status: str) -> FrameResult:
