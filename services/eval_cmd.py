@@ -12,6 +12,7 @@ EVALS: dict[str, tuple[str, str]] = {
     "mesh": ("services.eval_mesh_cmd", "mesh accuracy (mean est->GT distance) and completeness (GT within 0.2 m), paper sec. V"),
     "depth": ("tools.depth.evaluate", "depth + sigma of SGBM, stereo/MVS networks and their fusion against GT: table, calibration plot, CPU time"),
     "hilti": ("services.eval_hilti_cmd", "Hilti 2022 score from sparse control points (--control CSV, or sampled from --dataset GT)"),
+    "ablation": ("tools.eval.ablation", "the paper's Table IV (o2p factors, depth sigma, fusion) + mono-inertial rows on replicas, in one process: markdown table"),
     "suite": ("tools.eval.suite", "the paper's tables I, II, V on replicas (runs the pipeline per sequence): markdown + PNG report"),
 }
 

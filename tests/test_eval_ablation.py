@@ -1,0 +1,93 @@
+"""``sigmaslam eval ablation`` (tools/eval/ablation.py): a short real run through the CLI entry (4 s of the 25 s
+V1_02 replica, baseline + learned rows, depth on every 8th frame, mesh on), --resume, and the table."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import pytest
+
+from services.cli import main
+from tools.eval.ablation import table_markdown
+
+
+@pytest.fixture(scope="module")
+def replica():
+    from tools.synth.api import ensure_default_replica
+
+    return ensure_default_replica(progress=False)
+
+
+@pytest.mark.e2e
+def test_short_ablation_writes_results_and_resume_skips_finished_rows(tmp_path, replica, capsys):
+    out = tmp_path / "abl"
+    argv = ["eval", "ablation", str(replica), "--rows", "baseline,learned", "--seconds", "4", "--depth-every", "8",
+            "--out", str(out)]
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    label = replica.name
+    for row in ("baseline", "learned"):
+        assert f"[eval ablation] {label} {row}: running" in printed and f"{label} {row}: done in" in printed
+    res = json.loads((out / "ablation.json").read_text())["replicas"][label]
+    assert set(res) == {"baseline", "learned"}
+    for row, r in res.items():
+        assert "error" not in r, r
+        for key in ("ate_causal_m", "ate_noncausal_m", "accuracy_m", "backend_median_ms", "backend_p99_ms"):
+            assert math.isfinite(r[key]) and r[key] >= 0, (row, key, r[key])
+        assert r["ate_causal_m"] < 0.05 and r["ate_noncausal_m"] < 0.05, r  # a 4 s stretch tracks to cm
+        assert 0 < r["completeness_5cm"] <= r["completeness"] <= 1
+        assert r["depth_frames"] >= 8 and r["depth_every"] == 8
+        assert (out / label / row / "trajectory_causal.txt").is_file()
+        assert (out / label / row / "trajectory_final.txt").is_file()
+        assert (out / label / f"{row}.log").is_file()
+    assert "o2p_counts" not in res["baseline"]
+    assert res["learned"]["o2p_counts"].get("frame_to_map", 0) > 0, res["learned"]["o2p_counts"]
+    table = (out / "table.md").read_text()
+    assert "| + learned sigma |" in table and "baseline (no dense terms)" in table
+    assert f"- {label}: " in table and "causal ATE" in table
+
+    # --resume: the finished row is read back, not run again (its result file is untouched)
+    before = (out / label / "baseline.json").stat().st_mtime_ns
+    assert main(["eval", "ablation", str(replica), "--rows", "baseline", "--seconds", "4", "--out", str(out),
+                 "--resume"]) == 0
+    printed = capsys.readouterr().out
+    assert f"{label} baseline: done before" in printed and "running" not in printed
+    assert (out / label / "baseline.json").stat().st_mtime_ns == before
+    again = json.loads((out / "ablation.json").read_text())["replicas"][label]["baseline"]
+    assert again["ate_causal_m"] == res["baseline"]["ate_causal_m"]
+
+
+def test_mono_row_fails_clearly_while_depth_has_no_mono_mode(tmp_path, replica, capsys):
+    from services.depth.config import DepthConfig
+
+    if "mono" in {f.name for f in dataclasses.fields(DepthConfig)}:
+        pytest.skip("depth.mono exists: the mono row runs (covered by the short run's form with --rows mono)")
+    out = tmp_path / "abl"
+    assert main(["eval", "ablation", str(replica), "--rows", "mono", "--seconds", "1", "--out", str(out)]) == 1
+    r = json.loads((out / replica.name / "mono.json").read_text())
+    assert "depth.mono" in r["error"]
+    assert "failed: ValueError: this build has no monocular depth" in (out / "table.md").read_text()
+    assert "row mono failed" in (out / replica.name / "mono.log").read_text()  # the traceback is in the row log
+
+
+def test_table_marks_failed_rows_and_says_which_dense_rows_beat_the_baseline():
+    rows = {"baseline": {"ate_causal_m": 0.010, "ate_noncausal_m": 0.008, "accuracy_m": 0.12, "completeness": 0.15,
+                         "completeness_5cm": 0.05, "backend_median_ms": 10.0, "backend_p99_ms": 80.0, "wall_s": 60},
+            "learned": {"ate_causal_m": 0.006, "o2p_counts": {"frame_to_map": 30, "map_to_map": 2}, "wall_s": 70},
+            "fused": {"ate_causal_m": 0.012, "o2p_counts": {"frame_to_map": 28}, "wall_s": 90},
+            "mono": {"error": "ValueError: no | mono", "wall_s": 0}}
+    md = table_markdown({"V1_02": rows, "MH_04": {"learned": {"error": "boom"}}})
+    lines = md.splitlines()
+    assert lines[0].count("|") == lines[1].count("|") == lines[2].count("|")
+    assert "| V1_02 | + learned sigma | 0.0060 | - |" in md and "| 30 / 2 |" in md and "| 28 / 0 |" in md
+    assert "| V1_02 | baseline (no dense terms) | 0.0100 | 0.0080 | 0.120 | 15.0% | 5.0% | 10.0 / 80 | - | 60 |" in md
+    assert "failed: ValueError: no / mono" in md  # a '|' in the reason does not break the table
+    assert "- V1_02: dense rows beating the baseline's causal ATE (0.0100 m): learned 0.0060; not beating: fused 0.0120." in md
+    assert "- MH_04: no baseline causal ATE to compare with." in md
+
+
+def test_unknown_row_is_refused(tmp_path, capsys):
+    assert main(["eval", "ablation", "V1_02", "--rows", "baseline,nope", "--out", str(tmp_path)]) == 2
+    assert "unknown rows ['nope']" in capsys.readouterr().err
