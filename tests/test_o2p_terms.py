@@ -92,27 +92,50 @@ def test_frame_to_map_pulls_a_keyframe_back_and_needs_covisibility(room):
         assert terms.factors({}, gtsam.Values()) == []  # the state left the window: its factor goes
 
 
-def test_map_to_map_aligns_a_submap_to_the_oldest_covisible_one(room):
+def map_to_map_term(room, cfg=None):
+    """Submap 0 = the mapped room (T_WM = I, created at 1 s, anchored on keyframe state 1 at P_o); submap 1
+    created at 4 s, anchored on state 7, integrated at the estimate T_est of its anchor (true pose T_true):
+    its points are right in M_1, its pose is off by 2 deg / 4 cm. Returns the queued term and the poses."""
     msg, renderer = room
-    T_true = view(3.0)  # true pose of submap 1's anchor (camera = body)
+    P_o, T_true = view(0.5), view(3.0)
     T_est = perturbed(T_true, 8)
-    terms = OccupancyTerms(O2PConfig(enabled=True, frame_to_map=False))
+    published = {1 * S: (1, P_o), 4 * S: (7, T_est)}  # keyframe poses as the mapping saw them
+    terms = OccupancyTerms(cfg or O2PConfig(enabled=True, frame_to_map=False))
+    terms.anchor_of = lambda stamp, T_WM: (published[stamp][0], inv_T(published[stamp][1]) @ T_WM)
     for t in range(1, 4):
         terms.note_frame(t * S, np.arange(0, 50))
     terms.add_field(msg)
+    p_M, sig = select_depth_points(renderer.render(K, W, H, view(0.5)), np.full((H, W), 0.03, np.float32), K, 1000)
+    terms.add_submap_points(0, p_M, sig)  # submap 0 closes: bound to its anchor, no older submap to align to
+    assert terms.pop_map_to_map() == [] and terms.counts["map_to_map_no_target"] == 1
     for t in range(4, 7):
         terms.note_frame(t * S, np.arange(30, 80))
-    # submap 1 anchored at 4 s on state 7, integrated with the (wrong) estimate; its field is not needed here
-    msg1 = field_message(Submap(1, T_est, 4 * S, BlockStore(0.025), ChunkMesher(4)), msg.l_min)
-    terms.add_field(msg1)
+    terms.add_field(field_message(Submap(1, T_est, 4 * S, BlockStore(0.025), ChunkMesher(4)), msg.l_min))
     p_M, sig = select_depth_points(renderer.render(K, W, H, T_true), np.full((H, W), 0.03, np.float32), K, 1000)
     terms.add_submap_points(1, p_M, sig)
-    values = gtsam.Values()
-    values.insert(X(7), gtsam.Pose3(T_est))
-    fs = terms.factors({7: 4 * S}, values)
-    assert len(fs) == 1 and terms.counts["map_to_map"] == 1
-    rot, tr = err(solve(fs, values).atPose3(X(7)).matrix(), T_true)
-    assert rot < 0.3 and tr < 0.01
+    out = terms.pop_map_to_map()
+    assert len(out) == 1 and terms.counts["map_to_map"] == 1 and terms.pop_map_to_map() == []
+    return out[0], P_o, T_true, T_est
+
+
+def test_map_to_map_term_binds_both_submaps_to_their_anchor_keyframes(room):
+    term, P_o, T_true, T_est = map_to_map_term(room)
+    assert (term.submap, term.target, term.state_m, term.state_o) == (1, 0, 7, 1)
+    assert np.allclose(term.T_KM_m, np.eye(4)) and np.allclose(term.T_KM_o, inv_T(P_o))
+    # at the anchors' true poses the points lie on the room's surfaces: the factor's error is ~0 there and large
+    # at the estimate
+    f_true = term.build(X(7), X(1), T_true, P_o)
+    v = gtsam.Values()
+    v.insert(X(1), gtsam.Pose3(P_o))
+    v.insert(X(7), gtsam.Pose3(T_true))
+    e_true = f_true.error(v)
+    v.update(X(7), gtsam.Pose3(T_est))
+    assert e_true < 0.05 * f_true.error(v)
+    # without a loop closer (no anchor binding) the term is counted, not built
+    terms = OccupancyTerms(O2PConfig(enabled=True))
+    terms.add_field(room[0])
+    terms.add_submap_points(0, np.zeros((5, 3)), np.full(5, 0.03))
+    assert terms.pop_map_to_map() == [] and terms.counts["map_to_map_no_pose_graph"] == 1
 
 
 def test_submap_point_pool_keeps_spread_lowest_sigma_points_in_the_submap_frame(room):

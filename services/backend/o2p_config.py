@@ -13,7 +13,8 @@ class O2PConfig:
 
     enabled: bool = param(False, "add occupancy-to-point factors to the back end's window (needs map/field and depth)")
     frame_to_map: bool = param(True, "frame-to-map: live stereo depth of a window keyframe against its o(k)")
-    map_to_map: bool = param(True, "map-to-map: fused-depth points of a finished submap m against o(m)")
+    map_to_map: bool = param(True, "map-to-map: fused-depth points of a finished submap m against o(m), between the two "
+                             "submaps' anchor keyframes in the loop closer's pose graph and final BA (needs loop.enabled)")
     max_points_frame: int = param(200, "points per frame-to-map factor at most (the lowest-sigma ones)")
     max_points_map: int = param(1000, "points per map-to-map factor at most (the lowest-sigma ones)")
     min_points_in_field: int = param(100, "M_min: a target submap needs this many points inside its observed field")
@@ -29,6 +30,8 @@ class O2PConfig:
     attach_tolerance_ms: float = param(150.0, "a depth frame without a window state at its stamp attaches to the nearest "
                                        "window state this close, moved there by the relative pose of the two estimates "
                                        "(depth runs at ~10 Hz, keyframes are sparser; 0: exact stamps only)", "ms")
+    anchor_tolerance_ms: float = param(1000.0, "map-to-map: a submap follows the keyframe nearest its creation within this "
+                                       "(as mapping.submaps.keyframe_bind_tolerance_s)", "ms")
     max_pending_depth: int = param(32, "depth frames waiting for their window state at most (oldest dropped)")
     max_submaps: int = param(500, "finished submap fields kept at most (oldest dropped)")
     landmark_history_s: float = param(600.0, "landmark ids of past frames kept this long for covisibility", "s")

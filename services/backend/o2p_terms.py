@@ -17,8 +17,12 @@ points of finished submaps (map-to-map).
 * **Target pose**: a submap follows the keyframe nearest its creation (as in the mapping service); when
   that state is still in the window the factor acts on both poses, else the submap pose is held fixed at
   the newest T_WM received (the factor then acts like a geometric loop closure on the frame).
-* **Map-to-map**: points of submap m (already in M_m) against o(m), attached to the newest window state
-  inside m's life (m moved rigidly with it); skipped when no window state lies in m's life.
+* **Map-to-map**: when submap m closes (its points arrive), m and o(m) are tied to the keyframes anchoring
+  them (the keyframe nearest each submap's creation, as in the mapping service; ``anchor_of``, installed by
+  the loop-closing back end, gives its state and ``T_KM``) and a :class:`MapToMap` term is queued
+  (:meth:`OccupancyTerms.pop_map_to_map`). The loop closer adds it to its pose graph between the two anchor
+  keyframes once both have left the window, and to the final bundle adjustment (services/loop/), so the
+  submap poses are the variables, as in eq. 5. Without a loop closer there is no map-to-map term (counted).
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
+from typing import Callable
 
 import gtsam
 import numpy as np
@@ -52,6 +57,36 @@ class _Submap:
     landmarks: np.ndarray  # sorted unique ids seen during the submap's life
     points_M: np.ndarray | None = None  # map-to-map points in M and their sigmas
     sigma: np.ndarray | None = None
+    anchor: tuple[int, np.ndarray] | None = None  # (keyframe state, T_KM) once the submap closed
+
+
+@dataclasses.dataclass(frozen=True)
+class MapToMap:
+    """Map-to-map term of eq. 5: the points of submap m (in M_m) against the field of o(m), between the
+    keyframes anchoring the two submaps (``T_KM``: a submap's frame in its anchor keyframe's body frame)."""
+
+    submap: int
+    target: int
+    state_m: int
+    state_o: int
+    T_KM_m: np.ndarray
+    T_KM_o: np.ndarray
+    points_M: np.ndarray  # (N, 3) [m]
+    sigma: np.ndarray  # (N,) [m]
+    field: BlockField  # of o(m), in M_o
+    l_min: float
+    cfg: O2PConfig
+
+    def build(self, key_m: int, key_o: int, T_WK_m: np.ndarray, T_WK_o: np.ndarray) -> gtsam.NonlinearFactor | None:
+        """The factor between gtsam Pose3 keys of the two anchors (body poses), with its Tukey threshold set
+        by the points inside o's field at the given anchor poses; None when fewer than M_min are inside."""
+        c = self.cfg
+        p_A = self.points_M @ self.T_KM_m[:3, :3].T + self.T_KM_m[:3, 3]
+        f = OccupancyToPoint(self.field, self.l_min, p_A, self.sigma, key_a=key_m, key_b=key_o, T_BM=self.T_KM_o,
+                             tukey_k=c.tukey_k, grad_min=c.grad_min, info_scale=c.info_scale,
+                             effective_points=c.effective_points)
+        n_valid = int(f.evaluate(np.asarray(T_WK_m, float), np.asarray(T_WK_o, float)).valid.sum())
+        return f.factor(n_valid) if n_valid >= c.min_points_in_field else None
 
 
 class OccupancyTerms:
@@ -66,8 +101,10 @@ class OccupancyTerms:
         self._depth: collections.OrderedDict[int, tuple[np.ndarray, np.ndarray, np.ndarray | None]] = collections.OrderedDict()
         # (kind, state index, submap id) -> (factor data, gtsam factor) or None when no target was found
         self._built: dict[tuple[str, int, int], tuple[OccupancyToPoint, gtsam.NonlinearFactor] | None] = {}
-        self._m2m_done: set[int] = set()
         self.counts = collections.Counter()
+        # (creation stamp, T_WM) -> (anchor keyframe state, T_KM) or None; set by the loop-closing back end
+        self.anchor_of: Callable[[int, np.ndarray], tuple[int, np.ndarray] | None] | None = None
+        self._map_to_map: list[MapToMap] = []
 
     # ------------------------------------------------------------------ inputs
     def note_frame(self, stamp_ns: int, landmark_ids: np.ndarray) -> None:
@@ -123,7 +160,7 @@ class OccupancyTerms:
             lms = np.union1d(lms, old.landmarks)
         sm = _Submap(sid, field_of_message(msg), float(msg.l_min), np.asarray(msg.T_WM, float), start, end, lms)
         if old is not None:
-            sm.points_M, sm.sigma = old.points_M, old.sigma
+            sm.points_M, sm.sigma, sm.anchor = old.points_M, old.sigma, old.anchor
         self.submaps[sid] = sm
         while len(self.submaps) > self.cfg.max_submaps:
             self.submaps.pop(min(self.submaps))
@@ -135,6 +172,35 @@ class OccupancyTerms:
             return
         order = np.argsort(np.asarray(sigma, float), kind="stable")[: self.cfg.max_points_map]
         sm.points_M, sm.sigma = np.asarray(points_M, float)[order], np.asarray(sigma, float)[order]
+        if self.cfg.map_to_map:
+            self._queue_map_to_map(sm)
+
+    def pop_map_to_map(self) -> list[MapToMap]:
+        """Map-to-map terms queued since the last call (for the loop closer)."""
+        out, self._map_to_map = self._map_to_map, []
+        return out
+
+    def _queue_map_to_map(self, m: _Submap) -> None:
+        """m has closed (its points came after its last field): bind it to its anchor keyframe and queue its
+        term against o(m), the oldest covisible closed submap with >= M_min of m's points in its field."""
+        if self.anchor_of is None:
+            self.counts["map_to_map_no_pose_graph"] += 1
+            return
+        m.anchor = self.anchor_of(m.start_ns, m.T_WM)
+        if m.anchor is None:
+            self.counts["map_to_map_no_anchor"] += 1
+            return
+        cands = [o for o in self._covisible(m.landmarks, exclude=m.id) if o.anchor is not None and o.id < m.id]
+        o = self._o(cands, m.points_M, m.T_WM, exclude=m.id)
+        if o is None:
+            self.counts["map_to_map_no_target"] += 1
+            return
+        if o.anchor[0] == m.anchor[0]:  # both follow one keyframe: the term would be constant
+            self.counts["map_to_map_same_anchor"] += 1
+            return
+        self._map_to_map.append(MapToMap(m.id, o.id, m.anchor[0], o.anchor[0], m.anchor[1], o.anchor[1], m.points_M,
+                                         m.sigma, o.field, o.l_min, self.cfg))
+        self.counts["map_to_map"] += 1
 
     # ------------------------------------------------------------------ factors
     def _landmarks_near(self, stamp_ns: int) -> np.ndarray:
@@ -215,19 +281,4 @@ class OccupancyTerms:
                 built = None if sm is None else self._make(sm, p_S, sig, X(n), stamps, values)
                 self._built[("f2m", n, -1 if sm is None else sm.id)] = built
                 self.counts["frame_to_map" if built else "frame_to_map_no_target"] += 1
-        if c.map_to_map:
-            for m in [m for m in self.submaps.values() if m.points_M is not None and m.id not in self._m2m_done]:
-                self._m2m_done.add(m.id)
-                inside = [n for n in live if m.start_ns <= stamps[n] <= m.end_ns]
-                if not inside:
-                    self.counts["map_to_map_state_gone"] += 1
-                    continue
-                n = max(inside, key=lambda k: stamps[k])
-                T_WA = values.atPose3(X(n)).matrix()
-                T_AM = inv_T(T_WA) @ m.T_WM
-                p_A = m.points_M @ T_AM[:3, :3].T + T_AM[:3, 3]
-                o = self._o(self._covisible(m.landmarks, exclude=m.id), p_A, T_WA, exclude=m.id)
-                built = None if o is None else self._make(o, p_A, m.sigma, X(n), stamps, values)
-                self._built[("m2m", n, -1 if o is None else o.id)] = built  # keyed by the target, like f2m
-                self.counts["map_to_map" if built else "map_to_map_no_target"] += 1
         return [v[1] for v in self._built.values() if v is not None]

@@ -5,8 +5,11 @@
   pose-graph solves;
 * corrects the published state and keyframe poses by the pose graph's latest correction ``T_W'W`` (when
   ``loop.correct_state``); after a solve the keyframes message also carries every corrected pose-graph node;
+* with occupancy-to-point factors on (the shell's ``o2p``), binds each closed submap to the keyframe anchoring
+  it (:meth:`LoopClosingBackend.anchor_of`) and passes the map-to-map terms to the pose graph;
 * keeps the uncorrected causal poses, and at the end of the stream (:meth:`LoopClosingBackend.finish`) runs
-  the final bundle adjustment over all keyframes with IMU and loop factors, giving the non-causal trajectory.
+  the final bundle adjustment over all keyframes with IMU, loop and map-to-map factors, giving the non-causal
+  trajectory.
 """
 
 from __future__ import annotations
@@ -15,12 +18,14 @@ import logging
 import time
 
 import numpy as np
+from gtsam.symbol_shorthand import X
 
 from services.loop.config import LoopConfig
 from services.loop.final_ba import bundle_adjust, follow_keyframes
 from services.loop.history import attach
 from services.loop.loop_closer import LoopCloser, ThreadedLoopCloser
 from services.loop.verification import FeatureSet
+from shared.geometry import inv_T
 from shared.messages import EstimatorState, FinalTrajectory, Header, KeyframeFeatures, Keyframes, Landmarks
 
 log = logging.getLogger("sigmaslam.loop")
@@ -50,6 +55,37 @@ class LoopClosingBackend:
         self._finished = False
         self._last_process = time.monotonic()
         self._T_last = np.eye(4)  # the correction applied to the last state
+        self._attach_o2p()
+
+    def _attach_o2p(self) -> None:
+        o2p = self.shell.o2p
+        if o2p is not None and o2p.anchor_of is None:
+            o2p.anchor_of = self.anchor_of
+
+    def anchor_of(self, stamp_ns: int, T_WM: np.ndarray) -> tuple[int, np.ndarray] | None:
+        """The keyframe a submap created at ``stamp_ns`` with pose ``T_WM`` (as the mapping has it now) follows:
+        the keyframe nearest its creation within ``o2p.anchor_tolerance_ms`` (state index) and ``T_KM``, taken
+        against that keyframe's pose as it was last published (the frame the mapping's T_WM lives in)."""
+        tol = self.shell.o2p.cfg.anchor_tolerance_ms * 1e6
+        est = self.shell.estimator
+        best: tuple[float, int, np.ndarray] | None = None
+        for n in est.keyframes:  # still in the window
+            if est.values.exists(X(n)) and abs(est.stamps[n] - stamp_ns) <= tol:
+                if best is None or abs(est.stamps[n] - stamp_ns) < best[0]:
+                    best = (abs(est.stamps[n] - stamp_ns), n, est.values.atPose3(X(n)).matrix())
+        for r in reversed(self.history.records):  # marginalised, time order
+            if r.stamp_ns < stamp_ns - tol:
+                break
+            if abs(r.stamp_ns - stamp_ns) <= tol and (best is None or abs(r.stamp_ns - stamp_ns) < best[0]):
+                best = (abs(r.stamp_ns - stamp_ns), r.state, r.T_WS)
+        if best is None:
+            return None
+        _, n, T_WK = best
+        if self.cfg.correct_state:  # published: the pose-graph node after a solve, else corrected by T_W'W
+            _, (g_ids, _, g_T) = self.runner.corrected_keyframes()
+            hit = np.flatnonzero(np.asarray(g_ids) == n)
+            T_WK = g_T[hit[0]] if len(hit) else self.runner.correction() @ T_WK
+        return n, inv_T(T_WK) @ np.asarray(T_WM, float)
 
     @property
     def counts(self) -> dict[str, int]:
@@ -67,6 +103,10 @@ class LoopClosingBackend:
     def process(self, frame):
         """As ``BackendShell.process``, with corrected poses."""
         self._last_process = time.monotonic()
+        if self.shell.o2p is not None:  # map-to-map terms of submaps closed since the last frame
+            self._attach_o2p()
+            for term in self.shell.o2p.pop_map_to_map():
+                self.runner.submit_map_to_map(term)
         msgs = self.shell.process(frame)
         if msgs is None or msgs[0].status in ("initialising", "reset"):
             return msgs
@@ -114,11 +154,12 @@ class LoopClosingBackend:
         T_raw = np.array(self._T_raw)
         if self.cfg.final_ba:
             res = bundle_adjust(records, est.cameras, est.cfg.sigma_px, est.cfg.cauchy_k, closer.loops + late_loops,
-                                self.cfg.final_ba_iterations, loop_observations=closer.loop_observations + late_obs)
+                                self.cfg.final_ba_iterations, loop_observations=closer.loop_observations + late_obs,
+                                map_to_map=closer.map_to_map_for_final())
             T_final = follow_keyframes(stamps, T_raw, res.stamps_ns, res.T_WS)
             n_kf = len(res.stamps_ns)
-            log.info("final BA: %d keyframes, %d landmarks, %d observations, error %.1f -> %.1f", n_kf,
-                     res.landmarks, res.observations, res.initial_error, res.final_error)
+            log.info("final BA: %d keyframes, %d landmarks, %d observations, %d map-to-map, error %.1f -> %.1f", n_kf,
+                     res.landmarks, res.observations, res.map_to_map, res.initial_error, res.final_error)
         else:  # the pose graph alone
             g_ids, g_stamps, g_T = closer.corrected_keyframes()
             T_final = follow_keyframes(stamps, T_raw, g_stamps, g_T) if len(g_ids) else T_raw

@@ -4,7 +4,8 @@ The graph holds every keyframe's (pose, velocity, bias) linked by the IMU factor
 recorded observation as a Cauchy-robust reprojection factor (the window's noise model), landmarks seen at
 least twice (initial positions: their last window estimate), the accepted loop constraints (relative poses,
 and the loop keyframe's PnP inliers as observations of the old landmarks), and a gauge prior on the first
-keyframe. Frames between keyframes follow their keyframe:
+keyframe, and the map-to-map occupancy-to-point terms (eq. 5-7) between keyframes anchoring submaps. Frames
+between keyframes follow their keyframe:
 ``T_final(t) = T_final(kf) T_causal(kf)^-1 T_causal(t)`` with kf the latest keyframe at or before t.
 """
 
@@ -28,15 +29,17 @@ class FinalBaResult:
     observations: int
     initial_error: float
     final_error: float
+    map_to_map: int = 0  # map-to-map terms in the graph
 
 
 def bundle_adjust(records: list[KeyframeRecord], cameras, sigma_px: float = 1.0, cauchy_k: float = 2.0,
                   loops: list[tuple[int, int, np.ndarray, np.ndarray]] = (), max_iterations: int = 30,
                   prior_sigma_rot: float = 1e-3, prior_sigma_pos: float = 1e-3,
-                  loop_observations: list[tuple[int, int, np.ndarray, int]] = ()) -> FinalBaResult:
+                  loop_observations: list[tuple[int, int, np.ndarray, int]] = (), map_to_map=()) -> FinalBaResult:
     """``records`` of all keyframes (time order, no duplicates); ``cameras``: the estimator's BackendCamera
     list; ``loops``: (old state, new state, T_old_new, covariance 6x6); ``loop_observations``: (state, camera,
-    normalised xy, landmark id) observations of old landmarks by loop keyframes (PnP inliers)."""
+    normalised xy, landmark id) observations of old landmarks by loop keyframes (PnP inliers); ``map_to_map``:
+    services.backend.o2p_terms.MapToMap terms (those whose anchors are among the keyframes join)."""
     recs = sorted({r.state: r for r in records}.values(), key=lambda r: r.state)
     if len(recs) < 2:
         raise ValueError("the final bundle adjustment needs at least two keyframes")
@@ -83,13 +86,22 @@ def bundle_adjust(records: list[KeyframeRecord], cameras, sigma_px: float = 1.0,
             model = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(3.0),
                                                    gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, float)))
             g.add(gtsam.BetweenFactorPose3(X(old), X(new), gtsam.Pose3(T_rel), model))
+    n_m2m = 0
+    T_of = {r.state: r.T_WS for r in recs}
+    for t in map_to_map:
+        if t.state_m in states and t.state_o in states:
+            f = t.build(X(t.state_m), X(t.state_o), T_of[t.state_m], T_of[t.state_o])
+            if f is not None:
+                g.add(f)
+                n_m2m += 1
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
     params.setRelativeErrorTol(1e-5)
     e0 = g.error(vals)
     out = gtsam.LevenbergMarquardtOptimizer(g, vals, params).optimize()
     return FinalBaResult(np.array([r.stamp_ns for r in recs], np.int64),
-                         np.array([out.atPose3(X(r.state)).matrix() for r in recs]), n_lm, n_obs, e0, g.error(out))
+                         np.array([out.atPose3(X(r.state)).matrix() for r in recs]), n_lm, n_obs, e0, g.error(out),
+                          n_m2m)
 
 
 def follow_keyframes(stamps_ns: np.ndarray, T_causal: np.ndarray, kf_stamps_ns: np.ndarray,

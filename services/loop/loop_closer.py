@@ -10,6 +10,8 @@ estimator's marginalisation hook) and the tracking status (:meth:`LoopCloser.not
 * A verified loop waits until the query keyframe leaves the window itself, then enters the pose graph as a
   relative-pose factor between the two nodes; the graph is solved and the correction ``T_W'W`` (window
   frame to corrected frame at the newest node) is updated.
+* Map-to-map occupancy-to-point terms (:meth:`LoopCloser.add_map_to_map`, from the back end's o2p terms)
+  wait until the keyframes anchoring both submaps are pose-graph nodes, then join the graph like loops.
 * Relocalisation: after ``relocalise_after_s`` without tracking, the next keyframes are queried against the
   keyframes from before the loss regardless of age, so the trajectory after the gap is tied back to the map.
 
@@ -74,6 +76,8 @@ class LoopCloser:
         self.node_stamps: dict[int, int] = {}
         self._dirty = False
         self._last_solve_ns = -(1 << 62)
+        self._m2m_pending: list = []  # map-to-map terms waiting for their anchor keyframes to become nodes
+        self.max_pending_map_to_map = 100
 
     # ------------------------------------------------------------------ status
     def note_status(self, stamp_ns: int, status: str) -> None:
@@ -155,6 +159,7 @@ class LoopCloser:
             if np.isfinite(p_W[:, 0]).sum() >= self.cfg.min_inliers:
                 self._old[rec.state] = (fs, p_W, rec)
                 self.db.add(rec.state, rec.stamp_ns, bag)
+        self._add_ready_map_to_map()
         solved = self._solve_if_due(rec.stamp_ns)
         keep = []
         for lp in self._pending:
@@ -166,6 +171,32 @@ class LoopCloser:
                 self.counts["loops_without_keyframe"] += 1
         self._pending = keep
         return solved
+
+    def add_map_to_map(self, term) -> bool:
+        """A map-to-map term (services.backend.o2p_terms.MapToMap); joins the graph once both anchor keyframes
+        are nodes. True when the graph was solved."""
+        self._m2m_pending.append(term)
+        while len(self._m2m_pending) > self.max_pending_map_to_map:
+            self._m2m_pending.pop(0)
+            self.counts["map_to_map_dropped"] += 1
+        self._add_ready_map_to_map()
+        return self._solve_if_due(self.node_stamps[self.graph.keys[-1]]) if self.graph.keys else False
+
+    def _add_ready_map_to_map(self) -> None:
+        keep = []
+        for t in self._m2m_pending:
+            if t.state_m not in self.graph.odom or t.state_o not in self.graph.odom:
+                keep.append(t)
+            elif self.graph.add_map_to_map(t):
+                self.counts["map_to_map_accepted"] += 1
+                self._dirty = True
+            else:
+                self.counts["map_to_map_no_overlap"] += 1
+        self._m2m_pending = keep
+
+    def map_to_map_for_final(self) -> list:
+        """Map-to-map terms of the pose graph and those still waiting (anchors in the window at the end)."""
+        return list(self.graph.map_to_map) + list(self._m2m_pending)
 
     def _accept(self, lp: VerifiedLoop, rec: KeyframeRecord) -> bool:
         old = self._old[lp.old_state][2]
@@ -252,6 +283,9 @@ class ThreadedLoopCloser:
     def submit_record(self, rec: KeyframeRecord) -> None:
         self._put(("record", rec))
 
+    def submit_map_to_map(self, term) -> None:
+        self._put(("m2m", term))
+
     def submit_status(self, stamp_ns: int, status: str) -> None:
         self._put(("status", int(stamp_ns), status))
 
@@ -290,7 +324,7 @@ class ThreadedLoopCloser:
                 elif kind == "status":
                     c.note_status(item[1], item[2])
                 else:
-                    c.add_record(item[1])
+                    (c.add_record if kind == "record" else c.add_map_to_map)(item[1])
                     corr = c.correction()
                     solved = len(c.solve_ms) != self._solves
                     snap = c.corrected_keyframes() if solved else None

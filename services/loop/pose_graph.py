@@ -2,7 +2,8 @@
 
 Nodes are keyframe body poses ``T_WS``; consecutive nodes are linked by the relative pose the window
 estimated, with the covariance of that relative pose taken from the window's joint marginal covariance
-(:func:`relative_covariance`); accepted loops add relative-pose factors from PnP (robust, Cauchy). The graph
+(:func:`relative_covariance`); accepted loops add relative-pose factors from PnP (robust, Cauchy); map-to-map
+occupancy-to-point terms (eq. 5-7, services/backend/o2p_terms.py) tie the keyframes anchoring two submaps. The graph
 is solved by Levenberg-Marquardt (in the loop closer's own thread, see services/loop/loop_closer.py, so the
 estimator never waits for it).
 """
@@ -56,6 +57,7 @@ class PoseGraph:
         self.odom: dict[int, np.ndarray] = {}  # key -> odometry (window) estimate T_WS
         self.keys: list[int] = []
         self.loops: list[LoopConstraint] = []
+        self.map_to_map: list = []  # services.backend.o2p_terms.MapToMap terms in the graph
         self._prior = (prior_sigma_rad, prior_sigma_m)
         self._cauchy = loop_cauchy_k
         self.estimate: dict[int, np.ndarray] = {}
@@ -90,6 +92,20 @@ class PoseGraph:
         self.graph.add(gtsam.BetweenFactorPose3(_sym(loop.old_key), _sym(loop.new_key), gtsam.Pose3(loop.T_old_new),
                                                 _noise(loop.covariance, self._cauchy)))
         self.loops.append(loop)
+
+    def add_map_to_map(self, term) -> bool:
+        """A map-to-map occupancy-to-point term (``MapToMap``) between the nodes anchoring its two submaps;
+        False (nothing added) when fewer than M_min of its points lie in the target's field at the current
+        estimate."""
+        for k in (term.state_m, term.state_o):
+            if k not in self.odom:
+                raise KeyError(f"map-to-map term refers to keyframe {k}, not in the pose graph")
+        f = term.build(_sym(term.state_m), _sym(term.state_o), self.estimate[term.state_m], self.estimate[term.state_o])
+        if f is None:
+            return False
+        self.graph.add(f)
+        self.map_to_map.append(term)
+        return True
 
     def optimise(self, max_iterations: int = 50, relative_tol: float = 1e-6) -> dict[int, np.ndarray]:
         """Solve; the result becomes the initial guess of the next solve. Returns key -> corrected T_WS.

@@ -1,0 +1,80 @@
+"""Map-to-map occupancy-to-point terms (eq. 5-7) in the loop closer: a submap whose anchor keyframe is off by
+2 deg / 4 cm is pulled back onto the older submap by the term, in the pose graph (directly and through the
+loop closer, where the term waits for its anchors to become nodes) and in the final bundle adjustment."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import gtsam
+import numpy as np
+
+from services.backend.o2p_config import O2PConfig
+from services.loop.config import LoopConfig
+from services.loop.final_ba import bundle_adjust
+from services.loop.history import KeyframeRecord
+from services.loop.loop_closer import LoopCloser
+from services.loop.pose_graph import PoseGraph
+from tests.test_o2p_terms import S, err, map_to_map_term, room  # noqa: F401,F811 (room: the fixture)
+
+# odometry between the two anchors, loose: the term has to do the pulling (3 deg, 10 cm)
+REL_COV = np.diag([np.radians(3.0) ** 2] * 3 + [0.1**2] * 3)
+
+
+def records(P_o, T_est):
+    def rec(state, stamp, T, **kw):
+        return KeyframeRecord(state, stamp, T, np.zeros(3), gtsam.imuBias.ConstantBias(), {}, {}, **kw)
+
+    return [rec(1, 1 * S, P_o, next_state=7, rel_cov_to_next=REL_COV, T_WS_next=T_est), rec(7, 4 * S, T_est)]
+
+
+def test_pose_graph_map_to_map_pulls_the_submap_anchor_back(room):
+    term, P_o, T_true, T_est = map_to_map_term(room)
+    for with_term in (False, True):
+        pg = PoseGraph()
+        pg.add_node(1, P_o)
+        pg.add_node(7, T_est, REL_COV)
+        if with_term:
+            assert pg.add_map_to_map(term) and pg.map_to_map == [term]
+        est = pg.optimise()
+        rot, tr = err(est[7], T_true)
+        print(f"term {with_term}: {rot:.3f} deg, {100 * tr:.2f} cm")
+        if with_term:
+            assert rot < 0.3 and tr < 0.01
+            assert np.allclose(est[1], P_o, atol=1e-3)  # the first node holds the gauge
+        else:
+            assert rot > 1.5 and tr > 0.03  # odometry alone keeps the error
+
+
+def test_map_to_map_waits_in_the_loop_closer_for_its_anchor_nodes(room):
+    term, P_o, T_true, T_est = map_to_map_term(room)
+    closer = LoopCloser(LoopConfig(), [])
+    rec1, rec7 = records(P_o, T_est)
+    assert not closer.add_map_to_map(term)  # no node yet
+    closer.add_record(rec1)
+    assert closer.counts["map_to_map_accepted"] == 0 and closer.map_to_map_for_final() == [term]
+    assert closer.add_record(rec7)  # both anchors are nodes: the term joins and the graph is solved
+    assert closer.counts["map_to_map_accepted"] == 1 and closer.map_to_map_for_final() == [term]
+    rot, tr = err(closer.graph.estimate[7], T_true)
+    assert rot < 0.3 and tr < 0.01
+    # the correction of the newest node moves the published state by the same amount
+    rot, tr = err(closer.correction() @ T_est, T_true)
+    assert rot < 0.3 and tr < 0.01
+    # a term whose points miss the target's field at the estimate is counted and left out
+    T_far = term.T_KM_m.copy()
+    T_far[0, 3] += 50.0  # submap m 50 m away from o
+    closer.add_map_to_map(dataclasses.replace(term, T_KM_m=T_far))
+    assert closer.counts["map_to_map_no_overlap"] == 1 and len(closer.graph.map_to_map) == 1
+
+
+def test_final_bundle_adjustment_uses_map_to_map(room):
+    term, P_o, T_true, T_est = map_to_map_term(room, O2PConfig(enabled=True, frame_to_map=False))
+    recs = records(P_o, T_est)
+    without = bundle_adjust(recs, [], prior_sigma_rot=1e-4, prior_sigma_pos=1e-4)
+    res = bundle_adjust(recs, [], prior_sigma_rot=1e-4, prior_sigma_pos=1e-4, map_to_map=[term])
+    assert without.map_to_map == 0 and res.map_to_map == 1
+    assert err(without.T_WS[1], T_true)[0] > 1.5  # nothing else constrains the second keyframe
+    rot, tr = err(res.T_WS[1], T_true)
+    assert rot < 0.3 and tr < 0.01
+    # a term whose anchors are not among the keyframes is left out
+    assert bundle_adjust(recs, [], map_to_map=[dataclasses.replace(term, state_o=99)]).map_to_map == 0
