@@ -17,6 +17,7 @@ import time
 import numpy as np
 import pytest
 import yaml
+from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
@@ -40,7 +41,8 @@ def _hdr(i: int, frame: str = "W") -> m.Header:
 
 def make_messages(n: int) -> dict[str, list]:
     """Messages of several types per relative key (images large enough for shared memory)."""
-    out: dict[str, list] = {t.key: [] for t in (topics.IMU, topics.FRAME, topics.STATE, topics.DEPTH_FUSED, topics.SUBMAP)}
+    out: dict[str, list] = {t.key: [] for t in (topics.IMU, topics.FRAME, topics.STATE, topics.DEPTH_FUSED, topics.SUBMAP,
+                                                topics.LANDMARKS)}
     for i in range(n):
         out[topics.IMU.key].append(m.ImuSample(header=_hdr(i, "S"), omega_S=RNG.normal(size=3), acc_S=RNG.normal(size=3)))
         out[topics.FRAME.key].append(m.MultiCameraFrame(
@@ -55,6 +57,11 @@ def make_messages(n: int) -> dict[str, list]:
         depth[0, 0] = np.nan
         out[topics.DEPTH_FUSED.key].append(m.DepthFrame(header=_hdr(i, "cam0"), depth=depth, sigma=depth * 0.1,
                                                         K=np.eye(3), T_WC=np.eye(4), source="fused"))
+        if i % 3 == 0:
+            k = 5 + i
+            out[topics.LANDMARKS.key].append(m.Landmarks(
+                header=_hdr(i), ids=np.arange(k, dtype=np.int64) + 100 * i, p_W=RNG.normal(size=(k, 3)),
+                num_observations=RNG.integers(2, 9, k).astype(np.int32), last_seen_ns=np.full(k, i, np.int64)))
     out[topics.SUBMAP.key].append(m.SubmapMesh(
         header=_hdr(0), submap_id=4, T_WM=np.eye(4), vertices_M=RNG.normal(size=(6, 3)).astype(np.float32),
         faces=np.array([[0, 1, 2], [3, 4, 5]], np.int32), vertex_colors=np.full((6, 3), 255, np.uint8)))
@@ -155,11 +162,14 @@ def test_record_sigterm_complete_file(tmp_path):
         assert schemas[f"foxglove/{ns}/{topics.FRAME.key}/cam1"].encoding == "protobuf"
         frames = sent[f"{ns}/{topics.FRAME.key}"]
         states = sent[f"{ns}/{topics.STATE.key}"]
-        images, poses, scenes, depths = [], [], [], []
+        images, poses, scenes, depths, clouds = [], [], [], [], []
         for _schema, channel, message in reader.iter_messages(topics=[
                 f"foxglove/{ns}/{topics.FRAME.key}/cam1", f"foxglove/{ns}/{topics.STATE.key}",
-                f"foxglove/{ns}/{topics.SUBMAP.key}", f"foxglove/{ns}/{topics.DEPTH_FUSED.key}/depth"]):
-            if channel.topic.endswith("cam1"):
+                f"foxglove/{ns}/{topics.SUBMAP.key}", f"foxglove/{ns}/{topics.DEPTH_FUSED.key}/depth",
+                f"foxglove/{ns}/{topics.LANDMARKS.key}"]):
+            if channel.topic.endswith(topics.LANDMARKS.key):
+                clouds.append(PointCloud.FromString(message.data))
+            elif channel.topic.endswith("cam1"):
                 images.append(RawImage.FromString(message.data))
             elif channel.topic.endswith("depth"):
                 depths.append(RawImage.FromString(message.data))
@@ -180,6 +190,9 @@ def test_record_sigterm_complete_file(tmp_path):
     assert (p.position.x, p.position.y, p.position.z) == (7.0, 2.0, -1.0)
     s = np.sqrt(0.5)  # 90 deg about z: (x, y, z, w) = (0, 0, sin 45, cos 45)
     assert np.allclose([p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w], [0, 0, s, s])
+    lms = sent[f"{ns}/{topics.LANDMARKS.key}"]
+    assert len(clouds) == len(lms) == 4 and clouds[2].frame_id == "W" and [f.name for f in clouds[2].fields] == list("xyz")
+    np.testing.assert_allclose(np.frombuffer(clouds[2].data, "<f4").reshape(-1, 3), lms[2].p_W, rtol=1e-6, atol=1e-6)
     tri = scenes[0].entities[0].triangles[0]
     assert scenes[0].entities[0].id == "submap4" and list(tri.indices) == [0, 1, 2, 3, 4, 5] and len(tri.points) == 6
 

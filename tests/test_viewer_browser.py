@@ -1,5 +1,5 @@
 """The web viewer in a real browser: a `sigmaslam viewer` process, a separate publisher process sending
-submap meshes, states, keyframes, images, depth and landmarks over real Zenoh (loopback router), and
+submap meshes, states, keyframes, images, depth and landmarks (estimator/landmarks) over real Zenoh (loopback router), and
 headless Chromium (the system's /usr/bin/chromium, driven by Playwright) on the viser page.
 
 Checks: the meshes are drawn (strongly coloured pixels in the 3D view that vanish when the 'meshes'
@@ -185,7 +185,7 @@ def test_viewer_page_draws_meshes_and_controls_work(stack):
 
     assert wait_for(lambda: viewer_queues()[topics.SUBMAP.key][1] == 1, 10, 0.2), viewer_queues()
     q = viewer_queues()
-    assert q[topics.SUBMAP.key][0] >= 5 and q[topics.STATE.key][0] > 20, q
+    assert q[topics.SUBMAP.key][0] >= 5 and q[topics.STATE.key][0] > 20 and q[topics.LANDMARKS.key][0] >= 2, q
     assert all(dropped == 0 for key, (_, dropped) in q.items() if key != topics.SUBMAP.key), q
     assert stack["viewer"].p.poll() is None
     assert not errors, errors

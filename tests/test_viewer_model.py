@@ -188,6 +188,23 @@ def test_landmark_buffer_is_bounded_drops_nan_and_keeps_newest_per_id():
     assert [8, 8, 8] in lm.positions().tolist() and [7, 7, 7] not in lm.positions().tolist()
 
 
+def test_model_draws_the_estimators_landmarks():
+    model = ViewerModel(ViewerConfig(max_landmarks=100))
+    assert model.take_update(0.0).landmarks_W is None
+    p = np.array([[1.0, 2, 3], [4, 5, 6], [np.nan, 0, 0]])
+    model.apply(m.Landmarks(header=H(10), ids=np.array([7, 8, 9]), p_W=p, num_observations=np.full(3, 2, np.int32),
+                            last_seen_ns=np.full(3, 10, np.int64)), 0.0)
+    up = model.take_update(0.1)
+    assert sorted(map(tuple, up.landmarks_W.tolist())) == [(1, 2, 3), (4, 5, 6)]  # the non-finite one is not drawn
+    assert model.take_update(0.2).landmarks_W is None  # unchanged
+    # a later window moves landmark 8 and adds 10; 7 (out of the window now) keeps its last position
+    model.apply(m.Landmarks(header=H(20), ids=np.array([8, 10]), p_W=np.array([[4.0, 5, 7], [0, 0, 1]]),
+                            num_observations=np.full(2, 3, np.int32), last_seen_ns=np.full(2, 20, np.int64)), 0.3)
+    up = model.take_update(0.4)
+    assert sorted(map(tuple, up.landmarks_W.tolist())) == [(0, 0, 1), (1, 2, 3), (4, 5, 7)]
+    assert model.counts["landmarks"] == 2 and "**landmarks** 3" in up.status_md
+
+
 def test_ground_truth_overlay_is_aligned_onto_the_estimate():
     rng = np.random.default_rng(1)
     t = np.arange(50, dtype=np.int64) * 50_000_000

@@ -78,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     cfg = load_system_config(args.config, args.set)
     with Node("demo", cfg.transport) as node:
         pubs = {t.key: node.publisher(t) for t in (topics.STATE, topics.KEYFRAMES, topics.SUBMAP, topics.FRAME,
-                                                   topics.DEPTH_FUSED, topics.FEATURES)}
+                                                   topics.DEPTH_FUSED, topics.LANDMARKS)}
         node.subscriber(topics.CONTROL, handler=lambda c: print(f"control: {c.command} -> {c.target}", flush=True))
         pubs[topics.SUBMAP.key].wait_for_subscribers(5.0)
         pub_timer = node.timer("publish", budget_ms=10.0)
@@ -110,10 +110,11 @@ def main(argv: list[str] | None = None) -> int:
                                                                   camera_names=("cam0", "cam1"), stamps_ns=np.array([stamp, stamp])))
                 if i % 2 == 0:
                     pubs[topics.DEPTH_FUSED.key].publish(depth_frame(stamp, i // 2, T_WS))
-                sel = rng.choice(len(landmarks), 30, replace=False)
-                pubs[topics.FEATURES.key].publish(m.FeatureFrame(
-                    header=hdr, landmark_ids=sel.astype(np.int64), camera_index=np.zeros(30, np.int16),
-                    uv=np.zeros((30, 2), np.float32), p_W_init=landmarks[sel], is_keyframe=i % 10 == 0))
+                if i % 10 == 0:
+                    sel = np.sort(rng.choice(len(landmarks), 30, replace=False))
+                    pubs[topics.LANDMARKS.key].publish(m.Landmarks(
+                        header=hdr, ids=sel.astype(np.int64), p_W=landmarks[sel], num_observations=np.full(30, 2, np.int32),
+                        last_seen_ns=np.full(30, stamp, np.int64)))
             i += 1
             node.wait(max(0.0, t0 + i / args.rate - time.monotonic()))
         print(f"demo: published {i} frames", flush=True)

@@ -7,6 +7,7 @@
 - ``EstimatorState`` -> ``foxglove.PoseInFrame`` (``T_WS`` in frame ``W``) on ``foxglove/<key>``
 - ``SubmapMesh`` -> ``foxglove.SceneUpdate`` with one entity ``submap<id>`` holding a
   ``TriangleListPrimitive`` posed at ``T_WM`` on ``foxglove/<key>``
+- ``Landmarks`` -> ``foxglove.PointCloud`` (float32 x, y, z in frame ``W``) on ``foxglove/<key>``
 
 Schemas are written as a serialized ``google.protobuf.FileDescriptorSet`` (schema encoding
 ``protobuf``), which is what Foxglove and the MCAP tools expect.
@@ -15,6 +16,8 @@ Schemas are written as a serialized ``google.protobuf.FileDescriptorSet`` (schem
 from __future__ import annotations
 
 import numpy as np
+from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
+from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
@@ -95,6 +98,17 @@ def scene_update(mesh: m.SubmapMesh) -> SceneUpdate:
     return out
 
 
+def point_cloud(points: np.ndarray, stamp_ns: int, frame_id: str) -> PointCloud:
+    """PointCloud of (N, 3) points as little-endian float32 x, y, z (identity pose in ``frame_id``)."""
+    pts = np.ascontiguousarray(np.asarray(points, np.float64).reshape(-1, 3), "<f4")
+    out = PointCloud(frame_id=frame_id, point_stride=12, data=pts.tobytes())
+    _stamp(out.timestamp, stamp_ns)
+    out.pose.orientation.w = 1.0
+    for i, name in enumerate("xyz"):
+        out.fields.add(name=name, offset=4 * i, type=PackedElementField.FLOAT32)
+    return out
+
+
 def mirror(key: str, msg: Message) -> list[tuple[str, ProtoMessage]]:
     """Foxglove mirror messages of ``msg`` received on ``key`` (empty for types without a mirror)."""
     base = PREFIX + key
@@ -108,4 +122,6 @@ def mirror(key: str, msg: Message) -> list[tuple[str, ProtoMessage]]:
         return [(base, pose_in_frame(msg.T_WS, stamp, msg.header.frame_id or "W"))]
     if isinstance(msg, m.SubmapMesh):
         return [(base, scene_update(msg))]
+    if isinstance(msg, m.Landmarks):
+        return [(base, point_cloud(msg.p_W, stamp, msg.header.frame_id or "W"))]
     return []

@@ -96,7 +96,7 @@ class ViewerModel:
         self._last_depth_s = -math.inf
         self._last_stats_s = -math.inf
         self._last_gt_s = -math.inf
-        self.counts = {"state": 0, "keyframes": 0, "submap": 0, "frame": 0, "depth": 0, "features": 0, "stats": 0}
+        self.counts = {"state": 0, "keyframes": 0, "submap": 0, "frame": 0, "depth": 0, "landmarks": 0, "stats": 0}
         self._status_dirty = True
 
     # ------------------------------------------------------------------ receiving (any thread, cheap)
@@ -141,9 +141,9 @@ class ViewerModel:
             self._set_camera(name, msg.T_SC, float(msg.K[1, 1]), w, h)
             self._body_changed = True
 
-    def _on_features(self, msg: m.FeatureFrame, now_s: float) -> None:
-        self.counts["features"] += 1
-        self.landmarks.add(msg.landmark_ids, msg.p_W_init)
+    def _on_landmarks(self, msg: m.Landmarks, now_s: float) -> None:
+        self.counts["landmarks"] += 1
+        self.landmarks.add(msg.ids, msg.p_W)
 
     def _on_stats(self, msg: m.ServiceStats, now_s: float) -> None:
         self.counts["stats"] += 1
@@ -153,7 +153,7 @@ class ViewerModel:
         self._stream_ended = msg
 
     _HANDLERS = {m.EstimatorState: _on_state, m.Keyframes: _on_keyframes, m.SubmapMesh: _on_submap,
-                 m.MultiCameraFrame: _on_frame, m.DepthFrame: _on_depth, m.FeatureFrame: _on_features,
+                 m.MultiCameraFrame: _on_frame, m.DepthFrame: _on_depth, m.Landmarks: _on_landmarks,
                  m.ServiceStats: _on_stats, m.StreamEnd: _on_end}
 
     def _set_camera(self, name: str, T_SC: np.ndarray, fy: float, width: int, height: int) -> None:

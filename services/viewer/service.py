@@ -29,7 +29,7 @@ from transport.pubsub import RateLimitedLog, Subscriber
 log = logging.getLogger("sigmaslam.viewer")
 
 SHOWN_TOPICS = (topics.STATE, topics.KEYFRAMES, topics.SUBMAP, topics.FRAME, topics.DEPTH_STEREO, topics.DEPTH_FUSED,
-                topics.FEATURES, topics.STATS, topics.STREAM_END)
+                topics.LANDMARKS, topics.STATS, topics.STREAM_END)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

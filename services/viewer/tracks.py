@@ -107,7 +107,8 @@ class KeyframeTrack:
 
 
 class LandmarkBuffer:
-    """Sparse landmark positions from FeatureFrame.p_W_init: a bounded ring of (id, p_W); the newest per id wins."""
+    """Sparse landmark positions from estimator/landmarks: a bounded ring of (id, p_W); the newest per id wins
+    (landmarks that left the estimator's window stay at their last estimate)."""
 
     def __init__(self, capacity: int = 20000) -> None:
         self.capacity = max(1, int(capacity))
