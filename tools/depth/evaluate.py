@@ -4,7 +4,7 @@ Methods: SGBM with the quadratic and the linear heuristic sigma; the stereo netw
 sigma and, for the same depths, with the quadratic heuristic sigma; the MVS network; the fusion of both
 networks (eq. 14). The heuristic models get the same treatment as the networks: one gain each, fitted
 on the validation split of the rendered training set (sec. V-A). Per method: AbsRel, RMSE, delta<1.25,
-mean Mahalanobis, NLL, fraction within 1/2/3 sigma (next to the Laplacian expectation), coverage; a
+mean Mahalanobis, NLL, fraction within 1/2/3 sigma (next to the Laplacian and Gaussian expectations), coverage; a
 table (markdown + JSON), a calibration plot (PNG) and the CPU time per frame (median over frames).
 
 Frames come from a synthetic replica (``--replica DIR``: EuRoC folder with ``mav0/scene/mesh.ply``;
@@ -196,18 +196,22 @@ def main(args: argparse.Namespace) -> int:
     result = {"source": source, "frames": len(acc["stereo_net"]), "mvs_frames": len(acc["mvs_net"]),
               "mean_sources": float(np.mean(n_src)) if n_src else 0.0, "heuristic_gains": hg,
               "network_gains": {"stereo": st_meta["gain"], "mvs": mv_meta["gain"]}, "metrics": rows,
-              "median_ms": timing, "threads": args.threads, "expected_within_laplace": EXPECTED_WITHIN["laplace"]}
+              "median_ms": timing, "threads": args.threads, "expected_within_laplace": EXPECTED_WITHIN["laplace"],
+              "expected_within_gauss": EXPECTED_WITHIN["gauss"]}
     (out / "metrics.json").write_text(json.dumps(result, indent=1))
     lines = [f"Depth evaluation on {source}: {result['frames']} frames ({result['mvs_frames']} with MVS, "
              f"{result['mean_sources']:.1f} sources on average)", "",
-             "| method | AbsRel | RMSE [m] | d<1.25 | mean Mahalanobis | NLL (Laplace) | <1s | <2s | <3s | coverage |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| method | AbsRel | RMSE [m] | d<1.25 | mean Mahalanobis | NLL (Laplace) | NLL (Gauss) | <1s | <2s | <3s "
+             "| coverage |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for m, r in rows.items():
         lines.append(f"| {m} | {r['absrel']:.4f} | {r['rmse']:.4f} | {r['delta1']:.3f} | {r['mahalanobis']:.3f} | "
-                     f"{r['nll_laplace']:.3f} | {r['within_1s']:.3f} | {r['within_2s']:.3f} | {r['within_3s']:.3f} | "
+                     f"{r['nll_laplace']:.3f} | {r['nll_gauss']:.3f} | {r['within_1s']:.3f} | {r['within_2s']:.3f} | {r['within_3s']:.3f} | "
                      f"{r['coverage']:.3f} |")
     e = EXPECTED_WITHIN["laplace"]
-    lines += [f"| (Laplace expectation) | | | | 1.000 | | {e[0]:.3f} | {e[1]:.3f} | {e[2]:.3f} | |", "",
+    g = EXPECTED_WITHIN["gauss"]
+    lines += [f"| (Laplace expectation, sigma = scale b) | | | | 1.000 | | | {e[0]:.3f} | {e[1]:.3f} | {e[2]:.3f} | |",
+              f"| (Gaussian expectation, sigma = std) | | | | 0.798 | | | {g[0]:.3f} | {g[1]:.3f} | {g[2]:.3f} | |", "",
               "CPU time (process time, not wall time: the machine is shared) per 512x384 frame, median [ms] (" +
               f"{args.threads} threads): " +
               ", ".join(f"{k} {v:.1f}" for k, v in timing.items())]
@@ -226,6 +230,9 @@ def _plot(acc, path: Path) -> None:
     k = np.linspace(0, 4, 81)
     fig, ax = plt.subplots(figsize=(6, 4.5))
     ax.plot(k, 1 - np.exp(-k), "k--", label="Laplace expectation")
+    from scipy.special import erf
+
+    ax.plot(k, erf(k / np.sqrt(2)), "k:", label="Gaussian expectation")
     for m, v in acc.items():
         if not v:
             continue
