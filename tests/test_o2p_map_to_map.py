@@ -13,7 +13,7 @@ from services.backend.o2p_config import O2PConfig
 from services.loop.config import LoopConfig
 from services.loop.final_ba import bundle_adjust
 from services.loop.history import KeyframeRecord
-from services.loop.loop_closer import LoopCloser
+from services.loop.loop_closer import LoopCloser, ThreadedLoopCloser
 from services.loop.pose_graph import PoseGraph
 from tests.test_o2p_terms import S, err, map_to_map_term, room  # noqa: F401,F811 (room: the fixture)
 
@@ -65,6 +65,26 @@ def test_map_to_map_waits_in_the_loop_closer_for_its_anchor_nodes(room):
     T_far[0, 3] += 50.0  # submap m 50 m away from o
     closer.add_map_to_map(dataclasses.replace(term, T_KM_m=T_far))
     assert closer.counts["map_to_map_no_overlap"] == 1 and len(closer.graph.map_to_map) == 1
+
+
+def test_threaded_loop_closer_takes_map_to_map_terms(room):
+    """Through the closer's thread (as the back end submits them): the correction and the corrected
+    keyframes follow the solve that includes the term."""
+    term, P_o, T_true, T_est = map_to_map_term(room)
+    runner = ThreadedLoopCloser(LoopCloser(LoopConfig(), []))
+    try:
+        rec1, rec7 = records(P_o, T_est)
+        runner.submit_record(rec1)
+        runner.submit_map_to_map(term)
+        runner.submit_record(rec7)
+        assert runner.drain() and runner.errors == 0
+        gen, (ids, _, T) = runner.corrected_keyframes()
+        assert gen == 1 and list(ids) == [1, 7]
+        rot, tr = err(T[1], T_true)
+        assert rot < 0.3 and tr < 0.01
+        assert err(runner.correction() @ T_est, T_true)[1] < 0.01
+    finally:
+        runner.close()
 
 
 def test_final_bundle_adjustment_uses_map_to_map(room):
