@@ -28,7 +28,8 @@ wall time. A row that fails is recorded as ``failed: why`` and the others still 
 
 Writes ``--out``/ablation.json, table.md and, per replica and row, ``<replica>/<row>.json`` (the result),
 ``<row>.log`` (that row's log) and ``<row>/trajectory_{causal,final}.txt`` (TUM). ``--resume`` skips rows whose
-result json holds a finished (not failed) result.
+result json holds a finished (not failed) result of the same settings (--seconds, --depth-every, --heuristic-px,
+mesh, overrides).
 """
 
 from __future__ import annotations
@@ -73,7 +74,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="config override applied to every row (the row's own keys win)")
     p.add_argument("--no-mesh", action="store_true", help="skip the mesh evaluation")
     p.add_argument("--out", default="out/ablation", help="output folder (default out/ablation)")
-    p.add_argument("--resume", action="store_true", help="skip rows whose result json already holds a result")
+    p.add_argument("--resume", action="store_true", help="skip rows whose result json holds a finished result of the same settings")
 
 
 # ---------------------------------------------------------------------------------------------- inputs
@@ -95,7 +96,7 @@ def row_overrides(row: str) -> list[str]:
     if row == "baseline":
         return ["o2p.enabled=false", "depth.use_mvs=false"]
     if row == "mono":
-        return ["rig.cameras=[cam0]", "depth.mono=true", "o2p.enabled=true"]
+        return ["rig.cameras=[cam0]", "depth.mono=true", "depth.use_mvs=true", "o2p.enabled=true"]
     return ["o2p.enabled=true", f"depth.use_mvs={'true' if row == 'fused' else 'false'}"]
 
 
@@ -122,17 +123,19 @@ def _gt_points(path: Path) -> np.ndarray:
     return _GT_POINTS[path]
 
 
-def _depth_pipeline(cfg, mono: bool):
-    """The depth service's pipeline. Mono: the rig's cameras are ``rig.cameras`` (cam0 alone), so the depth
-    cameras come from the whole calibration; the pipeline's ``depth.mono`` mode decides what it uses."""
+def _depth_pipeline(cfg):
+    """The depth service's pipeline: the left camera alone with ``depth.mono``, else the stereo pair."""
     from services.depth.pipeline import DepthPipeline
     from shared.rig import load_rig_config
 
-    cams = {c.name: c for c in load_rig_config(dataclasses.replace(cfg.rig, cameras=[]) if mono else cfg.rig)}
+    cams = {c.name: c for c in load_rig_config(cfg.rig)}
     dc = cfg.depth
-    missing = [n for n in (dc.left_camera, dc.right_camera) if n not in cams]
+    mono = bool(getattr(dc, "mono", False))
+    missing = [n for n in (dc.left_camera, *(() if mono else (dc.right_camera,))) if n not in cams]
     if missing:
         raise ValueError(f"depth cameras {missing} not in the rig ({sorted(cams)})")
+    if mono:
+        return DepthPipeline(dc, cams[dc.left_camera], None)
     return DepthPipeline(dc, cams[dc.left_camera], cams[dc.right_camera])
 
 
@@ -185,7 +188,7 @@ def run_row(row: str, dataset: Path, overrides: list[str], seconds: float, depth
         shell.enable_o2p(cfg.o2p)
     loop = LoopClosingBackend(shell, cfg.loop) if cfg.loop.enabled else None
     be = shell if loop is None else loop
-    pipe = _depth_pipeline(cfg, mono)
+    pipe = _depth_pipeline(cfg)
     dc = cfg.depth
     every = depth_every if depth_every > 0 else max(1, round(CAMERA_RATE_HZ / dc.rate_hz))
     mapper = SubmapMapper(cfg.mapping.sensor, cfg.mapping.submaps)
@@ -205,7 +208,7 @@ def run_row(row: str, dataset: Path, overrides: list[str], seconds: float, depth
                 progress.tick(n_frames, (stamp - t_first) * 1e-9)
             names = list(msg.camera_names)
             left = msg.images[names.index(dc.left_camera)]
-            right = msg.images[names.index(dc.right_camera)] if dc.right_camera in names else None
+            right = None if mono else msg.images[names.index(dc.right_camera)]
             pipe.remember_frame(stamp, left)
             ff = fe.process(msg)
             if ff is None:
@@ -226,12 +229,15 @@ def run_row(row: str, dataset: Path, overrides: list[str], seconds: float, depth
             if kfs is not None:
                 mapper.update_keyframes(kfs.ids, kfs.stamps_ns, kfs.T_WS)
                 pipe.update_keyframes(kfs.stamps_ns, kfs.T_WS)
+            lms = be.take_landmarks()  # estimator/landmarks: the MVS prior, as the depth service keeps the latest
+            if lms is not None and pipe.mvs_net is not None:
+                pipe.update_landmarks(lms.p_W, lms.last_seen_ns, lms.num_observations)
             if n_frames % every:
                 continue
             T_WC = state.T_WS @ pipe.T_SC
             if mono:  # the pipeline's monocular mode: MVS depth for the map and the factor points alike
-                res = pipe.process(stamp, left, right, state.T_WS)
-                if res.fused is None or res.mvs is None:
+                res = pipe.process(stamp, left, None, state.T_WS)
+                if res.fused is None:  # no pose or no MVS source views yet: the depth service publishes nothing
                     no_depth += 1
                     continue
                 d_s, s_s = d_m, s_m = res.fused
@@ -242,8 +248,8 @@ def run_row(row: str, dataset: Path, overrides: list[str], seconds: float, depth
                 if row == "heuristic":
                     s_s = (d_s**2 * heuristic_px / (pipe.f_px * pipe.baseline_m)).astype(np.float32)
                 d_m, s_m = d_s, s_s
-                if row == "fused":
-                    mvs, _ = pipe.mvs(pipe.rect.rectify(left, right)[0], T_WC)
+                if row == "fused":  # as DepthPipeline.process, with the stereo from the cache
+                    mvs, _ = pipe.mvs(pipe.rect.rectify(left, right)[0], T_WC, pipe.mvs_prior(stamp, T_WC))
                     if mvs is not None:
                         from services.depth.uncertainty import fuse
 
@@ -343,7 +349,7 @@ def _f(x, fmt: str) -> str:
 def table_markdown(results: dict[str, dict[str, dict]]) -> str:
     """One markdown table (a replica column) and a verdict line per replica."""
     head = ("| replica | row | causal ATE [m] | non-causal ATE [m] | mesh acc [m] | compl@0.2 | compl@0.05 "
-            "| back end median / p99 [ms] | f2m / m2m factors | wall [s] |")
+            "| back end median / p99 [ms] | f2m / m2m factors (in pose graph) | wall [s] |")
     lines = [head, "|" + "---|" * head.count(" | ") + "---|"]
     verdicts = []
     for rep, rows in results.items():
@@ -356,6 +362,8 @@ def table_markdown(results: dict[str, dict[str, dict]]) -> str:
                 continue
             c = r.get("o2p_counts")
             fac = "-" if c is None else f"{c.get('frame_to_map', 0)} / {c.get('map_to_map', 0)}"
+            if c is not None and "map_to_map_accepted" in r.get("loop", {}):
+                fac += f" ({r['loop']['map_to_map_accepted']})"  # of which the loop closer's pose graph took
             comp = lambda k: _f(None if r.get(k) is None else 100 * r[k], ".1f") + ("%" if r.get(k) is not None else "")  # noqa: E731
             lines.append(f"| {rep} | {label} | {_f(r.get('ate_causal_m'), '.4f')} | {_f(r.get('ate_noncausal_m'), '.4f')} "
                          f"| {_f(r.get('accuracy_m'), '.3f')} | {comp('completeness')} | {comp('completeness_5cm')} "
@@ -413,12 +421,17 @@ def main(args: argparse.Namespace) -> int:
         stereo_cache: dict = {}  # per replica: stereo depth does not depend on the row
         for row in rows:
             path = rep_out / f"{row}.json"
+            settings = {"seconds": args.seconds, "depth_every_arg": args.depth_every, "heuristic_px": args.heuristic_px,
+                        "mesh": not args.no_mesh, "overrides": [*args.set, *row_overrides(row)]}
             if args.resume and path.is_file():
                 old = json.loads(path.read_text())
-                if "error" not in old:
+                same = all(old.get(k) == v for k, v in settings.items())
+                if "error" not in old and same:
                     print(f"[eval ablation] {label} {row}: done before ({path}), skipped", flush=True)
                     results[label][row] = old
                     continue
+                if not same:
+                    print(f"[eval ablation] {label} {row}: {path} was run with other settings, running again", flush=True)
             prefix = f"[eval ablation] {label} {row}"
             print(f"{prefix}: running ({dataset})", flush=True)
             handler = _log_file(rep_out / f"{row}.log")
@@ -442,7 +455,7 @@ def main(args: argparse.Namespace) -> int:
                 root.setLevel(level)
             r["wall_s"] = round(time.perf_counter() - t0, 1)
             r["replica"] = str(dataset)
-            r["overrides"] = [*args.set, *row_overrides(row)]
+            r.update(settings)
             path.write_text(json.dumps(r, indent=1, default=float))
             results[label][row] = r
             brief = {k: r[k] for k in ("error", "ate_causal_m", "ate_noncausal_m", "accuracy_m", "completeness",
