@@ -270,6 +270,15 @@ class StereoRectification:
                 cv2.remap(img1, *self.maps1, interp, borderMode=cv2.BORDER_CONSTANT))
 
 
+def rectified_intrinsics(cam0: CameraCalib, size: tuple[int, int], fov_scale: float = 1.0) -> np.ndarray:
+    """Pinhole K [px] of a rectified image of ``size`` = (w, h) from cam0: its horizontal field of view over
+    the new width, times ``fov_scale``, principal point at the centre (stereo and monocular depth share it)."""
+    w, h = size
+    c = cam0.camera
+    f = c.fx * (w / c.width) / fov_scale
+    return np.array([[f, 0.0, (w - 1) / 2.0], [0.0, f, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
+
+
 def stereo_rectification(cam0: CameraCalib, cam1: CameraCalib, size: tuple[int, int],
                          fov_scale: float = 1.0) -> StereoRectification:
     """Rectify cam0/cam1 into pinhole images of ``size`` = (w, h).
@@ -289,12 +298,9 @@ def stereo_rectification(cam0: CameraCalib, cam1: CameraCalib, size: tuple[int, 
     e3 = np.cross(e1, e2)
     R_C0N = np.stack([e1, e2, e3], axis=1)
     R_C1N = T_C0C1[:3, :3].T @ R_C0N
-    w, h = size
-    c = cam0.camera
-    f = c.fx * (w / c.width) / fov_scale
-    K = np.array([[f, 0.0, (w - 1) / 2.0], [0.0, f, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
+    K = rectified_intrinsics(cam0, size, fov_scale)
     T_SN0 = cam0.T_SC.copy()
     T_SN0[:3, :3] = cam0.T_SC[:3, :3] @ R_C0N
-    return StereoRectification(K, (w, h), baseline, R_C0N, R_C1N, T_SN0,
+    return StereoRectification(K, tuple(size), baseline, R_C0N, R_C1N, T_SN0,
                                cam0.camera.remap_to_pinhole(K, size, R_C0N),
                                cam1.camera.remap_to_pinhole(K, size, R_C1N))

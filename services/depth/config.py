@@ -20,6 +20,9 @@ class DepthConfig:
     fov_scale: float = param(1.0, "rectified focal length = left fx scaled to the new width / fov_scale")
     stereo_weights: str = param("", "stereo network weights (.pt with .json beside); '' = services/depth/weights/stereo.pt")
     mvs_weights: str = param("", "MVS network weights; '' = services/depth/weights/mvs.pt")
+    mono: bool = param(False, "cam0 only (left_camera): MVS depth on posed keyframes alone, no stereo network and "
+                       "no right image; the MVS depth goes out on depth/fused and depth/stereo (source 'mvs'), frames "
+                       "before MVS has source views publish nothing (counted)")
     use_mvs: bool = param(True, "run the MVS network on posed keyframes and fuse it with stereo (method 'network')")
     mvs_sources: int = param(4, "source views of the MVS network (1-7; 4 keeps the CPU time bounded)")
     mvs_min_baseline_m: float = param(0.03, "least distance between any two MVS views", "m")
@@ -52,6 +55,8 @@ class DepthConfig:
             raise ValueError(f"depth.width/height must be positive multiples of 16, got {self.width}x{self.height}")
         if not 1 <= self.mvs_sources <= 7:
             raise ValueError(f"depth.mvs_sources must be 1..7, got {self.mvs_sources}")
+        if self.mono and (self.method != "network" or not self.use_mvs):
+            raise ValueError("depth.mono needs depth.method 'network' and depth.use_mvs (MVS is its only depth)")
         if self.rate_hz <= 0:
             raise ValueError("depth.rate_hz must be positive")
         if self.prior_max_points < 0 or not self.prior_max_age_s >= 0:

@@ -11,6 +11,11 @@ on posed keyframes when available, fuse (eq. 14).
     out.stereo, out.mvs, out.fused                       # (depth, sigma) float32 (H,W) [m], NaN invalid
 
 All depth maps live in the rectified left camera N0: intrinsics ``pipe.K``, pose in the body ``pipe.T_SC``.
+
+With ``depth.mono`` (``DepthPipeline(cfg, cam_left)``, ``process(stamp_ns, raw_left, None, T_WS)``) there is no
+right camera and no stereo network: N0 is the left camera undistorted to the same pinhole K (axes of the
+camera itself), the result's ``stereo`` is None and ``fused`` is the MVS depth, or None while MVS has no
+source views.
 """
 from __future__ import annotations
 
@@ -27,16 +32,16 @@ from services.depth.prior import landmark_prior
 from services.depth.sgbm import SgbmParams, sgbm_depth
 from services.depth.uncertainty import disparity_to_depth, fuse, logdepth_to_depth
 from services.depth.views import select_sources
-from shared.camera import CameraCalib, stereo_rectification
+from shared.camera import CameraCalib, rectified_intrinsics, stereo_rectification
 
 log = logging.getLogger(__name__)
 
 
 @dataclass
 class DepthResult:
-    stereo: tuple[np.ndarray, np.ndarray]
+    stereo: tuple[np.ndarray, np.ndarray] | None  # None with depth.mono
     mvs: tuple[np.ndarray, np.ndarray] | None
-    fused: tuple[np.ndarray, np.ndarray]
+    fused: tuple[np.ndarray, np.ndarray] | None  # None only with depth.mono while MVS has no source views
     T_WC: np.ndarray | None
     method: str
     n_sources: int
@@ -51,13 +56,26 @@ class _View:
 
 
 class DepthPipeline:
-    def __init__(self, cfg: DepthConfig, cam_left: CameraCalib, cam_right: CameraCalib) -> None:
+    def __init__(self, cfg: DepthConfig, cam_left: CameraCalib, cam_right: CameraCalib | None = None) -> None:
         self.cfg = cfg
-        self.rect = stereo_rectification(cam_left, cam_right, (cfg.width, cfg.height), cfg.fov_scale)
-        self.raw_shapes = ((cam_left.camera.height, cam_left.camera.width), (cam_right.camera.height, cam_right.camera.width))
-        self.K = self.rect.K
-        self.T_SC = self.rect.T_SN0
-        self.f_px, self.baseline_m = float(self.K[0, 0]), self.rect.baseline_m
+        size = (cfg.width, cfg.height)
+        if cfg.mono:  # the left camera alone, undistorted to the rectified K (no right camera to align axes to)
+            self.rect = None
+            self.raw_shapes = ((cam_left.camera.height, cam_left.camera.width), None)
+            self.K = rectified_intrinsics(cam_left, size, cfg.fov_scale)
+            self.T_SC = np.asarray(cam_left.T_SC, np.float64).copy()
+            self._left_maps = cam_left.camera.remap_to_pinhole(self.K, size)
+            self.baseline_m = 0.0
+        else:
+            if cam_right is None:
+                raise ValueError("stereo depth needs a right camera (or depth.mono)")
+            self.rect = stereo_rectification(cam_left, cam_right, size, cfg.fov_scale)
+            self.raw_shapes = ((cam_left.camera.height, cam_left.camera.width), (cam_right.camera.height, cam_right.camera.width))
+            self.K = self.rect.K
+            self.T_SC = self.rect.T_SN0
+            self._left_maps = self.rect.maps0
+            self.baseline_m = self.rect.baseline_m
+        self.f_px = float(self.K[0, 0])
         self.sgbm_params = SgbmParams(num_disparities=cfg.sgbm_num_disparities, block_size=cfg.sgbm_block_size)
         self.method = cfg.method
         self.stereo_net = self.mvs_net = None
@@ -78,6 +96,10 @@ class DepthPipeline:
         device = self.cfg.device
         self.device = ("cuda" if torch.cuda.is_available() else "cpu") if device == "auto" else device
         torch.set_num_threads(max(1, self.cfg.threads))
+        if self.cfg.mono:  # MVS alone: without its weights there is no depth at all
+            self.mvs_net, meta = weights.load(Path(self.cfg.mvs_weights or weights.WEIGHTS_DIR / "mvs.pt"), self.device)
+            self.mvs_gain = float(meta["gain"])
+            return
         stereo_path = Path(self.cfg.stereo_weights or weights.WEIGHTS_DIR / "stereo.pt")
         try:
             self.stereo_net, meta = weights.load(stereo_path, self.device)
@@ -111,7 +133,7 @@ class DepthPipeline:
             if t in self._views:
                 self._views[t].T_WC = T_WC
             elif t in self._recent:
-                left = cv2.remap(self._recent[t], *self.rect.maps0, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+                left = cv2.remap(self._recent[t], *self._left_maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
                 self._views[t] = _View(left, T_WC)
         while len(self._views) > self.cfg.keyframe_views:
             self._views.popitem(last=False)
@@ -185,8 +207,10 @@ class DepthPipeline:
         d, s = logdepth_to_depth(ld[0].cpu().numpy(), sl[0].cpu().numpy() * self.mvs_gain)
         return (d, s), len(idx)
 
-    def process(self, stamp_ns: int, raw_left: np.ndarray, raw_right: np.ndarray,
+    def process(self, stamp_ns: int, raw_left: np.ndarray, raw_right: np.ndarray | None,
                 T_WS: np.ndarray | None = None) -> DepthResult:
+        if self.cfg.mono:
+            return self._process_mono(stamp_ns, raw_left, T_WS)
         if raw_left.shape != self.raw_shapes[0] or raw_right.shape != self.raw_shapes[1]:
             raise ValueError(f"images of shape {raw_left.shape}/{raw_right.shape}, calibration says {self.raw_shapes}")
         left, right = self.rect.rectify(raw_left, raw_right)
@@ -197,3 +221,14 @@ class DepthPipeline:
         fused = stereo if mvs is None else fuse(*stereo, *mvs)
         n_prior = 0 if prior is None or mvs is None else int(np.count_nonzero(prior))
         return DepthResult(stereo, mvs, fused, T_WC, self.method, n_src, n_prior)
+
+    def _process_mono(self, stamp_ns: int, raw_left: np.ndarray, T_WS: np.ndarray | None) -> DepthResult:
+        """depth.mono: MVS depth of the undistorted left image, None before a pose and source views exist."""
+        if raw_left.shape != self.raw_shapes[0]:
+            raise ValueError(f"image of shape {raw_left.shape}, calibration says {self.raw_shapes[0]}")
+        left = cv2.remap(raw_left, *self._left_maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        T_WC = None if T_WS is None else np.asarray(T_WS) @ self.T_SC
+        prior = None if T_WC is None else self.mvs_prior(stamp_ns, T_WC)
+        mvs, n_src = (None, 0) if T_WC is None else self.mvs(left, T_WC, prior)
+        n_prior = 0 if prior is None or mvs is None else int(np.count_nonzero(prior))
+        return DepthResult(None, mvs, mvs, T_WC, "mvs", n_src, n_prior)

@@ -20,6 +20,7 @@ from collections import OrderedDict
 import numpy as np
 
 from services.depth.pipeline import DepthPipeline, DepthResult
+from services.depth.weights import WeightsError
 from services.system_config import load_system_config
 from shared import topics
 from shared.camera import CalibrationError
@@ -37,16 +38,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config field")
 
 
-def frame_images(frame: MultiCameraFrame, left: str, right: str) -> tuple[np.ndarray, np.ndarray]:
+def frame_images(frame: MultiCameraFrame, left: str, right: str | None) -> tuple[np.ndarray, np.ndarray | None]:
+    """The left and right images of a frame (right None when ``right`` is None: depth.mono)."""
     names = list(frame.camera_names)
-    if left not in names or right not in names:
-        raise ValueError(f"frame has cameras {names}, needs {left!r} and {right!r}")
-    return frame.images[names.index(left)], frame.images[names.index(right)]
+    if left not in names or (right is not None and right not in names):
+        raise ValueError(f"frame has cameras {names}, needs {left!r}" + ("" if right is None else f" and {right!r}"))
+    return frame.images[names.index(left)], None if right is None else frame.images[names.index(right)]
 
 
 def depth_message(res: DepthResult, which: str, pipe: DepthPipeline, stamp_ns: int, seq: int, frame_id: str) -> DepthFrame:
-    depth, sigma = res.stereo if which == "stereo" else res.fused
-    source = "stereo" if which == "stereo" or res.mvs is None else "fused"
+    if res.stereo is None:  # depth.mono: the MVS depth on both topics
+        (depth, sigma), source = res.fused, "mvs"
+    else:
+        depth, sigma = res.stereo if which == "stereo" else res.fused
+        source = "stereo" if which == "stereo" or res.mvs is None else "fused"
     return DepthFrame(header=Header(stamp_ns=stamp_ns, seq=seq, frame_id=frame_id),
                       depth=np.ascontiguousarray(depth, np.float32), sigma=np.ascontiguousarray(sigma, np.float32),
                       K=pipe.K, T_WC=np.eye(4) if res.T_WC is None else res.T_WC, T_SC=pipe.T_SC, source=source)
@@ -78,22 +83,24 @@ def main(args: argparse.Namespace) -> int:
     dc = cfg.depth
     try:
         cams = {c.name: c for c in load_rig_config(cfg.rig)}
-        pipe = DepthPipeline(dc, cams[dc.left_camera], cams[dc.right_camera])
+        pipe = DepthPipeline(dc, cams[dc.left_camera], None if dc.mono else cams[dc.right_camera])
     except KeyError as exc:
-        print(f"sigmaslam depth: camera {exc} not in the rig", flush=True)
+        print(f"sigmaslam depth: camera {exc} not in the rig (depth.mono=true for a one-camera rig)", flush=True)
         return 2
-    except (CalibrationError, FileNotFoundError) as exc:
+    except (CalibrationError, FileNotFoundError, WeightsError) as exc:
         print(f"sigmaslam depth: {exc}", flush=True)
         return 2
     log.info("depth: method %s (stereo gain %.3f, MVS %s), %dx%d, f %.1f px, baseline %.3f m", pipe.method,
              pipe.stereo_gain, "on" if pipe.mvs_net is not None else "off", dc.width, dc.height, pipe.f_px, pipe.baseline_m)
+    right_name = None if dc.mono else dc.right_camera
+    no_mvs = [0]  # depth.mono: frames without MVS depth yet (no pose or no source views), nothing published
     poses = PoseBook()
     lock = threading.Lock()
     dropped_bad = 0
 
     def remember(frame: MultiCameraFrame) -> None:
         try:
-            left, _ = frame_images(frame, dc.left_camera, dc.right_camera)
+            left, _ = frame_images(frame, dc.left_camera, right_name)
         except ValueError:
             return
         with lock:
@@ -111,6 +118,8 @@ def main(args: argparse.Namespace) -> int:
         prior = {"frames": 0, "points": 0, "last": 0}
         node.stats.add_queue("mvs_frames", lambda: (prior["frames"], 0, 0))
         node.stats.add_queue("mvs_prior_points", lambda: (prior["points"], pipe.prior_rejected, prior["last"]))
+        if dc.mono:
+            node.stats.add_queue("mono_without_mvs", lambda: (no_mvs[0], no_mvs[0], 0))
         pub_stereo = node.publisher(topics.DEPTH_STEREO)
         pub_fused = node.publisher(topics.DEPTH_FUSED)
         timer = node.timer("depth", budget_ms=dc.budget_ms)
@@ -140,7 +149,7 @@ def main(args: argparse.Namespace) -> int:
                     landmarks.queue.count_drop()
                     log.warning("depth: landmarks %d dropped: %s", lm.header.stamp_ns, exc)
             try:
-                left, right = frame_images(frame, dc.left_camera, dc.right_camera)
+                left, right = frame_images(frame, dc.left_camera, right_name)
                 with timer:  # process() reads only the keyframe views, which this thread alone changes
                     res = pipe.process(stamp, left, right, poses.get(stamp))
                     if dc.inject_delay_ms > 0:  # test/bench overload knob (docs/reliability.md)
@@ -156,6 +165,9 @@ def main(args: argparse.Namespace) -> int:
                 if prior["frames"] % 50 == 1:
                     log.info("depth: MVS prior of %d landmark pixels (mean %.1f over %d MVS frames)", res.n_prior,
                              prior["points"] / prior["frames"], prior["frames"])
+            if res.fused is None:  # depth.mono before MVS has a pose and source views
+                no_mvs[0] += 1
+                continue
             name = f"{dc.left_camera}_rect"
             pub_stereo.publish(depth_message(res, "stereo", pipe, stamp, seq, name))
             pub_fused.publish(depth_message(res, "fused", pipe, stamp, seq, name))
