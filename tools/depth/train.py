@@ -17,6 +17,7 @@ import json
 import math
 import sys
 import time
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +33,15 @@ def load_split(root: Path, split: str) -> list[dict]:
     files = sorted(f for f in (root / split).glob("scene_*.npz") if not f.name.endswith(".tmp.npz"))
     if not files:
         raise SystemExit(f"{root / split}: no scene_*.npz (render them: python -m tools.depth.make_dataset)")
-    return [dict(np.load(f)) | {"name": f.stem} for f in files]
+    scenes = []
+    for f in files:
+        try:
+            scenes.append(dict(np.load(f)) | {"name": f.stem})
+        except (OSError, ValueError, zipfile.BadZipFile) as e:  # half-written by a render still running, or corrupt
+            print(f"[train] skipping unreadable {f}: {e}", flush=True)
+    if not scenes:
+        raise SystemExit(f"{root / split}: no readable scene")
+    return scenes
 
 
 def _crop_box(rng, H, W, ch, cw):
