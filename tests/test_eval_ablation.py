@@ -59,17 +59,26 @@ def test_short_ablation_writes_results_and_resume_skips_finished_rows(tmp_path, 
     assert again["ate_causal_m"] == res["baseline"]["ate_causal_m"]
 
 
-def test_mono_row_fails_clearly_while_depth_has_no_mono_mode(tmp_path, replica, capsys):
+@pytest.mark.e2e
+def test_mono_row_runs_on_mvs_depth_or_fails_clearly_without_depth_mono(tmp_path, replica, capsys):
     from services.depth.config import DepthConfig
 
-    if "mono" in {f.name for f in dataclasses.fields(DepthConfig)}:
-        pytest.skip("depth.mono exists: the mono row runs (covered by the short run's form with --rows mono)")
     out = tmp_path / "abl"
-    assert main(["eval", "ablation", str(replica), "--rows", "mono", "--seconds", "1", "--out", str(out)]) == 1
+    argv = ["eval", "ablation", str(replica), "--rows", "mono", "--seconds", "4", "--depth-every", "8", "--no-mesh",
+            "--out", str(out)]
+    if "mono" not in {f.name for f in dataclasses.fields(DepthConfig)}:
+        assert main(argv) == 1
+        r = json.loads((out / replica.name / "mono.json").read_text())
+        assert "depth.mono" in r["error"]
+        assert "failed: ValueError: this build has no monocular depth" in (out / "table.md").read_text()
+        assert "row mono failed" in (out / replica.name / "mono.log").read_text()  # the traceback: row log only
+        return
+    assert main(argv) == 0, (out / replica.name / "mono.log").read_text()[-3000:]
     r = json.loads((out / replica.name / "mono.json").read_text())
-    assert "depth.mono" in r["error"]
-    assert "failed: ValueError: this build has no monocular depth" in (out / "table.md").read_text()
-    assert "row mono failed" in (out / replica.name / "mono.log").read_text()  # the traceback is in the row log
+    assert r["overrides"][-4:] == ["rig.cameras=[cam0]", "depth.mono=true", "depth.use_mvs=true", "o2p.enabled=true"]
+    assert r["depth"]["stereo_weights"] == "-" and r["depth"]["mvs_weights"] != "-"  # MVS alone
+    assert r["depth_frames"] > 0  # MVS depth reached the map once the first keyframes were posed
+    assert math.isfinite(r["ate_causal_m"]) and r["ate_causal_m"] < 0.1, r
 
 
 def test_table_marks_failed_rows_and_says_which_dense_rows_beat_the_baseline():

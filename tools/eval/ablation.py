@@ -192,7 +192,9 @@ def run_row(row: str, dataset: Path, overrides: list[str], seconds: float, depth
     dc = cfg.depth
     every = depth_every if depth_every > 0 else max(1, round(CAMERA_RATE_HZ / dc.rate_hz))
     mapper = SubmapMapper(cfg.mapping.sensor, cfg.mapping.submaps)
-    pool = SubmapPointPool(cfg.o2p.max_points_map)
+    # map-to-map points pooled per submap as the mapping service does with mapping.o2p_points (its default 0
+    # switches the pool off there; the dense rows always pool, o2p.max_points_map then)
+    pool = SubmapPointPool(cfg.mapping.o2p_points if cfg.mapping.o2p_points > 0 else cfg.o2p.max_points_map)
     t_be, stamps, T_pub, n_frames, n_depth, no_depth = [], [], [], 0, 0, 0
     last_field_ns, t_first = 0, None
     try:
@@ -285,7 +287,8 @@ def run_row(row: str, dataset: Path, overrides: list[str], seconds: float, depth
     res = {"row": row, "frames": n_frames, "states": len(stamps), "depth_frames": n_depth, "depth_every": every,
            "submaps": len(mapper.submaps), "backend_median_ms": 1e3 * float(np.median(t_be)),
            "backend_p99_ms": 1e3 * float(np.percentile(t_be, 99)),
-           "depth": {"method": pipe.method, "stereo_weights": dc.stereo_weights or "(shipped)",
+           "depth": {"method": pipe.method,
+                     "stereo_weights": (dc.stereo_weights or "(shipped)") if pipe.stereo_net is not None else "-",
                      "mvs_weights": (dc.mvs_weights or "(shipped)") if pipe.mvs_net is not None else "-"}}
     if no_depth:
         res["depth_frames_without_mvs"] = no_depth
