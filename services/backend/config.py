@@ -35,6 +35,15 @@ class BackendConfig:
     mono_still_sigma_rot_rad: float = param(2e-3, "one camera: rotation sigma of the still relative-pose factor", "rad")
     mono_still_sigma_pos_m: float = param(2e-3, "one camera: translation sigma of the still relative-pose factor", "m")
     mono_still_sigma_vel_m_s: float = param(0.01, "one camera: sigma of the zero-velocity prior of a still frame", "m/s")
+    mono_init_parallax_deg: float = param(2.0, "one camera, moving start: the window is rebuilt from two-view geometry "
+                                          "and the IMU (services/backend/mono_init.py) once the oldest and newest "
+                                          "keyframe's shared features have this median parallax", "deg")
+    mono_init_min_features: int = param(30, "one camera, moving start: shared features needed for that rebuild")
+    mono_init_speed_sigma_m_s: float = param(0.5, "one camera, moving start: until that rebuild, each new state gets a "
+                                             "zero-velocity prior of this sigma so that the IMU alone cannot run away "
+                                             "(0 = none)", "m/s")
+    mono_init_ransac_px: float = param(1.0, "one camera, moving start: RANSAC threshold of the two-view geometry and "
+                                       "PnP of the rebuild", "px")
     # --- IMU (continuous-time densities; an ImuCalib passed to the estimator overrides them) ---
     gravity_m_s2: float = param(9.81, "magnitude of gravity along -z of W", "m/s^2")
     gyro_noise_density: float = param(1.6968e-4 * 5, "gyro white-noise density (inflated over the datasheet)", "rad/s/sqrt(Hz)")

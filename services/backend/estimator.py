@@ -40,6 +40,7 @@ from services.backend.cameras import BackendCamera, camera_from_calib  # noqa: F
 from services.backend.config import BackendConfig
 from services.backend.imu_factors import ImuBuffer, imu_factor, make_bias, make_params, predict
 from services.backend.motion_only import optimise_latest
+from services.backend.mono_init import bootstrap as mono_bootstrap
 from services.backend.still import still_factors, still_motion
 from services.backend.triangulation import triangulate_checked
 
@@ -122,6 +123,10 @@ class WindowedVioEstimator:
         self._proj_cache: dict[tuple[int, int, int], gtsam.NonlinearFactor] = {}
         self._still: dict[int, list[gtsam.NonlinearFactor]] = {}  # one camera: factors of a still state (still.py)
         self.still_frames = 0
+        # one camera: until the window stood still once or was rebuilt by mono_init, vision has no metric hold
+        self._mono_pending = len(self.cameras) == 1
+        self.mono_bootstraps = 0
+        self.mono_init_reason = ""  # why the last rebuild attempt failed
         self._next = 0
         self.initialised = False
         self.dropped_observations = 0
@@ -201,6 +206,17 @@ class WindowedVioEstimator:
                     or stamp_ns - self.stamps[last_kf] >= self.cfg.max_keyframe_interval_s * 1e9)
         if not keyframe and self.cfg.motion_only_between_keyframes and not self.cfg.compute_covariance:
             return self._motion_only_frame(n, last_kf)
+        if self._mono_pending and keyframe:
+            c = self.cfg
+            if self.still_frames:  # standing still anchored the state: no rebuild needed
+                self._mono_pending = False
+            else:
+                self.mono_init_reason = mono_bootstrap(self, n, c.mono_init_min_features,
+                                                       np.deg2rad(c.mono_init_parallax_deg), c.mono_init_ransac_px)
+                if not self.mono_init_reason:
+                    self._mono_pending = False
+                    self._still.clear()  # only the speed priors of the wait: the rebuild knows the velocities
+                    self.mono_bootstraps += 1
         self._triangulate_new(n)
         graph = self._build_graph(n)
         params = gtsam.LevenbergMarquardtParams()
@@ -307,6 +323,9 @@ class WindowedVioEstimator:
                 xy_n.append(by_state[n][0][1])
         still = still_motion(np.reshape(xy_k, (-1, 2)), np.reshape(xy_n, (-1, 2)), float(self._focal[0]),
                              self._T_SC[0][:3, :3], c.mono_still_flow_px, c.mono_still_min_features)
+        if still is None and self._mono_pending and c.mono_init_speed_sigma_m_s > 0:  # moving start, no hold yet
+            self._still[n] = [gtsam.PriorFactorVector(V(n), np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(
+                3, c.mono_init_speed_sigma_m_s))]
         if still is not None:
             self._still[n] = still_factors(k, n, still, c.mono_still_sigma_rot_rad, c.mono_still_sigma_pos_m,
                                            c.mono_still_sigma_vel_m_s)
