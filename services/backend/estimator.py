@@ -23,6 +23,9 @@ Design choices:
   state against the window held fixed (:mod:`services.backend.motion_only`); the window is optimised at keyframes.
 * **Landmark output**: after a keyframe's optimisation the result carries the window's well-constrained
   landmarks (:meth:`WindowedVioEstimator.window_landmarks`), published as ``estimator/landmarks``.
+* **One camera** (mono-inertial): a frame standing still relative to its keyframe gets a relative-pose and a
+  zero-velocity factor (:mod:`services.backend.still`); a window that never stood still is rebuilt once from
+  two-view geometry and a linear IMU alignment of scale, velocities and gravity (:mod:`services.backend.mono_init`).
 * **No features**: the window keeps its IMU chain (keyframes still come at ``max_keyframe_interval_s``),
   the state is propagated by the IMU factors, status ``imu_only``.
 """
