@@ -44,6 +44,14 @@ def test_pose_graph_map_to_map_pulls_the_submap_anchor_back(room):
             assert np.allclose(est[1], P_o, atol=1e-3)  # the first node holds the gauge
         else:
             assert rot > 1.5 and tr > 0.03  # odometry alone keeps the error
+    # capped at N_eff = 10 points (the default) the term still pulls, less hard against the loose odometry
+    capped, *_ = map_to_map_term(room, O2PConfig(enabled=True, frame_to_map=False, effective_points=10))
+    pg = PoseGraph()
+    pg.add_node(1, P_o)
+    pg.add_node(7, T_est, REL_COV)
+    assert pg.add_map_to_map(capped)
+    rot, tr = err(pg.optimise()[7], T_true)
+    assert rot < 1.0 and tr < 0.02
 
 
 def test_map_to_map_waits_in_the_loop_closer_for_its_anchor_nodes(room):
@@ -88,7 +96,7 @@ def test_threaded_loop_closer_takes_map_to_map_terms(room):
 
 
 def test_final_bundle_adjustment_uses_map_to_map(room):
-    term, P_o, T_true, T_est = map_to_map_term(room, O2PConfig(enabled=True, frame_to_map=False))
+    term, P_o, T_true, T_est = map_to_map_term(room)
     recs = records(P_o, T_est)
     without = bundle_adjust(recs, [], prior_sigma_rot=1e-4, prior_sigma_pos=1e-4)
     res = bundle_adjust(recs, [], prior_sigma_rot=1e-4, prior_sigma_pos=1e-4, map_to_map=[term])

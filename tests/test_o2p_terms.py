@@ -100,7 +100,7 @@ def map_to_map_term(room, cfg=None):
     P_o, T_true = view(0.5), view(3.0)
     T_est = perturbed(T_true, 8)
     published = {1 * S: (1, P_o), 4 * S: (7, T_est)}  # keyframe poses as the mapping saw them
-    terms = OccupancyTerms(cfg or O2PConfig(enabled=True, frame_to_map=False))
+    terms = OccupancyTerms(cfg or O2PConfig(enabled=True, frame_to_map=False, effective_points=0))  # eq. 7 uncapped
     terms.anchor_of = lambda stamp, T_WM: (published[stamp][0], inv_T(published[stamp][1]) @ T_WM)
     for t in range(1, 4):
         terms.note_frame(t * S, np.arange(0, 50))

@@ -20,11 +20,10 @@ class O2PConfig:
     min_points_in_field: int = param(100, "M_min: a target submap needs this many points inside its observed field")
     min_covisible_landmarks: int = param(5, "landmarks a frame must share with a submap to count it covisible")
     tukey_k: float = param(3.0, "Tukey threshold on the RMS whitened residual of a whole factor")
-    info_scale: float = param(1.0, "scales the information of every point (1: eq. 7 as it is; < 1 discounts depth errors "
-                              "correlated across a factor's points)")
-    effective_points: float = param(0.0, "N_eff: a factor carries at most the information of this many independent points "
+    info_scale: float = param(1.0, "scales the information of every point on top of effective_points (1: none; for experiments)")
+    effective_points: float = param(10.0, "N_eff: a factor carries at most the information of this many independent points "
                                     "(depth errors are correlated across an image; rows scaled by min(1, N_eff / n_valid)); "
-                                    "0: no cap (eq. 7 as it is)")
+                                    "0: no cap (eq. 7 as it is). 10: measured on the V1_02/MH_04/V2_01 replicas (docs/o2p.md)")
     grad_min: float = param(1.0, "points where |grad L| is below this (saturated free space) drop out", "1/m")
     depth_stamp_tolerance_ms: float = param(1.0, "a depth frame belongs to the window state with this stamp", "ms")
     attach_tolerance_ms: float = param(150.0, "a depth frame without a window state at its stamp attaches to the nearest "
