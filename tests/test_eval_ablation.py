@@ -64,7 +64,8 @@ def test_mono_row_runs_on_mvs_depth_or_fails_clearly_without_depth_mono(tmp_path
     from services.depth.config import DepthConfig
 
     out = tmp_path / "abl"
-    argv = ["eval", "ablation", str(replica), "--rows", "mono", "--seconds", "4", "--depth-every", "8", "--no-mesh",
+    # 6 s: MVS alone has no depth until keyframes with enough baseline are posed (the first ~3 s here)
+    argv = ["eval", "ablation", str(replica), "--rows", "mono", "--seconds", "6", "--depth-every", "8", "--no-mesh",
             "--out", str(out)]
     if "mono" not in {f.name for f in dataclasses.fields(DepthConfig)}:
         assert main(argv) == 1
