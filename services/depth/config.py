@@ -35,6 +35,8 @@ class DepthConfig:
     keyframe_views: int = param(12, "posed keyframe images kept as MVS source candidates")
     frame_history: int = param(60, "recent raw left images kept to attach to keyframes announced later")
     pose_wait_s: float = param(0.1, "how long a frame waits for its estimator state before going out unposed", "s")
+    mono_pose_wait_s: float = param(0.5, "depth.mono: how long a frame waits for its estimator state (without one "
+                                    "it has no MVS depth at all)", "s")
     sgbm_num_disparities: int = param(96, "SGBM disparity search range (multiple of 16)", "px")
     sgbm_block_size: int = param(5, "SGBM block size (odd)", "px")
     heuristic_sigma_model: str = param("quadratic", "SGBM sigma model: 'quadratic' (constant disparity sigma, "

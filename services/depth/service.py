@@ -136,7 +136,7 @@ def main(args: argparse.Namespace) -> int:
                 continue
             next_t = time.monotonic() + period
             stamp = int(frame.header.stamp_ns)
-            deadline = time.monotonic() + dc.pose_wait_s
+            deadline = time.monotonic() + (dc.mono_pose_wait_s if dc.mono else dc.pose_wait_s)
             while poses.get(stamp) is None and time.monotonic() < deadline and not node.stopped:
                 time.sleep(0.002)
             for kf in keyframes.drain():
