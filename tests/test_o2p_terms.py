@@ -222,3 +222,36 @@ def test_target_state_leaving_the_window_holds_the_submap_fixed(room):
     assert len(fs) == 1 and list(fs[0].keys()) == [X(5)] and terms.counts["factor_target_fixed"] == 1
     rot, tr = err(solve(fs, values).atPose3(X(5)).matrix(), T_true)
     assert rot < 0.3 and tr < 0.01
+
+
+def test_loop_correction_maps_published_depth_and_submaps_into_the_window_frame(room):
+    """With loop closure, depth poses and submap poses arrive in the corrected frame W' = T_W'W W while the
+    window lives in W: the factor must pull the state to its true pose in W, not to T_W'W T_true."""
+    import dataclasses
+
+    msg, renderer = room
+    C = make_T(so3_exp(np.radians([0.0, 0.0, 5.0])), np.array([0.2, -0.1, 0.05]))  # T_W'W
+    T_true = view(2.0)
+    T_est = perturbed(T_true, 6, 1.0, 0.02)
+    for hooked, dt in ((True, 0), (True, S // 20), (False, 0)):
+        terms = OccupancyTerms(O2PConfig(enabled=True))
+        if hooked:
+            terms.correction = lambda: C
+        for t in range(1, 4):
+            terms.note_frame(t * S, np.arange(0, 50))
+        terms.add_field(dataclasses.replace(msg, T_WM=C @ np.asarray(msg.T_WM)))  # the map, published in W'
+        terms.note_frame(5 * S, np.arange(10, 60))
+        values = gtsam.Values()
+        values.insert(X(5), gtsam.Pose3(T_est))
+        # depth at the state's stamp or 50 ms later (attached by the relative pose), its pose as published (W')
+        T_d = T_true @ make_T(np.eye(3), np.array([0.02 * dt / (S // 20), 0.0, 0.0]))
+        terms.add_depth(5 * S + dt, renderer.render(K, W, H, T_d), np.full((H, W), 0.03, np.float32), K,
+                        np.eye(4), C @ T_est @ inv_T(T_true) @ T_d, {5: 5 * S}, values)
+        fs = terms.factors({5: 5 * S}, values)
+        if not hooked:  # the map is taken where W' puts it: no factor, or one that pulls the state off
+            if fs:
+                assert err(solve(fs, values).atPose3(X(5)).matrix(), T_true)[1] > 0.05
+            continue
+        assert len(fs) == 1 and terms.counts["frame_to_map_attached"] == (1 if dt else 0)
+        rot, tr = err(solve(fs, values).atPose3(X(5)).matrix(), T_true)
+        assert rot < 0.3 and tr < 0.01

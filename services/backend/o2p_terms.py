@@ -105,6 +105,9 @@ class OccupancyTerms:
         # (creation stamp, T_WM) -> (anchor keyframe state, T_KM) or None; set by the loop-closing back end
         self.anchor_of: Callable[[int, np.ndarray], tuple[int, np.ndarray] | None] | None = None
         self._map_to_map: list[MapToMap] = []
+        # T_W'W: the loop closer's correction of the published frame W' (where depth poses and submap poses
+        # T_WM arrive) relative to the window's frame W; set by the loop-closing back end, identity without
+        self.correction: Callable[[], np.ndarray] | None = None
 
     # ------------------------------------------------------------------ inputs
     def note_frame(self, stamp_ns: int, landmark_ids: np.ndarray) -> None:
@@ -128,7 +131,7 @@ class OccupancyTerms:
             return 0
         T_SC = np.asarray(T_SC, float)
         p_S = p_C @ T_SC[:3, :3].T + T_SC[:3, 3]
-        key, T = int(stamp_ns), None if T_WS is None else np.asarray(T_WS, float)
+        key, T = int(stamp_ns), None if T_WS is None else self._to_window(np.asarray(T_WS, float))
         if T is not None and stamps is not None and values is not None:
             tol, attach = self.cfg.depth_stamp_tolerance_ms * 1e6, self.cfg.attach_tolerance_ms * 1e6
             near = {n: abs(t - key) for n, t in stamps.items() if abs(t - key) <= attach and values.exists(X(n))}
@@ -203,6 +206,10 @@ class OccupancyTerms:
         self.counts["map_to_map"] += 1
 
     # ------------------------------------------------------------------ factors
+    def _to_window(self, T_pub: np.ndarray) -> np.ndarray:
+        """A pose in the published frame W' (depth, submaps) expressed in the window's frame W."""
+        return T_pub if self.correction is None else inv_T(self.correction()) @ T_pub
+
     def _landmarks_near(self, stamp_ns: int) -> np.ndarray:
         for t, ids in reversed(self._frames):
             if t == stamp_ns:
@@ -214,8 +221,8 @@ class OccupancyTerms:
         tol = int(self.cfg.depth_stamp_tolerance_ms * 1e6)
         for n, t in stamps.items():
             if abs(t - sm.start_ns) <= tol and values.exists(X(n)):
-                return {"key_b": X(n), "T_BM": inv_T(values.atPose3(X(n)).matrix()) @ sm.T_WM}
-        return {"T_WB": sm.T_WM}
+                return {"key_b": X(n), "T_BM": inv_T(values.atPose3(X(n)).matrix()) @ self._to_window(sm.T_WM)}
+        return {"T_WB": self._to_window(sm.T_WM)}
 
     def _o(self, candidates: list[_Submap], p_A: np.ndarray, T_WA: np.ndarray, exclude: int = -1) -> _Submap | None:
         """Oldest candidate with >= M_min of the points inside its observed field."""
@@ -242,7 +249,7 @@ class OccupancyTerms:
         if sm is None:
             self.counts["factor_target_gone"] += 1
             return None
-        g = OccupancyToPoint(f.field, f.l_min, f.p_A, f.sigma_d, key_a=f.key_a, T_WB=sm.T_WM, tukey_k=f.tukey_k,
+        g = OccupancyToPoint(f.field, f.l_min, f.p_A, f.sigma_d, key_a=f.key_a, T_WB=self._to_window(sm.T_WM), tukey_k=f.tukey_k,
                              grad_min=f.grad_min, info_scale=f.info_scale, effective_points=f.effective_points)
         self.counts["factor_target_fixed"] += 1
         return g, g.factor(f.n_valid_built)
@@ -277,7 +284,8 @@ class OccupancyTerms:
                     T_AS = inv_T(T_WA) @ T_WS
                     p_S = p_S @ T_AS[:3, :3].T + T_AS[:3, 3]
                     self.counts["frame_to_map_attached"] += 1
-                sm = self._o(self._covisible(self._landmarks_near(stamps[n])), p_S, T_WA)
+                T_pub = T_WA if self.correction is None else self.correction() @ T_WA  # o(k) in the submaps' frame
+                sm = self._o(self._covisible(self._landmarks_near(stamps[n])), p_S, T_pub)
                 built = None if sm is None else self._make(sm, p_S, sig, X(n), stamps, values)
                 self._built[("f2m", n, -1 if sm is None else sm.id)] = built
                 self.counts["frame_to_map" if built else "frame_to_map_no_target"] += 1

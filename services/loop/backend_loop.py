@@ -61,6 +61,8 @@ class LoopClosingBackend:
         o2p = self.shell.o2p
         if o2p is not None and o2p.anchor_of is None:
             o2p.anchor_of = self.anchor_of
+            if self.cfg.correct_state:  # depth and submaps arrive in the corrected frame the states are published in
+                o2p.correction = self.runner.correction
 
     def anchor_of(self, stamp_ns: int, T_WM: np.ndarray) -> tuple[int, np.ndarray] | None:
         """The keyframe a submap created at ``stamp_ns`` with pose ``T_WM`` (as the mapping has it now) follows:
