@@ -52,7 +52,8 @@ class MappingConfig:
 
     sensor: SensorModelConfig = param(SensorModelConfig(), "inverse sensor model and voxel size")
     submaps: SubmapConfig = param(SubmapConfig(), "submap switching and meshing")
-    depth_topic: str = param("depth/fused", "depth input: 'depth/fused' or 'depth/stereo'")
+    depth_topic: str = param("depth/stereo", "depth input: 'depth/stereo' or 'depth/fused' (stereo by default: with the "
+                             "shipped networks the fused map is less accurate, docs/o2p.md Table IV)")
     pose_source: str = param("estimator", "'estimator': T_WS(stamp) from estimator/state; 'frame': the DepthFrame's T_WC (ground-truth-pose runs; falls back to the estimator when T_WC is identity)")
     state_buffer: int = param(2000, "estimator states kept for pose look-up by stamp")
     pose_tolerance_ms: float = param(1.0, "a state this close to the depth stamp is used as is; otherwise the pose is interpolated", "ms")
