@@ -215,11 +215,8 @@ class DepthPipeline:
             raise ValueError(f"images of shape {raw_left.shape}/{raw_right.shape}, calibration says {self.raw_shapes}")
         left, right = self.rect.rectify(raw_left, raw_right)
         stereo = self.stereo(left, right)
-        T_WC = None if T_WS is None else np.asarray(T_WS) @ self.T_SC
-        prior = None if T_WC is None else self.mvs_prior(stamp_ns, T_WC)
-        mvs, n_src = (None, 0) if T_WC is None else self.mvs(left, T_WC, prior)
+        T_WC, mvs, n_src, n_prior = self._posed_mvs(stamp_ns, left, T_WS)
         fused = stereo if mvs is None else fuse(*stereo, *mvs)
-        n_prior = 0 if prior is None or mvs is None else int(np.count_nonzero(prior))
         return DepthResult(stereo, mvs, fused, T_WC, self.method, n_src, n_prior)
 
     def _process_mono(self, stamp_ns: int, raw_left: np.ndarray, T_WS: np.ndarray | None) -> DepthResult:
@@ -227,8 +224,16 @@ class DepthPipeline:
         if raw_left.shape != self.raw_shapes[0]:
             raise ValueError(f"image of shape {raw_left.shape}, calibration says {self.raw_shapes[0]}")
         left = cv2.remap(raw_left, *self._left_maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-        T_WC = None if T_WS is None else np.asarray(T_WS) @ self.T_SC
-        prior = None if T_WC is None else self.mvs_prior(stamp_ns, T_WC)
-        mvs, n_src = (None, 0) if T_WC is None else self.mvs(left, T_WC, prior)
-        n_prior = 0 if prior is None or mvs is None else int(np.count_nonzero(prior))
+        T_WC, mvs, n_src, n_prior = self._posed_mvs(stamp_ns, left, T_WS)
         return DepthResult(None, mvs, mvs, T_WC, "mvs", n_src, n_prior)
+
+    def _posed_mvs(self, stamp_ns: int, left: np.ndarray, T_WS: np.ndarray | None):
+        """(T_WC, MVS depth and sigma or None, source views, prior pixels) of the rectified left image; no MVS
+        without a pose."""
+        if T_WS is None:
+            return None, None, 0, 0
+        T_WC = np.asarray(T_WS) @ self.T_SC
+        prior = self.mvs_prior(stamp_ns, T_WC)
+        mvs, n_src = self.mvs(left, T_WC, prior)
+        n_prior = 0 if prior is None or mvs is None else int(np.count_nonzero(prior))
+        return T_WC, mvs, n_src, n_prior
