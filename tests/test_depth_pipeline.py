@@ -1,26 +1,12 @@
 """The network path of the depth pipeline (no transport): weights from a JSON+pt pair, keyframes announced
 after their frames become MVS sources, fusion of stereo and MVS never has a larger sigma than either."""
 import numpy as np
-import torch
 
-from services.depth import weights
-from services.depth.config import DepthConfig
-from services.depth.mvs_net import MVSNet
-from services.depth.pipeline import DepthPipeline
-from services.depth.stereo_net import StereoNet
-from shared.camera import camera_from_sensor_yaml, read_sensor_yaml_file
-from shared.paths import euroc_dir
+from tests.depth_nets import random_network_pipeline
 
 
 def test_network_pipeline_with_keyframes(tmp_path):
-    torch.manual_seed(0)
-    weights.save(StereoNet(96), tmp_path / "stereo", "stereo", {"max_disparity": 96}, {"gain": 2.0})
-    weights.save(MVSNet(16), tmp_path / "mvs", "mvs", {"n_planes": 16}, {"gain": 0.5})
-    calib = euroc_dir() / "calib"
-    cams = [camera_from_sensor_yaml(read_sensor_yaml_file(calib / f"cam{i}_sensor.yaml"), f"cam{i}") for i in (0, 1)]
-    cfg = DepthConfig(method="network", stereo_weights=str(tmp_path / "stereo.pt"), mvs_weights=str(tmp_path / "mvs.pt"),
-                      mvs_sources=2, threads=1, device="cpu")
-    pipe = DepthPipeline(cfg, *cams)
+    pipe = random_network_pipeline(tmp_path, 2.0, 0.5, mvs_sources=2)
     assert pipe.method == "network" and pipe.stereo_gain == 2.0 and pipe.mvs_gain == 0.5
     rng = np.random.default_rng(0)
     raw = [rng.integers(0, 255, (480, 752), dtype=np.uint8) for _ in range(4)]

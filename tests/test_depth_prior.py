@@ -3,15 +3,10 @@ through the depth pipeline: landmarks within the age limit reach the network and
 import numpy as np
 import torch
 
-from services.depth import weights
-from services.depth.config import DepthConfig
 from services.depth.mvs_net import MVSNet
-from services.depth.pipeline import DepthPipeline
 from services.depth.prior import landmark_prior
-from services.depth.stereo_net import StereoNet
-from shared.camera import camera_from_sensor_yaml, read_sensor_yaml_file
 from shared.geometry import make_T, so3_exp, transform_points
-from shared.paths import euroc_dir
+from tests.depth_nets import random_network_pipeline
 
 K = np.array([[300.0, 0, 255.5], [0, 310.0, 191.5], [0, 0, 1]])
 H, W = 384, 512
@@ -74,14 +69,7 @@ def test_prior_mask_matches_the_networks_coarse_cells():
 
 
 def test_pipeline_feeds_recent_landmarks_to_the_network(tmp_path):
-    torch.manual_seed(0)
-    weights.save(StereoNet(96), tmp_path / "stereo", "stereo", {"max_disparity": 96}, {"gain": 1.0})
-    weights.save(MVSNet(16), tmp_path / "mvs", "mvs", {"n_planes": 16}, {"gain": 1.0})
-    calib = euroc_dir() / "calib"
-    cams = [camera_from_sensor_yaml(read_sensor_yaml_file(calib / f"cam{i}_sensor.yaml"), f"cam{i}") for i in (0, 1)]
-    cfg = DepthConfig(method="network", stereo_weights=str(tmp_path / "stereo.pt"), mvs_weights=str(tmp_path / "mvs.pt"),
-                      mvs_sources=1, threads=1, device="cpu", prior_max_age_s=0.5)
-    pipe = DepthPipeline(cfg, *cams)
+    pipe = random_network_pipeline(tmp_path, mvs_sources=1, prior_max_age_s=0.5)
     rng = np.random.default_rng(0)
     raw = [rng.integers(0, 255, (480, 752), dtype=np.uint8) for _ in range(3)]
     T_WS = [make_T(np.eye(3), np.array([0.05 * i, 0, 0])) for i in range(3)]
