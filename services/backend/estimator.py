@@ -43,8 +43,9 @@ from services.backend.cameras import BackendCamera, camera_from_calib  # noqa: F
 from services.backend.config import BackendConfig
 from services.backend.imu_factors import ImuBuffer, imu_factor, make_bias, make_params, predict
 from services.backend.motion_only import optimise_latest
+from services.backend.landmarks import WindowLandmarks, select_landmarks
 from services.backend.mono_init import bootstrap as mono_bootstrap
-from services.backend.still import still_factors, still_motion
+from services.backend.still import mono_frame_factors
 from services.backend.triangulation import triangulate_checked
 
 
@@ -68,16 +69,6 @@ class FrameResult:
     keyframe_T_WS: np.ndarray
     num_landmarks: int
     landmarks: WindowLandmarks | None = None  # after a keyframe's optimisation (None for other frames)
-
-
-@dataclass(frozen=True)
-class WindowLandmarks:
-    """Well-constrained landmarks of the window: triangulated, finite, >= 2 observations (N rows each)."""
-
-    ids: np.ndarray  # (N,) int64
-    p_W: np.ndarray  # (N,3) [m]
-    num_observations: np.ndarray  # (N,) int32, observations in the window
-    last_seen_ns: np.ndarray  # (N,) int64, stamp of the newest window state that observes the landmark
 
 
 def to_message_covariance(cov_gtsam: np.ndarray, R_WS: np.ndarray) -> np.ndarray:
@@ -316,23 +307,13 @@ class WindowedVioEstimator:
 
     def _add_still(self, n: int, k: int) -> None:
         """One camera: relative-pose and zero-velocity factors keyframe k -> state n when the image stands still."""
-        c = self.cfg
-        if len(self.cameras) != 1 or n == k or c.mono_still_flow_px <= 0:
+        if len(self.cameras) != 1 or n == k:
             return
-        xy_k, xy_n = [], []
-        for by_state in self._obs.values():
-            if k in by_state and n in by_state:
-                xy_k.append(by_state[k][0][1])
-                xy_n.append(by_state[n][0][1])
-        still = still_motion(np.reshape(xy_k, (-1, 2)), np.reshape(xy_n, (-1, 2)), float(self._focal[0]),
-                             self._T_SC[0][:3, :3], c.mono_still_flow_px, c.mono_still_min_features)
-        if still is None and self._mono_pending and c.mono_init_speed_sigma_m_s > 0:  # moving start, no hold yet
-            self._still[n] = [gtsam.PriorFactorVector(V(n), np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(
-                3, c.mono_init_speed_sigma_m_s))]
-        if still is not None:
-            self._still[n] = still_factors(k, n, still, c.mono_still_sigma_rot_rad, c.mono_still_sigma_pos_m,
-                                           c.mono_still_sigma_vel_m_s)
-            self.still_frames += 1
+        factors, still = mono_frame_factors(self._obs, k, n, float(self._focal[0]), self._T_SC[0][:3, :3], self.cfg,
+                                            self._mono_pending)
+        if factors:
+            self._still[n] = factors
+        self.still_frames += still
 
     def _views(self, lm: int):
         """(T_CW (K,4,4), xy (K,2), focal (K,)) of all window observations of a landmark."""
@@ -513,13 +494,7 @@ class WindowedVioEstimator:
             p.append(self.values.atPoint3(L(lm)))
             nobs.append(n_obs)
             last.append(max(self.stamps[s] for s in by_state))
-        ids, nobs, last = np.array(ids, np.int64), np.array(nobs, np.int32), np.array(last, np.int64)
-        p = np.array(p, np.float64).reshape(-1, 3)
-        ok = np.isfinite(p).all(axis=1)
-        ids, p, nobs, last = ids[ok], p[ok], nobs[ok], last[ok]
-        order = np.lexsort((ids, -nobs, -last))[:max(0, int(limit))]  # newest first, then most observed
-        order = order[np.argsort(ids[order])]  # published in id order
-        return WindowLandmarks(ids[order], p[order], nobs[order], last[order])
+        return select_landmarks(ids, p, nobs, last, limit)
 
     # ---------------------------------------------------------------- introspection
     def window_counts(self) -> dict[str, int]:

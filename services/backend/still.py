@@ -65,3 +65,25 @@ def still_factors(k: int, n: int, still: StillMotion, sigma_rot_rad: float, sigm
     sig = np.array([sigma_rot_rad] * 3 + [sigma_pos_m] * 3)
     return [gtsam.BetweenFactorPose3(X(k), X(n), gtsam.Pose3(T), gtsam.noiseModel.Diagonal.Sigmas(sig)),
             gtsam.PriorFactorVector(V(n), np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, sigma_vel_m_s))]
+
+
+def mono_frame_factors(obs: dict, k: int, n: int, focal_px: float, R_SC: np.ndarray, cfg,
+                       waiting_for_hold: bool) -> tuple[list[gtsam.NonlinearFactor], bool]:
+    """One camera: the factors state n gets against keyframe k, and whether it stands still.
+
+    ``obs``: the estimator's landmark -> state -> [(camera, normalised xy)]. Standing still: the relative pose
+    and zero velocity of :func:`still_factors`. Moving while the window has no metric hold yet
+    (``waiting_for_hold``, a moving start): a weak zero-velocity prior of ``cfg.mono_init_speed_sigma_m_s``.
+    ``cfg``: the back end's config (``mono_still_*``, ``mono_init_speed_sigma_m_s``)."""
+    if cfg.mono_still_flow_px <= 0:
+        return [], False
+    shared = [(by_state[k][0][1], by_state[n][0][1]) for by_state in obs.values() if k in by_state and n in by_state]
+    xy = np.reshape(shared, (-1, 2, 2))
+    still = still_motion(xy[:, 0], xy[:, 1], focal_px, R_SC, cfg.mono_still_flow_px, cfg.mono_still_min_features)
+    if still is not None:
+        return still_factors(k, n, still, cfg.mono_still_sigma_rot_rad, cfg.mono_still_sigma_pos_m,
+                             cfg.mono_still_sigma_vel_m_s), True
+    if waiting_for_hold and cfg.mono_init_speed_sigma_m_s > 0:
+        return [gtsam.PriorFactorVector(V(n), np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(
+            3, cfg.mono_init_speed_sigma_m_s))], False
+    return [], False
