@@ -130,9 +130,9 @@ def main(args: argparse.Namespace) -> int:
     bc = cfg.backend
     shell = BackendShell(bc, cameras)
     shell.restarted = restart_count() > 0
-    loop = LoopClosingBackend(shell, cfg.loop) if cfg.loop.enabled else None  # loop closure: services/loop
-    if cfg.o2p.enabled:
+    if cfg.o2p.enabled:  # before the loop closer, which hooks into the terms (anchors, correction)
         shell.enable_o2p(cfg.o2p)
+    loop = LoopClosingBackend(shell, cfg.loop) if cfg.loop.enabled else None  # loop closure: services/loop
     with Node("backend", cfg.transport) as node:
         imu = node.subscriber(topics.IMU)
         features = node.subscriber(topics.FEATURES)

@@ -58,6 +58,7 @@ class LoopClosingBackend:
         self._attach_o2p()
 
     def _attach_o2p(self) -> None:
+        """Hooks into the shell's occupancy-to-point terms: enable them (BackendShell.enable_o2p) first."""
         o2p = self.shell.o2p
         if o2p is not None and o2p.anchor_of is None:
             o2p.anchor_of = self.anchor_of
@@ -106,7 +107,6 @@ class LoopClosingBackend:
         """As ``BackendShell.process``, with corrected poses."""
         self._last_process = time.monotonic()
         if self.shell.o2p is not None:  # map-to-map terms of submaps closed since the last frame
-            self._attach_o2p()
             for term in self.shell.o2p.pop_map_to_map():
                 self.runner.submit_map_to_map(term)
         msgs = self.shell.process(frame)
