@@ -41,7 +41,7 @@ from services.backend.o2p_factor import OccupancyToPoint, trilinear_derivatives
 from services.mapping.export import field_of_message
 from services.mapping.o2p_points import select_depth_points  # noqa: F401 (also used by callers)
 from services.mapping.query import BlockField
-from shared.geometry import inv_T
+from shared.geometry import inv_T, transform_points
 
 log = logging.getLogger("sigmaslam.backend.o2p")
 
@@ -138,9 +138,7 @@ class OccupancyTerms:
             if near:
                 n = min(near, key=near.get)
                 if near[n] > tol:
-                    T_AS = inv_T(values.atPose3(X(n)).matrix()) @ T
-                    p_S = p_S @ T_AS[:3, :3].T + T_AS[:3, 3]
-                    self.counts["frame_to_map_attached"] += 1
+                    p_S = self._attached(p_S, values.atPose3(X(n)).matrix(), T)
                     if stamps[n] in self._depth:  # the state already has depth of its own or nearer
                         return 0
                 key, T = stamps[n], None
@@ -206,6 +204,12 @@ class OccupancyTerms:
         self.counts["map_to_map"] += 1
 
     # ------------------------------------------------------------------ factors
+    def _attached(self, p_S: np.ndarray, T_WA: np.ndarray, T_WS: np.ndarray) -> np.ndarray:
+        """Depth points of body frame S moved into the body frame of the window state A it attaches to, by the
+        relative pose of the two estimates (both in the window's frame)."""
+        self.counts["frame_to_map_attached"] += 1
+        return transform_points(inv_T(T_WA) @ T_WS, p_S)
+
     def _to_window(self, T_pub: np.ndarray) -> np.ndarray:
         """A pose in the published frame W' (depth, submaps) expressed in the window's frame W."""
         return T_pub if self.correction is None else inv_T(self.correction()) @ T_pub
@@ -280,10 +284,8 @@ class OccupancyTerms:
                 t = min(gap, key=gap.get)
                 p_S, sig, T_WS = self._depth.pop(t)
                 T_WA = values.atPose3(X(n)).matrix()
-                if gap[t] > tol:  # move the points into the state's body frame by the estimated relative pose
-                    T_AS = inv_T(T_WA) @ T_WS
-                    p_S = p_S @ T_AS[:3, :3].T + T_AS[:3, 3]
-                    self.counts["frame_to_map_attached"] += 1
+                if gap[t] > tol:
+                    p_S = self._attached(p_S, T_WA, T_WS)
                 T_pub = T_WA if self.correction is None else self.correction() @ T_WA  # o(k) in the submaps' frame
                 sm = self._o(self._covisible(self._landmarks_near(stamps[n])), p_S, T_pub)
                 built = None if sm is None else self._make(sm, p_S, sig, X(n), stamps, values)
