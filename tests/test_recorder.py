@@ -197,6 +197,24 @@ def test_record_sigterm_complete_file(tmp_path):
     assert scenes[0].entities[0].id == "submap4" and list(tri.indices) == [0, 1, 2, 3, 4, 5] and len(tri.points) == 6
 
 
+def test_record_sigterm_as_soon_as_the_file_exists_leaves_a_complete_file(tmp_path):
+    """A stop signal that arrives the moment the file appears (a supervisor stopping a freshly restarted
+    recorder) is handled: the file gets its summary and metadata instead of being cut by the default action."""
+    out = tmp_path / "early.mcap"
+    with router() as tcfg:
+        cfg_path = write_config(tmp_path, tcfg)
+        proc = subprocess.Popen([sys.executable, "-m", "services.cli", "record", cfg_path, "--out", str(out)],
+                                cwd=REPO, env=child_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        try:
+            assert wait_for(lambda: out.exists() or proc.poll() is not None, 30.0, interval=0.001)
+            proc.send_signal(signal.SIGTERM)
+            text, _ = proc.communicate(timeout=20)
+        finally:
+            proc.kill()
+    assert proc.returncode == 0, text
+    assert read_metadata(out)["transport"]["namespace"] == tcfg.namespace
+
+
 def test_record_sigkill_recoverable(tmp_path):
     out, fixed = tmp_path / "killed.mcap", tmp_path / "fixed.mcap"
     n = 60

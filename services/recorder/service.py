@@ -92,17 +92,21 @@ def main(args: argparse.Namespace) -> int:
     rc = cfg.recorder
     key = args.key or rc.key_expr or f"{cfg.transport.namespace.rstrip('/')}/**"
     out = fresh_path(Path(args.out) if args.out else default_output(rc.output_dir))
-    try:
-        writer = RecordingWriter(out, chunk_size_bytes=rc.chunk_size_bytes, compression=rc.compression,
-                                 foxglove_mirror=rc.foxglove, config_yaml=to_yaml(cfg))
-    except RecordingError as exc:
-        print(f"sigmaslam record: {exc}", file=sys.stderr)
-        return 1
-    try:
-        with Node("recorder", cfg.transport) as node:
+    # the node (and with it the SIGTERM/SIGINT handling) comes first: a stop signal that arrives once the file
+    # exists must find a handler that closes it, not the default action that would leave it without a summary
+    with Node("recorder", cfg.transport) as node:
+        try:
+            writer = RecordingWriter(out, chunk_size_bytes=rc.chunk_size_bytes, compression=rc.compression,
+                                     foxglove_mirror=rc.foxglove, config_yaml=to_yaml(cfg))
+        except RecordingError as exc:
+            print(f"sigmaslam record: {exc}", file=sys.stderr)
+            return 1
+        try:
             _record(node, key, writer, rc.queue_depth, rc.queue_max_bytes, rc.flush_period_s)
-    finally:
-        writer.close()
+        finally:
+            # closed before the session: closing a session can take seconds (peers leaving), and a supervisor's
+            # SIGKILL after its shutdown timeout must not find the summary unwritten
+            writer.close()
     log.info("closed %s: %d messages, %d Foxglove mirror messages, %d undecodable dropped", out, writer.messages,
              writer.mirror_messages, writer.dropped_undecodable)
     print(f"recorded {writer.messages} messages to {out}", flush=True)
