@@ -177,3 +177,10 @@ def bootstrap(est, n: int, min_features: int, min_parallax_rad: float, ransac_px
         est._in_graph.discard(lm)
         est.values.erase(L(lm))
     return ""
+
+
+def metric_hold(est) -> bool:
+    """Whether the window of ``est`` (a WindowedVioEstimator) has a metric scale: with two or more cameras once
+    initialised; with one camera once it stood still or :func:`bootstrap` rebuilt it (before that its poses come
+    from the IMU alone, with an unknown initial velocity, and anything placed with them has no scale)."""
+    return bool(est.initialised) and not est._mono_pending

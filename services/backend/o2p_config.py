@@ -31,6 +31,15 @@ class O2PConfig:
                                        "(depth runs at ~10 Hz, keyframes are sparser; 0: exact stamps only)", "ms")
     anchor_tolerance_ms: float = param(1000.0, "map-to-map: a submap follows the keyframe nearest its creation within this "
                                        "(as mapping.submaps.keyframe_bind_tolerance_s)", "ms")
+    gate_chi2_p: float = param(0.999, "consistency gate: a factor whose whitened squared error at the current estimate "
+                               "(rows capped by N_eff, as it would enter the graph) exceeds the chi-square quantile of "
+                               "this probability, with min(n_valid, N_eff) degrees of freedom, is rejected before it "
+                               "enters the graph (counted gated_chi2); 0: no gate")
+    min_inside_fraction: float = param(0.5, "overlap gate: share of a factor's points that must lie inside the target's "
+                                       "observed field at the current estimate, besides M_min (counted gated_overlap)")
+    mono_settle_s: float = param(1.0, "one camera: dense factors wait this long after the window got its metric hold "
+                                 "(it stood still, or services/backend/mono_init.py rebuilt it); depth frames and "
+                                 "submaps begun before then are never used (their poses had no scale)", "s")
     max_pending_depth: int = param(32, "depth frames waiting for their window state at most (oldest dropped)")
     max_submaps: int = param(500, "finished submap fields kept at most (oldest dropped)")
     landmark_history_s: float = param(600.0, "landmark ids of past frames kept this long for covisibility", "s")
@@ -39,5 +48,7 @@ class O2PConfig:
         if min(self.max_points_frame, self.max_points_map, self.min_points_in_field, self.max_pending_depth,
                self.max_submaps) < 1:
             raise ValueError("o2p point counts and buffer sizes must be >= 1")
+        if not (0 <= self.gate_chi2_p < 1 and 0 <= self.min_inside_fraction <= 1 and self.mono_settle_s >= 0):
+            raise ValueError("o2p gate_chi2_p in [0, 1), min_inside_fraction in [0, 1] and mono_settle_s >= 0 are required")
         if not (self.tukey_k > 0 and self.grad_min >= 0 and self.info_scale > 0 and self.effective_points >= 0):
             raise ValueError("o2p tukey_k > 0, grad_min >= 0, info_scale > 0 and effective_points >= 0 are required")

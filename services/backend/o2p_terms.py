@@ -23,6 +23,16 @@ points of finished submaps (map-to-map).
   (:meth:`OccupancyTerms.pop_map_to_map`). The loop closer adds it to its pose graph between the two anchor
   keyframes once both have left the window, and to the final bundle adjustment (services/loop/), so the
   submap poses are the variables, as in eq. 5. Without a loop closer there is no map-to-map term (counted).
+* **Gates** (:func:`consistency`): before a factor enters a graph, at the current estimate, at least M_min and
+  ``min_inside_fraction`` of its points must lie inside the target's observed field, and its whitened squared
+  error (rows capped by N_eff, as the graph would see it) must pass a chi-square test at ``gate_chi2_p`` with
+  min(n_valid, N_eff) degrees of freedom: a frame or submap whose depth is grossly inconsistent with the map
+  at the current estimate is rejected (counted ``gated_overlap`` / ``gated_chi2``, logged), not left to the
+  Tukey loss, which only switches a factor off near the estimate where it was linearised.
+* **Metric hold** (one camera): until the window has a metric scale (it stood still, or
+  services/backend/mono_init.py rebuilt it) and ``mono_settle_s`` after, there are no dense factors, and depth
+  frames and submaps begun before that are never used: their poses (and, for MVS, their depth) came from an
+  estimate without scale (:meth:`OccupancyTerms.window_factors`, the estimator's hook).
 """
 
 from __future__ import annotations
@@ -35,8 +45,10 @@ from typing import Callable
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import X
+from scipy.stats import chi2
 
 from services.backend.o2p_config import O2PConfig
+from services.backend.mono_init import metric_hold
 from services.backend.o2p_factor import OccupancyToPoint, trilinear_derivatives
 from services.mapping.export import field_of_message
 from services.mapping.o2p_points import select_depth_points  # noqa: F401 (also used by callers)
@@ -44,6 +56,45 @@ from services.mapping.query import BlockField
 from shared.geometry import inv_T, transform_points
 
 log = logging.getLogger("sigmaslam.backend.o2p")
+
+
+@dataclasses.dataclass(frozen=True)
+class GateResult:
+    """The gates' view of one factor at the estimate where it would enter the graph."""
+
+    n_points: int
+    n_valid: int  # points inside the target's observed field (and off saturated free space)
+    chi2: float  # whitened squared error with the N_eff cap, as the graph would see it
+    dof: float  # min(n_valid, N_eff) (n_valid without a cap)
+    limit: float  # chi-square quantile at gate_chi2_p (inf without the gate)
+    reason: str  # '' when accepted, else 'too_few_inside' | 'overlap' | 'chi2'
+
+
+def consistency(f: OccupancyToPoint, T_WA: np.ndarray, T_WB: np.ndarray, cfg: O2PConfig) -> GateResult:
+    """Overlap and chi-square gates of a freshly made factor ``f`` (before :meth:`OccupancyToPoint.factor`)
+    at poses T_WA (points) and T_WB (target), both body poses in the window's frame.
+
+    Overlap: >= ``min_points_in_field`` and >= ``min_inside_fraction`` of the points inside the observed field.
+    Chi-square: with n valid points and whitened residuals r_i (eq. 6-7), the factor's squared error is
+    s * sum r_i^2 with s = min(1, N_eff / n) (:meth:`OccupancyToPoint.row_scale`); for consistent depth, map
+    and poses it follows roughly a chi-square with min(n, N_eff) degrees of freedom (N_eff independent pieces of
+    information; the correlated remainder adds little spread), so above its ``gate_chi2_p`` quantile the points
+    do not lie on the map at this estimate."""
+    ev = f.evaluate(np.asarray(T_WA, float), np.asarray(T_WB, float))
+    n, nv = len(f.p_A), int(ev.valid.sum())
+    scale = f.row_scale(nv) / f.info_scale  # evaluate() ran with sqrt(info_scale) rows: the cap on top
+    stat = float(scale * np.sum(ev.r**2))
+    dof = float(min(nv, cfg.effective_points) if cfg.effective_points > 0 else nv)
+    limit = float(chi2.ppf(cfg.gate_chi2_p, max(dof, 1.0))) if cfg.gate_chi2_p > 0 else float("inf")
+    if nv < cfg.min_points_in_field:
+        reason = "too_few_inside"
+    elif nv < cfg.min_inside_fraction * n:
+        reason = "overlap"
+    elif stat > limit:
+        reason = "chi2"
+    else:
+        reason = ""
+    return GateResult(n, nv, stat, dof, limit, reason)
 
 
 @dataclasses.dataclass
@@ -79,14 +130,19 @@ class MapToMap:
 
     def build(self, key_m: int, key_o: int, T_WK_m: np.ndarray, T_WK_o: np.ndarray) -> gtsam.NonlinearFactor | None:
         """The factor between gtsam Pose3 keys of the two anchors (body poses), with its Tukey threshold set
-        by the points inside o's field at the given anchor poses; None when fewer than M_min are inside."""
+        by the points inside o's field at the given anchor poses; None when the gates (:func:`consistency`)
+        reject it there (fewer than M_min points inside, too little overlap, or chi-square)."""
         c = self.cfg
         p_A = self.points_M @ self.T_KM_m[:3, :3].T + self.T_KM_m[:3, 3]
         f = OccupancyToPoint(self.field, self.l_min, p_A, self.sigma, key_a=key_m, key_b=key_o, T_BM=self.T_KM_o,
                              tukey_k=c.tukey_k, grad_min=c.grad_min, info_scale=c.info_scale,
                              effective_points=c.effective_points)
-        n_valid = int(f.evaluate(np.asarray(T_WK_m, float), np.asarray(T_WK_o, float)).valid.sum())
-        return f.factor(n_valid) if n_valid >= c.min_points_in_field else None
+        g = consistency(f, T_WK_m, T_WK_o, c)
+        if g.reason:
+            log.info("o2p map-to-map %d -> %d rejected (%s): %d/%d points inside, chi2 %.1f (limit %.1f, dof %.0f)",
+                     self.submap, self.target, g.reason, g.n_valid, g.n_points, g.chi2, g.limit, g.dof)
+            return None
+        return f.factor(g.n_valid)
 
 
 class OccupancyTerms:
@@ -108,6 +164,11 @@ class OccupancyTerms:
         # T_W'W: the loop closer's correction of the published frame W' (where depth poses and submap poses
         # T_WM arrive) relative to the window's frame W; set by the loop-closing back end, identity without
         self.correction: Callable[[], np.ndarray] | None = None
+        # metric hold (window_factors): None = not known (factors() called directly: no restriction); else the
+        # stamp from which depth and submaps may be used, and whether factors may be made yet
+        self.hold_from_ns: int | None = None
+        self._held = True
+        self.gate_log: collections.deque[tuple[int, GateResult]] = collections.deque(maxlen=1000)  # (submap, result)
 
     # ------------------------------------------------------------------ inputs
     def note_frame(self, stamp_ns: int, landmark_ids: np.ndarray) -> None:
@@ -125,6 +186,9 @@ class OccupancyTerms:
         state of its own attaches now to the nearest window state within ``attach_tolerance_ms``, by the
         relative pose of estimates from the same solve (later solves move both together); without them it
         attaches when the factors are built."""
+        if self._before_hold(int(stamp_ns)):  # placed (and, for MVS, computed) with poses without scale
+            self.counts["depth_before_hold"] += 1
+            return 0
         p_C, s = select_depth_points(depth, sigma, K, self.cfg.max_points_frame)
         if len(p_C) < self.cfg.min_points_in_field:
             self.counts["depth_too_few_points"] += 1
@@ -187,11 +251,15 @@ class OccupancyTerms:
         if self.anchor_of is None:
             self.counts["map_to_map_no_pose_graph"] += 1
             return
+        if self._before_hold(m.start_ns):
+            self.counts["map_to_map_before_hold"] += 1
+            return
         m.anchor = self.anchor_of(m.start_ns, m.T_WM)
         if m.anchor is None:
             self.counts["map_to_map_no_anchor"] += 1
             return
-        cands = [o for o in self._covisible(m.landmarks, exclude=m.id) if o.anchor is not None and o.id < m.id]
+        cands = [o for o in self._covisible(m.landmarks, exclude=m.id)
+                 if o.anchor is not None and o.id < m.id and not self._before_hold(o.start_ns)]
         o = self._o(cands, m.points_M, m.T_WM, exclude=m.id)
         if o is None:
             self.counts["map_to_map_no_target"] += 1
@@ -245,8 +313,17 @@ class OccupancyTerms:
             return None
         f = OccupancyToPoint(sm.field, sm.l_min, p_A, sig, key_a=key_a, tukey_k=c.tukey_k, grad_min=c.grad_min,
                            info_scale=c.info_scale, effective_points=c.effective_points, **tgt)
-        n_valid = f.n_valid(values) if "key_b" in tgt else int(f.evaluate(values.atPose3(key_a).matrix(), tgt["T_WB"]).valid.sum())
-        return (f, f.factor(n_valid)) if n_valid >= c.min_points_in_field else None
+        T_WB = values.atPose3(tgt["key_b"]).matrix() if "key_b" in tgt else tgt["T_WB"]
+        g = consistency(f, values.atPose3(key_a).matrix(), T_WB, c)
+        self.gate_log.append((sm.id, g))
+        if g.reason:
+            self.counts[f"gated_{g.reason}"] += 1
+            log.info("o2p frame-to-map on submap %d rejected (%s): %d/%d points inside, chi2 %.1f (limit %.1f, dof %.0f)",
+                     sm.id, g.reason, g.n_valid, g.n_points, g.chi2, g.limit, g.dof)
+            return None
+        log.debug("o2p frame-to-map on submap %d: %d/%d points inside, chi2 %.1f (limit %.1f, dof %.0f)",
+                  sm.id, g.n_valid, g.n_points, g.chi2, g.limit, g.dof)
+        return f, f.factor(g.n_valid)
 
     def _refixed(self, f: OccupancyToPoint, submap_id: int) -> tuple[OccupancyToPoint, gtsam.NonlinearFactor] | None:
         sm = self.submaps.get(submap_id)
@@ -263,6 +340,34 @@ class OccupancyTerms:
         return [sm for sm in self.submaps.values()
                 if sm.id != exclude and np.isin(lms, sm.landmarks, assume_unique=True).sum() >= need]
 
+    def window_factors(self, est) -> list[gtsam.NonlinearFactor]:
+        """The estimator's extra-factor hook (``WindowedVioEstimator.extra_factors``): :meth:`factors` of its
+        window once it has a metric hold (:func:`services.backend.mono_init.metric_hold`) and, with one camera,
+        ``mono_settle_s`` after it got one; nothing before. Depth frames and submaps older than that moment
+        are never used."""
+        if not est.stamps:
+            return []
+        newest = max(est.stamps.values())
+        if not metric_hold(est):
+            if self._held:
+                log.info("o2p: no dense factors while the window has no metric scale")
+            self._held, self.hold_from_ns = False, None
+            self.counts["window_without_metric_hold"] += 1
+            return []
+        if not self._held or self.hold_from_ns is None:
+            settle = self.cfg.mono_settle_s if len(est.cameras) == 1 else 0.0
+            self._held, self.hold_from_ns = True, newest + int(settle * 1e9)
+            if settle > 0:
+                log.info("o2p: window has a metric hold; dense factors from %.3f s on (depth and submaps before are not used)",
+                         self.hold_from_ns * 1e-9)
+        if newest < self.hold_from_ns:
+            self.counts["window_settling"] += 1
+            return []
+        return self.factors(est.stamps, est.values)
+
+    def _before_hold(self, stamp_ns: int) -> bool:
+        return not self._held or (self.hold_from_ns is not None and stamp_ns < self.hold_from_ns)
+
     def factors(self, stamps: dict[int, int], values: gtsam.Values) -> list[gtsam.NonlinearFactor]:
         """Factors for the window whose states are ``stamps`` (state index -> stamp) at estimate ``values``;
         a factor is built once and kept while its state is in the window."""
@@ -276,6 +381,9 @@ class OccupancyTerms:
             tol = int(c.depth_stamp_tolerance_ms * 1e6)
             attach = int(c.attach_tolerance_ms * 1e6)
             done = {k[1] for k in self._built if k[0] == "f2m"}
+            for t in [t for t in self._depth if self._before_hold(t)]:
+                del self._depth[t]
+                self.counts["depth_before_hold"] += 1
             for n in sorted(live - done):
                 gap = {t: abs(t - stamps[n]) for t, d in self._depth.items()
                        if abs(t - stamps[n]) <= tol or (d[2] is not None and abs(t - stamps[n]) <= attach)}
@@ -287,7 +395,8 @@ class OccupancyTerms:
                 if gap[t] > tol:
                     p_S = self._attached(p_S, T_WA, T_WS)
                 T_pub = T_WA if self.correction is None else self.correction() @ T_WA  # o(k) in the submaps' frame
-                sm = self._o(self._covisible(self._landmarks_near(stamps[n])), p_S, T_pub)
+                cands = [sm for sm in self._covisible(self._landmarks_near(stamps[n])) if not self._before_hold(sm.start_ns)]
+                sm = self._o(cands, p_S, T_pub)
                 built = None if sm is None else self._make(sm, p_S, sig, X(n), stamps, values)
                 self._built[("f2m", n, -1 if sm is None else sm.id)] = built
                 self.counts["frame_to_map" if built else "frame_to_map_no_target"] += 1

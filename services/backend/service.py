@@ -58,7 +58,7 @@ class BackendShell:
         from services.backend.o2p_terms import OccupancyTerms
 
         self.o2p = terms = OccupancyTerms(cfg)
-        self.estimator.extra_factors = lambda est: terms.factors(est.stamps, est.values)
+        self.estimator.extra_factors = terms.window_factors  # none until the window has a metric scale (mono)
 
     def add_map_input(self, msg) -> None:
         """map/field (OccupancyField), depth/stereo (DepthFrame) or map/o2p_points (SubmapPoints) for o2p."""
