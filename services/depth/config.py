@@ -18,6 +18,9 @@ class DepthConfig:
     width: int = param(512, "rectified image width (multiple of 16)", "px")
     height: int = param(384, "rectified image height (multiple of 16)", "px")
     fov_scale: float = param(1.0, "rectified focal length = left fx scaled to the new width / fov_scale")
+    border_margin_px: int = param(8, "depth is dropped (NaN) on rectified pixels that no raw image covers (black "
+                                  "rectification border) and within this distance of them: the networks make up "
+                                  "depth there, MVS mostly far behind the true surface (docs/depth.md)", "px")
     stereo_weights: str = param("", "stereo network weights (.pt with .json beside); '' = services/depth/weights/stereo.pt")
     mvs_weights: str = param("", "MVS network weights; '' = services/depth/weights/mvs.pt")
     mono: bool = param(False, "cam0 only (left_camera): MVS depth on posed keyframes alone, no stereo network and "
@@ -59,6 +62,8 @@ class DepthConfig:
             raise ValueError(f"depth.mvs_sources must be 1..7, got {self.mvs_sources}")
         if self.mono and (self.method != "network" or not self.use_mvs):
             raise ValueError("depth.mono needs depth.method 'network' and depth.use_mvs (MVS is its only depth)")
+        if self.border_margin_px < 0:
+            raise ValueError(f"depth.border_margin_px must be >= 0, got {self.border_margin_px}")
         if self.rate_hz <= 0:
             raise ValueError("depth.rate_hz must be positive")
         if self.prior_max_points < 0 or not self.prior_max_age_s >= 0:

@@ -11,6 +11,8 @@ on posed keyframes when available, fuse (eq. 14).
     out.stereo, out.mvs, out.fused                       # (depth, sigma) float32 (H,W) [m], NaN invalid
 
 All depth maps live in the rectified left camera N0: intrinsics ``pipe.K``, pose in the body ``pipe.T_SC``.
+Pixels outside ``pipe.valid`` (not covered by the raw left and right images, plus ``depth.border_margin_px``;
+services/depth/coverage.py) are NaN in every output: the networks make up depth there.
 
 With ``depth.mono`` (``DepthPipeline(cfg, cam_left)``, ``process(stamp_ns, raw_left, None, T_WS)``) there is no
 right camera and no stereo network: N0 is the left camera undistorted to the same pinhole K (axes of the
@@ -28,6 +30,7 @@ import cv2
 import numpy as np
 
 from services.depth.config import DepthConfig
+from services.depth.coverage import covered, valid_region
 from services.depth.prior import landmark_prior
 from services.depth.sgbm import SgbmParams, sgbm_depth
 from services.depth.uncertainty import disparity_to_depth, fuse, logdepth_to_depth
@@ -66,6 +69,7 @@ class DepthPipeline:
             self.T_SC = np.asarray(cam_left.T_SC, np.float64).copy()
             self._left_maps = cam_left.camera.remap_to_pinhole(self.K, size)
             self.baseline_m = 0.0
+            masks = [covered(self._left_maps, self.raw_shapes[0])]
         else:
             if cam_right is None:
                 raise ValueError("stereo depth needs a right camera (or depth.mono)")
@@ -75,6 +79,9 @@ class DepthPipeline:
             self.T_SC = self.rect.T_SN0
             self._left_maps = self.rect.maps0
             self.baseline_m = self.rect.baseline_m
+            masks = [covered(self.rect.maps0, self.raw_shapes[0]), covered(self.rect.maps1, self.raw_shapes[1])]
+        # pixels whose depth is kept: covered by the raw image(s), away from uncovered ones
+        self.valid = valid_region(masks, cfg.border_margin_px)
         self.f_px = float(self.K[0, 0])
         self.sgbm_params = SgbmParams(num_disparities=cfg.sgbm_num_disparities, block_size=cfg.sgbm_block_size)
         self.method = cfg.method
@@ -175,6 +182,10 @@ class DepthPipeline:
             u, su = self.stereo_net(t(left), t(right))
         return disparity_to_depth(u[0].cpu().numpy(), su[0].cpu().numpy() * self.stereo_gain, self.f_px, self.baseline_m)
 
+    def _mask(self, ds: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """Depth and sigma with NaN outside ``self.valid``."""
+        return tuple(np.where(self.valid, a, np.float32(np.nan)).astype(np.float32) for a in ds)
+
     def _features(self, view: _View):
         if view.features is None:
             import torch
@@ -205,7 +216,7 @@ class DepthPipeline:
             ld, sl = self.mvs_net.forward_features(f_ref, ctx, f_src.to(self.device), K.to(self.device),
                                                    T_src_ref.to(self.device), prior, left.shape)
         d, s = logdepth_to_depth(ld[0].cpu().numpy(), sl[0].cpu().numpy() * self.mvs_gain)
-        return (d, s), len(idx)
+        return self._mask((d, s)), len(idx)
 
     def process(self, stamp_ns: int, raw_left: np.ndarray, raw_right: np.ndarray | None,
                 T_WS: np.ndarray | None = None) -> DepthResult:
@@ -214,7 +225,7 @@ class DepthPipeline:
         if raw_left.shape != self.raw_shapes[0] or raw_right.shape != self.raw_shapes[1]:
             raise ValueError(f"images of shape {raw_left.shape}/{raw_right.shape}, calibration says {self.raw_shapes}")
         left, right = self.rect.rectify(raw_left, raw_right)
-        stereo = self.stereo(left, right)
+        stereo = self._mask(self.stereo(left, right))
         T_WC, mvs, n_src, n_prior = self._posed_mvs(stamp_ns, left, T_WS)
         fused = stereo if mvs is None else fuse(*stereo, *mvs)
         return DepthResult(stereo, mvs, fused, T_WC, self.method, n_src, n_prior)
