@@ -11,7 +11,7 @@ from services.mapping.blocks import BlockStore, pack_keys, unpack_keys
 from services.mapping.config import SensorModelConfig
 from services.mapping.integrate import integrate
 from services.mapping.query import FREE, OCCUPIED, UNKNOWN, BlockField, interpolate, near_surface_field, state
-from services.mapping.sensor_model import log_odds, prepare_depth
+from services.mapping.sensor_model import log_odds, prepare_depth, surface_thickness
 from tools.raycast_depth import DepthRenderer, intrinsics, look_at, room_scene
 
 W, H = 512, 384
@@ -67,7 +67,7 @@ def test_wall_profile_matches_eq3_and_running_mean():
     L, w = f.voxels(ijk)
     p = (ijk + 0.5) * cfg.voxel_size_m
     scale = np.linalg.norm(p, axis=1) / p[:, 2]
-    tau = np.clip(cfg.tau_k * 2.0 * scale, cfg.tau_min_m, cfg.tau_max_m)
+    tau = surface_thickness(2.0 * scale, cfg, 0.04 * scale)
     ref, upd = log_odds((z - 2.0) * scale, 0.04 * scale, tau, cfg.l_min)
     near = z >= cfg.near_m
     assert np.allclose(L[upd & near], ref[upd & near], atol=1e-5)
@@ -78,7 +78,7 @@ def test_wall_profile_matches_eq3_and_running_mean():
     assert np.allclose(L2[upd & near], ref[upd & near], atol=1e-5) and (w2[upd & near] == 2).all()
     d3, s3 = wall(1.9, 0.04)
     integrate_once(d3, s3, cfg=cfg, store=store)
-    ref3, upd3 = log_odds((z - 1.9) * scale, 0.04 * scale, np.clip(cfg.tau_k * 1.9 * scale, cfg.tau_min_m, cfg.tau_max_m), cfg.l_min)
+    ref3, upd3 = log_odds((z - 1.9) * scale, 0.04 * scale, surface_thickness(1.9 * scale, cfg, 0.04 * scale), cfg.l_min)
     L3, w3 = BlockField.of(store).voxels(ijk)
     both = upd & upd3 & near
     assert np.allclose(L3[both], (2 * ref[both] + ref3[both]) / 3, atol=1e-4)

@@ -17,6 +17,10 @@ class SensorModelConfig:
     tau_k: float = param(0.05, "surface thickness tau as a fraction of the measured depth (eq. 3)")
     tau_min_m: float = param(0.075, "lower bound on the surface thickness tau", "m")
     tau_max_m: float = param(0.3, "upper bound on the surface thickness tau", "m")
+    tau_sigma_k: float = param(6.0, "tau is at least this many sigma_d (within tau_min_m..tau_max_m): with 6 the linear part of "
+                               "eq. 3 spans -3 sigma_d..+3 sigma_d about the measurement, so noisy depth averages (eq. 4) to a "
+                               "zero crossing on the surface; with tau/2 < 3 sigma_d the occupied side saturates early and "
+                               "the surface moves behind the true one (docs/o2p.md, factor bias). 0: eq. 3's tau as printed")
     sigma_model: str = param("input", "per-pixel sigma_d: 'input' (the DepthFrame's sigma), 'linear' (k_sigma*d) or 'quadratic' (k_sigma*d^2)")
     k_sigma: float = param(0.01, "heuristic sigma gain for sigma_model linear [1] or quadratic [1/m]")
     sigma_min_m: float = param(0.025, "lower bound on sigma_d (keeps the surface band at least a voxel wide)", "m")
@@ -30,8 +34,8 @@ class SensorModelConfig:
             raise ValueError("voxel_size_m > 0, l_min < 0 and 1 <= w_max <= 65535 are required")
         if self.sigma_model not in ("input", "linear", "quadratic"):
             raise ValueError(f"sigma_model must be 'input', 'linear' or 'quadratic', got {self.sigma_model!r}")
-        if not (0 < self.tau_min_m <= self.tau_max_m and 0 < self.sigma_min_m <= self.sigma_max_m):
-            raise ValueError("0 < tau_min_m <= tau_max_m and 0 < sigma_min_m <= sigma_max_m are required")
+        if not (0 < self.tau_min_m <= self.tau_max_m and 0 < self.sigma_min_m <= self.sigma_max_m and self.tau_sigma_k >= 0):
+            raise ValueError("0 < tau_min_m <= tau_max_m, 0 < sigma_min_m <= sigma_max_m and tau_sigma_k >= 0 are required")
 
 
 @dataclasses.dataclass

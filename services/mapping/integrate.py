@@ -160,7 +160,7 @@ def _select_blocks(lo, hi, block_m, R, t, fx, fy, cx, cy, W, H, planes, dmin, dm
 
 @nb.njit(parallel=True, fastmath=True, cache=True)
 def _update_voxels(bijk, rows, Lv, wv, R, t, fx, fy, cx, cy, depth, sigma, vs, l_min, w_max,
-                   tau_k, tau_min, tau_max, near, changed):
+                   tau_k, tau_sigma_k, tau_min, tau_max, near, changed):
     H, W = depth.shape
     B = Lv.shape[1]
     for b in nb.prange(bijk.shape[0]):
@@ -187,7 +187,7 @@ def _update_voxels(bijk, rows, Lv, wv, R, t, fx, fy, cx, cy, depth, sigma, vs, l
                     scale = np.sqrt(x * x + y * y + z * z) / z
                     d_r = (z - D) * scale
                     three_s = 3.0 * sigma[vi, ui] * scale
-                    tau = min(max(tau_k * D * scale, tau_min), tau_max)
+                    tau = min(max(max(tau_k * D, tau_sigma_k * sigma[vi, ui]) * scale, tau_min), tau_max)
                     if d_r < -three_s:
                         l = l_min
                     elif d_r < 0.5 * tau:
@@ -253,7 +253,7 @@ def integrate(store: BlockStore, depth: np.ndarray, sigma: np.ndarray, K: np.nda
     changed = np.zeros(len(sv), bool)
     _update_voxels(np.ascontiguousarray(ijk[fine]), store.vox_slot[sv].astype(np.int64), store.Lv, store.wv, R, t,
                    fx, fy, cx, cy, depth, sigma, store.voxel_size, float(cfg.l_min), int(cfg.w_max), cfg.tau_k,
-                   cfg.tau_min_m, cfg.tau_max_m, cfg.near_m, changed)
+                   cfg.tau_sigma_k, cfg.tau_min_m, cfg.tau_max_m, cfg.near_m, changed)
     store.unrefine(sv[~changed & was_unknown[fine]])  # refined for nothing: back to unknown coarse
     return IntegrationResult(np.concatenate([sc, sv[changed]]), int(len(sc)), int(len(sv)), n_pix)
 

@@ -10,6 +10,12 @@ slope must be ``-l_min / (3 sigma)``, which is what is used here, so that
 - ``tau/2 <= d_r < tau``:    l = l_max = -l_min * tau / (6 sigma) (continuity),
 - ``d_r >= tau``:            no update (occluded: unknown stays unknown).
 
+tau is proportional to the depth as in the paper, and in addition at least ``tau_sigma_k`` (6) sigma_d
+(:func:`surface_thickness`): with tau / 2 < 3 sigma the occupied side saturates at l_max < |l_min| and stops
+at tau, while the free side reaches l_min, so the mean of eq. 4 over noisy depths crosses zero *behind* the
+surface (a few mm at the stereo network's noise, up to ~1.5 cm at 5 cm noise with tau = 7.5 cm), which biased
+the occupancy-to-point factors (docs/o2p.md). With tau >= 6 sigma the ramp is symmetric about the measurement.
+
 The magnitude of the slope, ``|l_min| / (3 sigma)``, is the ``||grad L||`` that eq. 7 turns back into
 ``sigma_map = l_min / ||3 grad L||``.
 """
@@ -29,9 +35,10 @@ def log_odds(d_r: np.ndarray, sigma: np.ndarray, tau: np.ndarray, l_min: float) 
     return l, d_r < tau
 
 
-def surface_thickness(depth: np.ndarray, cfg: SensorModelConfig) -> np.ndarray:
-    """tau, proportional to depth and clamped [m]."""
-    return np.clip(cfg.tau_k * np.asarray(depth, float), cfg.tau_min_m, cfg.tau_max_m)
+def surface_thickness(depth: np.ndarray, cfg: SensorModelConfig, sigma: np.ndarray | float = 0.0) -> np.ndarray:
+    """tau [m]: proportional to depth, at least ``tau_sigma_k`` sigma_d, clamped to tau_min_m..tau_max_m."""
+    tau = np.maximum(cfg.tau_k * np.asarray(depth, float), cfg.tau_sigma_k * np.asarray(sigma, float))
+    return np.clip(tau, cfg.tau_min_m, cfg.tau_max_m)
 
 
 def prepare_depth(depth: np.ndarray, sigma: np.ndarray | None, cfg: SensorModelConfig) -> tuple[np.ndarray, np.ndarray, int]:
