@@ -32,6 +32,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--skip", type=int, default=40, help="replica: frames skipped at the start (MVS needs history)")
     p.add_argument("--sources", type=int, default=4, help="MVS source views")
     p.add_argument("--prior-points", type=int, default=150, help="sparse prior depths (landmark-like, 2%% noise)")
+    p.add_argument("--border-margin-px", type=int, default=None, help="replica: depth dropped on the black rectification "
+                   "border and this far around it, as the pipeline does (default depth.border_margin_px; -1: keep all)")
     p.add_argument("--threads", type=int, default=1, help="torch threads (CPU times are process time: use 1)")
     p.add_argument("--stereo-weights", default="", help="default: services/depth/weights/stereo.pt")
     p.add_argument("--mvs-weights", default="", help="default: services/depth/weights/mvs.pt")
@@ -104,6 +106,18 @@ def _prior(rng, gt: np.ndarray, n: int) -> np.ndarray:
     return prior_points(rng, np.where(np.isfinite(gt), gt, np.nan), n)
 
 
+def _valid_pixels(rect, cams, margin_px: int | None) -> np.ndarray | None:
+    """Pixels where DepthPipeline keeps depth (services/depth/coverage.py), None with a negative margin."""
+    from services.depth.config import DepthConfig
+    from services.depth.coverage import covered, valid_region
+
+    margin = DepthConfig().border_margin_px if margin_px is None else margin_px
+    if margin < 0:
+        return None
+    return valid_region([covered(rect.maps0, (cams[0].camera.height, cams[0].camera.width)),
+                         covered(rect.maps1, (cams[1].camera.height, cams[1].camera.width))], margin)
+
+
 def heuristic_gains(root: Path, f_px: float, baseline_m: float, stereo_net, n_frames: int = 12) -> dict[str, float]:
     """Gains of the heuristic sigma models on the validation split (same calibration as the networks)."""
     import torch
@@ -146,9 +160,11 @@ def main(args: argparse.Namespace) -> int:
         rect = stereo_rectification(cams[0], cams[1], (512, 384))
         K, baseline = rect.K, rect.baseline_m
         frames = _replica_frames(Path(args.replica), args.frames, args.stride, args.skip, rect, args.sources, rng)
+        valid = _valid_pixels(rect, cams, args.border_margin_px)
         source = f"replica {args.replica}"
     else:
         K, baseline = K_RECT, BASELINE_M
+        valid = None  # rendered pinhole pairs: every pixel has content
         frames = _split_frames(Path(args.data), args.split, args.frames, args.sources)
         source = f"{args.data}/{args.split}"
     f_px = float(K[0, 0])
@@ -189,6 +205,8 @@ def main(args: argparse.Namespace) -> int:
         if not v:
             continue
         d, s, g = (np.stack(x) for x in zip(*v))
+        if valid is not None:  # every method keeps depth where the pipeline does; coverage counts the rest as missing
+            d = np.where(valid, d, np.nan)
         met = depth_metrics(d, s, g)
         met["coverage"] = float(np.mean(np.isfinite(d) & np.isfinite(g)) / max(np.mean(np.isfinite(g)), 1e-9))
         rows[m] = met
@@ -216,12 +234,12 @@ def main(args: argparse.Namespace) -> int:
               f"{args.threads} threads): " +
               ", ".join(f"{k} {v:.1f}" for k, v in timing.items())]
     (out / "table.md").write_text("\n".join(lines) + "\n")
-    _plot(acc, out / "calibration.png")
+    _plot(acc, out / "calibration.png", valid)
     print("\n".join(lines))
     return 0
 
 
-def _plot(acc, path: Path) -> None:
+def _plot(acc, path: Path, valid: np.ndarray | None = None) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -236,7 +254,10 @@ def _plot(acc, path: Path) -> None:
     for m, v in acc.items():
         if not v:
             continue
-        d, s, g = (np.stack(x).ravel() for x in zip(*v))
+        d, s, g = (np.stack(x) for x in zip(*v))
+        if valid is not None:
+            d = np.where(valid, d, np.nan)
+        d, s, g = d.ravel(), s.ravel(), g.ravel()
         ok = np.isfinite(d) & np.isfinite(s) & np.isfinite(g) & (s > 0)
         z = np.sort(np.abs(d[ok] - g[ok]) / s[ok])
         ax.plot(k, np.searchsorted(z, k) / max(len(z), 1), label=m)
