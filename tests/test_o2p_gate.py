@@ -126,3 +126,13 @@ def test_map_to_map_term_is_gated_at_the_anchor_estimate(room):
         term = MapToMap(1, 0, 7, 1, np.eye(4), np.eye(4), p_C, sig, field, msg.l_min, cfg)
         f = term.build(X(7), X(1), perturbed(T_m, 5, 1.0, 0.02), np.eye(4))
         assert (f is not None) == accepted
+    # consecutive submaps overlap little by design (a new one starts where the overlap fell below eps_vol): a
+    # consistent term with 30 % of its points inside o's field is built (the frame-to-map overlap gate would refuse)
+    far = depth.copy()
+    far[:, : int(0.7 * W)] = 40.0
+    p_C, sig = select_depth_points(far, np.full((H, W), 0.03, np.float32), K, 1000)
+    term = MapToMap(1, 0, 7, 1, np.eye(4), np.eye(4), p_C, sig, field, msg.l_min, cfg)
+    g = consistency(OccupancyToPoint(field, msg.l_min, p_C, sig, key_a=X(7), T_WB=np.eye(4), effective_points=10),
+                    T_m, np.eye(4), cfg)
+    assert g.reason == "overlap" and g.n_valid >= cfg.min_points_in_field
+    assert term.build(X(7), X(1), perturbed(T_m, 5, 1.0, 0.02), np.eye(4)) is not None

@@ -35,8 +35,10 @@ class O2PConfig:
                                "(rows capped by N_eff, as it would enter the graph) exceeds the chi-square quantile of "
                                "this probability, with min(n_valid, N_eff) degrees of freedom, is rejected before it "
                                "enters the graph (counted gated_chi2); 0: no gate")
-    min_inside_fraction: float = param(0.5, "overlap gate: share of a factor's points that must lie inside the target's "
-                                       "observed field at the current estimate, besides M_min (counted gated_overlap)")
+    min_inside_fraction: float = param(0.5, "overlap gate: share of a frame-to-map factor's points that must lie inside "
+                                       "the target's observed field at the current estimate, besides M_min (counted "
+                                       "gated_overlap; map-to-map terms need M_min only: consecutive submaps overlap "
+                                       "little by design)")
     mono_settle_s: float = param(1.0, "one camera: dense factors wait this long after the window got its metric hold "
                                  "(it stood still, or services/backend/mono_init.py rebuilt it); depth frames and "
                                  "submaps begun before then are never used (their poses had no scale)", "s")

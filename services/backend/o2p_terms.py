@@ -24,7 +24,7 @@ points of finished submaps (map-to-map).
   keyframes once both have left the window, and to the final bundle adjustment (services/loop/), so the
   submap poses are the variables, as in eq. 5. Without a loop closer there is no map-to-map term (counted).
 * **Gates** (:func:`consistency`): before a factor enters a graph, at the current estimate, at least M_min and
-  ``min_inside_fraction`` of its points must lie inside the target's observed field, and its whitened squared
+  (frame-to-map only) ``min_inside_fraction`` of its points must lie inside the target's observed field, and its whitened squared
   error (rows capped by N_eff, as the graph would see it) must pass a chi-square test at ``gate_chi2_p`` with
   min(n_valid, N_eff) degrees of freedom: a frame or submap whose depth is grossly inconsistent with the map
   at the current estimate is rejected (counted ``gated_overlap`` / ``gated_chi2``, logged), not left to the
@@ -70,11 +70,14 @@ class GateResult:
     reason: str  # '' when accepted, else 'too_few_inside' | 'overlap' | 'chi2'
 
 
-def consistency(f: OccupancyToPoint, T_WA: np.ndarray, T_WB: np.ndarray, cfg: O2PConfig) -> GateResult:
+def consistency(f: OccupancyToPoint, T_WA: np.ndarray, T_WB: np.ndarray, cfg: O2PConfig,
+                min_fraction: float | None = None) -> GateResult:
     """Overlap and chi-square gates of a freshly made factor ``f`` (before :meth:`OccupancyToPoint.factor`)
     at poses T_WA (points) and T_WB (target), both body poses in the window's frame.
 
-    Overlap: >= ``min_points_in_field`` and >= ``min_inside_fraction`` of the points inside the observed field.
+    Overlap: >= ``min_points_in_field`` and >= ``min_fraction`` (default ``min_inside_fraction``; map-to-map
+    passes 0: a submap starts where the previous one's overlap fell below mapping.submaps.eps_vol, so most of
+    its points lie outside its target by design) of the points inside the observed field.
     Chi-square: with n valid points and whitened residuals r_i (eq. 6-7), the factor's squared error is
     s * sum r_i^2 with s = min(1, N_eff / n) (:meth:`OccupancyToPoint.row_scale`); for consistent depth, map
     and poses it follows roughly a chi-square with min(n, N_eff) degrees of freedom (N_eff independent pieces of
@@ -88,7 +91,7 @@ def consistency(f: OccupancyToPoint, T_WA: np.ndarray, T_WB: np.ndarray, cfg: O2
     limit = float(chi2.ppf(cfg.gate_chi2_p, max(dof, 1.0))) if cfg.gate_chi2_p > 0 else float("inf")
     if nv < cfg.min_points_in_field:
         reason = "too_few_inside"
-    elif nv < cfg.min_inside_fraction * n:
+    elif nv < (cfg.min_inside_fraction if min_fraction is None else min_fraction) * n:
         reason = "overlap"
     elif stat > limit:
         reason = "chi2"
@@ -137,7 +140,7 @@ class MapToMap:
         f = OccupancyToPoint(self.field, self.l_min, p_A, self.sigma, key_a=key_m, key_b=key_o, T_BM=self.T_KM_o,
                              tukey_k=c.tukey_k, grad_min=c.grad_min, info_scale=c.info_scale,
                              effective_points=c.effective_points)
-        g = consistency(f, T_WK_m, T_WK_o, c)
+        g = consistency(f, T_WK_m, T_WK_o, c, min_fraction=0.0)
         if g.reason:
             log.info("o2p map-to-map %d -> %d rejected (%s): %d/%d points inside, chi2 %.1f (limit %.1f, dof %.0f)",
                      self.submap, self.target, g.reason, g.n_valid, g.n_points, g.chi2, g.limit, g.dof)
