@@ -52,9 +52,9 @@ def _bias(cfg: SensorModelConfig) -> tuple[float, np.ndarray]:
 @pytest.mark.parametrize("tau_sigma_k", [6.0, 0.0])
 def test_factor_is_unbiased_at_the_true_pose(tau_sigma_k):
     e_mean, t_cam = _bias(SensorModelConfig(tau_sigma_k=tau_sigma_k))
-    if tau_sigma_k > 0:  # the default: surface on the true one, no pull along the viewing direction
+    if tau_sigma_k > 0:  # tau >= 6 sigma: surface on the true one, no pull along the viewing direction
         assert abs(e_mean) < 0.001, e_mean
         assert np.linalg.norm(t_cam) < 0.0015 and abs(t_cam[2]) < 0.001, t_cam
-    else:  # eq. 3 as printed: the zero crossing lies behind the surface, the factor pulls the camera forward
+    else:  # eq. 3 as printed (the default): the zero crossing lies behind the surface, the factor pulls the camera forward
         assert e_mean < -0.002, e_mean
         assert t_cam[2] > 0.003, t_cam
