@@ -45,7 +45,7 @@ def test_pose_graph_map_to_map_pulls_the_submap_anchor_back(room):
         else:
             assert rot > 1.5 and tr > 0.03  # odometry alone keeps the error
     # capped at N_eff = 10 points (the default) the term still pulls, less hard against the loose odometry
-    capped, *_ = map_to_map_term(room, O2PConfig(enabled=True, frame_to_map=False, effective_points=10))
+    capped, *_ = map_to_map_term(room, O2PConfig(enabled=True, frame_to_map=False, map_to_map=True, effective_points=10))
     pg = PoseGraph()
     pg.add_node(1, P_o)
     pg.add_node(7, T_est, REL_COV)

@@ -100,7 +100,7 @@ def map_to_map_term(room, cfg=None):
     P_o, T_true = view(0.5), view(3.0)
     T_est = perturbed(T_true, 8)
     published = {1 * S: (1, P_o), 4 * S: (7, T_est)}  # keyframe poses as the mapping saw them
-    terms = OccupancyTerms(cfg or O2PConfig(enabled=True, frame_to_map=False, effective_points=0))  # eq. 7 uncapped
+    terms = OccupancyTerms(cfg or O2PConfig(enabled=True, frame_to_map=False, map_to_map=True, effective_points=0))  # eq. 7 uncapped
     terms.anchor_of = lambda stamp, T_WM: (published[stamp][0], inv_T(published[stamp][1]) @ T_WM)
     for t in range(1, 4):
         terms.note_frame(t * S, np.arange(0, 50))
@@ -132,7 +132,7 @@ def test_map_to_map_term_binds_both_submaps_to_their_anchor_keyframes(room):
     v.update(X(7), gtsam.Pose3(T_est))
     assert e_true < 0.05 * f_true.error(v)
     # without a loop closer (no anchor binding) the term is counted, not built
-    terms = OccupancyTerms(O2PConfig(enabled=True))
+    terms = OccupancyTerms(O2PConfig(enabled=True, map_to_map=True))
     terms.add_field(room[0])
     terms.add_submap_points(0, np.zeros((5, 3)), np.full(5, 0.03))
     assert terms.pop_map_to_map() == [] and terms.counts["map_to_map_no_pose_graph"] == 1

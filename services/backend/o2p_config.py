@@ -13,8 +13,10 @@ class O2PConfig:
 
     enabled: bool = param(False, "add occupancy-to-point factors to the back end's window (needs map/field and depth)")
     frame_to_map: bool = param(True, "frame-to-map: live stereo depth of a window keyframe against its o(k)")
-    map_to_map: bool = param(True, "map-to-map: fused-depth points of a finished submap m against o(m), between the two "
-                             "submaps' anchor keyframes in the loop closer's pose graph and final BA (needs loop.enabled)")
+    map_to_map: bool = param(False, "map-to-map: fused-depth points of a finished submap m against o(m), between the two "
+                             "submaps' anchor keyframes in the loop closer's pose graph and final BA (needs loop.enabled). "
+                             "Off by default: in the causal pose graph one such term stepped the published trajectory by "
+                             "6-24 cm on the V2_01 replica (docs/o2p.md, stop 15)")
     max_points_frame: int = param(200, "points per frame-to-map factor at most (the lowest-sigma ones)")
     max_points_map: int = param(1000, "points per map-to-map factor at most (the lowest-sigma ones)")
     min_points_in_field: int = param(100, "M_min: a target submap needs this many points inside its observed field")
