@@ -32,3 +32,9 @@ def valid_region(masks: list[np.ndarray], margin_px: int) -> np.ndarray:
         return m
     k = np.ones((2 * margin_px + 1, 2 * margin_px + 1), np.uint8)
     return cv2.erode(m.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=1) > 0
+
+
+def stereo_valid(rect, raw_hw: tuple[tuple[int, int], tuple[int, int]], margin_px: int) -> np.ndarray:
+    """:func:`valid_region` of a rectified pair (``rect`` from shared.camera.stereo_rectification): pixels covered
+    by both raw images of ``raw_hw`` = ((h0, w0), (h1, w1)), ``margin_px`` [px] away from uncovered ones."""
+    return valid_region([covered(rect.maps0, raw_hw[0]), covered(rect.maps1, raw_hw[1])], margin_px)

@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from services.depth.config import DepthConfig
-from services.depth.coverage import covered, valid_region
+from services.depth.coverage import covered, stereo_valid, valid_region
 from services.depth.prior import landmark_prior
 from services.depth.sgbm import SgbmParams, sgbm_depth
 from services.depth.uncertainty import disparity_to_depth, fuse, logdepth_to_depth
@@ -69,7 +69,7 @@ class DepthPipeline:
             self.T_SC = np.asarray(cam_left.T_SC, np.float64).copy()
             self._left_maps = cam_left.camera.remap_to_pinhole(self.K, size)
             self.baseline_m = 0.0
-            masks = [covered(self._left_maps, self.raw_shapes[0])]
+            self.valid = valid_region([covered(self._left_maps, self.raw_shapes[0])], cfg.border_margin_px)
         else:
             if cam_right is None:
                 raise ValueError("stereo depth needs a right camera (or depth.mono)")
@@ -79,9 +79,8 @@ class DepthPipeline:
             self.T_SC = self.rect.T_SN0
             self._left_maps = self.rect.maps0
             self.baseline_m = self.rect.baseline_m
-            masks = [covered(self.rect.maps0, self.raw_shapes[0]), covered(self.rect.maps1, self.raw_shapes[1])]
-        # pixels whose depth is kept: covered by the raw image(s), away from uncovered ones
-        self.valid = valid_region(masks, cfg.border_margin_px)
+            self.valid = stereo_valid(self.rect, self.raw_shapes, cfg.border_margin_px)
+        # self.valid: pixels whose depth is kept (covered by the raw image(s), away from uncovered ones)
         self.f_px = float(self.K[0, 0])
         self.sgbm_params = SgbmParams(num_disparities=cfg.sgbm_num_disparities, block_size=cfg.sgbm_block_size)
         self.method = cfg.method
@@ -184,7 +183,7 @@ class DepthPipeline:
 
     def _mask(self, ds: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Depth and sigma with NaN outside ``self.valid``."""
-        return tuple(np.where(self.valid, a, np.float32(np.nan)).astype(np.float32) for a in ds)
+        return tuple(np.where(self.valid, a, np.float32(np.nan)).astype(np.float32, copy=False) for a in ds)
 
     def _features(self, view: _View):
         if view.features is None:

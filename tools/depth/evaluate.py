@@ -109,13 +109,12 @@ def _prior(rng, gt: np.ndarray, n: int) -> np.ndarray:
 def _valid_pixels(rect, cams, margin_px: int | None) -> np.ndarray | None:
     """Pixels where DepthPipeline keeps depth (services/depth/coverage.py), None with a negative margin."""
     from services.depth.config import DepthConfig
-    from services.depth.coverage import covered, valid_region
+    from services.depth.coverage import stereo_valid
 
     margin = DepthConfig().border_margin_px if margin_px is None else margin_px
     if margin < 0:
         return None
-    return valid_region([covered(rect.maps0, (cams[0].camera.height, cams[0].camera.width)),
-                         covered(rect.maps1, (cams[1].camera.height, cams[1].camera.width))], margin)
+    return stereo_valid(rect, [(c.camera.height, c.camera.width) for c in cams[:2]], margin)
 
 
 def heuristic_gains(root: Path, f_px: float, baseline_m: float, stereo_net, n_frames: int = 12) -> dict[str, float]:

@@ -65,6 +65,11 @@ def dump(a) -> int:
     return 0
 
 
+def _swap(bad: np.ndarray, into: tuple[np.ndarray, np.ndarray], taken: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """(depth, sigma) ``into`` with the ``bad`` pixels taken from ``taken`` (arrays or scalars)."""
+    return np.where(bad, taken[0], into[0]), np.where(bad, taken[1], into[1])
+
+
 def _variant(name: str, z) -> tuple[np.ndarray, np.ndarray]:
     """(depth, sigma) stacks of a named variant built from the dumped frames."""
     from services.depth.uncertainty import fuse
@@ -80,17 +85,13 @@ def _variant(name: str, z) -> tuple[np.ndarray, np.ndarray]:
         return fuse(st_d, st_s, mv_d, mv_s)
     with np.errstate(invalid="ignore"):
         if name == "fused-disagree-stereo":  # the disagreement pixels of the brief replaced by stereo
-            bad = (st_s > 0.4) & (mv_d - st_d > 0.8)
-            return np.where(bad, st_d, fu_d), np.where(bad, st_s, fu_s)
+            return _swap((st_s > 0.4) & (mv_d - st_d > 0.8), (fu_d, fu_s), (st_d, st_s))
         if name == "fused-oracle-stereo":  # fused pixels more than 3 sigma behind GT replaced by stereo
-            bad = (fu_d - gt) > 3 * fu_s
-            return np.where(bad, st_d, fu_d), np.where(bad, st_s, fu_s)
+            return _swap((fu_d - gt) > 3 * fu_s, (fu_d, fu_s), (st_d, st_s))
         if name == "fused-oracle-drop":  # fused pixels more than 3 sigma off GT dropped
-            bad = np.abs(fu_d - gt) > 3 * fu_s
-            return np.where(bad, np.nan, fu_d), np.where(bad, np.nan, fu_s)
+            return _swap(np.abs(fu_d - gt) > 3 * fu_s, (fu_d, fu_s), (np.nan, np.nan))
         if name == "stereo-oracle-drop":
-            bad = np.abs(st_d - gt) > 3 * st_s
-            return np.where(bad, np.nan, st_d), np.where(bad, np.nan, st_s)
+            return _swap(np.abs(st_d - gt) > 3 * st_s, (st_d, st_s), (np.nan, np.nan))
         if name == "fused-stereo-sigma":  # fused depth with the stereo sigma: is it the sigma or the depth?
             return fu_d, st_s
         if name == "stereo-fused-sigma":
@@ -101,33 +102,24 @@ def _variant(name: str, z) -> tuple[np.ndarray, np.ndarray]:
             return gt, st_s
         if "-rectmask-" in name:  # outside the rectified images' coverage (eroded by n px) dropped
             base, n = name.split("-rectmask-")
-            dep, sig = _variant(base, z)
-            m = ~_coverage(z, int(n))
-            return np.where(m, np.nan, dep), np.where(m, np.nan, sig)
+            return _swap(~_coverage(z, int(n)), _variant(base, z), (np.nan, np.nan))
         if name.startswith("fused-border"):  # MVS ignored within n px of the image border
             n = int(name.rsplit("-", 1)[1])
             m = np.ones(st_d.shape[1:], bool)
             m[n:-n, n:-n] = False
-            return np.where(m, st_d, fu_d), np.where(m, st_s, fu_s)
+            return _swap(m, (fu_d, fu_s), (st_d, st_s))
     raise ValueError(f"unknown variant {name}")
 
 
 def _coverage(z, margin_px: int) -> np.ndarray:
-    """(H,W) bool: rectified left and right pixels that come from inside the raw images, eroded by margin_px."""
-    import cv2
-
+    """(H,W) bool: where the depth pipeline keeps depth (services/depth/coverage.py) for the dumped replica."""
+    from services.depth.coverage import stereo_valid
     from shared.camera import load_rig, stereo_rectification
 
     rig = {c.name: c for c in load_rig(Path(z["replica"].item()) / "mav0")}
     h, w = z["gt"].shape[1:]
     rect = stereo_rectification(rig["cam0"], rig["cam1"], (w, h))
-    m = np.ones((h, w), bool)
-    for maps, cam in ((rect.maps0, rig["cam0"]), (rect.maps1, rig["cam1"])):
-        ones = np.ones((cam.camera.height, cam.camera.width), np.uint8)
-        m &= cv2.remap(ones, *maps, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0
-    if margin_px > 0:
-        m = cv2.erode(m.astype(np.uint8), np.ones((2 * margin_px + 1, 2 * margin_px + 1), np.uint8)) > 0
-    return m
+    return stereo_valid(rect, [(rig[c].camera.height, rig[c].camera.width) for c in ("cam0", "cam1")], margin_px)
 
 
 def maps(a) -> int:
