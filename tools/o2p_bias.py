@@ -38,7 +38,7 @@ import numpy as np
 
 from services.backend.o2p_factor import OccupancyToPoint
 from services.mapping.query import BlockField, near_surface_field
-from shared.geometry import inv_T
+from shared.geometry import inv_T, transform_points
 
 
 def residuals(field: BlockField, l_min: float, p_A: np.ndarray, sigma_d: np.ndarray, T_WA: np.ndarray,
@@ -50,7 +50,7 @@ def residuals(field: BlockField, l_min: float, p_A: np.ndarray, sigma_d: np.ndar
     # r = 3 L / sqrt(l_min^2 + 9 g^2 s^2) = e / sigma with e = L / g and sigma^2 = (l_min / 3 g)^2 + s^2
     from services.backend.o2p_factor import trilinear_derivatives
 
-    q = (p_A @ T_WA[:3, :3].T + T_WA[:3, 3] - T_WB[:3, 3]) @ T_WB[:3, :3]
+    q = transform_points(inv_T(T_WB) @ T_WA, p_A)  # the points in the target's frame
     L, g, _, _ = trilinear_derivatives(field, q)
     gn = np.linalg.norm(g, axis=1)
     v = ev.valid
@@ -110,7 +110,7 @@ def oldest_target(fields: list[tuple[BlockField, np.ndarray]], p_A: np.ndarray, 
     from services.backend.o2p_factor import trilinear_derivatives
 
     for i, (field, T_WM) in enumerate(fields):
-        q = (p_A @ T_WA[:3, :3].T + T_WA[:3, 3] - T_WM[:3, 3]) @ T_WM[:3, :3]
+        q = transform_points(inv_T(T_WM) @ T_WA, p_A)
         if int(trilinear_derivatives(field, q)[3].sum()) >= min_points:
             return i
     return -1
