@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.backend.estimator import FrameResult
+from services.backend.frame_result import FrameResult
 from shared.messages import EstimatorState, Header, Keyframes, Landmarks
 
 
