@@ -32,7 +32,7 @@ def _run(t_end, blank=(np.inf, np.inf), seed=5, threaded=False, acc_bias=(0.05, 
     est = WindowedVioEstimator(BackendConfig(compute_covariance=False), bcams)
     hist = attach(est)
     closer = LoopCloser(LoopConfig(min_age_s=8.0), bcams)
-    runner = ThreadedLoopCloser(closer) if threaded else None
+    runner = ThreadedLoopCloser(closer, synchronous=threaded == "sync") if threaded else None
     hist.listeners.append(runner.submit_record if threaded else closer.add_record)
     st, om, ac = sim.imu(tr, 0.0, t_end + 0.1, 200.0, rng, gyro_bias=(0.002, -0.001, 0.003), acc_bias=acc_bias,
                          **IMU_NOISE)
@@ -108,3 +108,25 @@ def test_relocalisation_after_blank_cameras():
     cor = np.array([np.linalg.norm((C @ o[0])[:3, 3] - T[:3, 3]) for o, T in zip(out, gt)])[after]
     print(f"after the gap: odometry error {raw.mean():.3f} m, relocalised {cor.mean():.3f} m (as published {pub.mean():.3f} m)")
     assert cor.mean() < 0.5 * raw.mean(), (raw.mean(), cor.mean())
+
+
+def test_synchronous_runner_publishes_what_the_closer_computes_at_once():
+    # loop.synchronous: no thread; each event is handled as it is submitted, so the published poses are exactly
+    # those of calling the closer directly (the threaded runner publishes them whenever its thread gets there)
+    times, gt, direct, closer_d, _ = _run(24.0, blank=(12.0, 18.0), acc_bias=(0.15, -0.1, 0.05))
+    times, gt, sync, closer_s, _ = _run(24.0, blank=(12.0, 18.0), threaded="sync", acc_bias=(0.15, -0.1, 0.05))
+    assert closer_s.counts["relocalised"] >= 1 and dict(closer_s.counts) == dict(closer_d.counts)
+    moved = [not np.allclose(o[0], o[1]) for o in sync]
+    assert any(moved)  # the correction reached the published poses
+    for (raw_d, pub_d, st_d), (raw_s, pub_s, st_s) in zip(direct, sync):
+        assert st_d == st_s
+        np.testing.assert_array_equal(raw_d, raw_s)
+        np.testing.assert_array_equal(pub_d, pub_s)
+
+
+def test_synchronous_runner_has_no_thread_and_survives_a_bad_event():
+    runner = ThreadedLoopCloser(LoopCloser(LoopConfig(), []), synchronous=True)
+    assert runner._thread is None and runner.drain(0.0)
+    runner.submit_record(object())  # not a keyframe record: counted and logged, the caller goes on
+    assert runner.errors == 1
+    runner.close()

@@ -45,7 +45,7 @@ class LoopClosingBackend:
         self.shell, self.cfg = shell, cfg
         est = shell.estimator
         self.history = attach(est)
-        self.runner = ThreadedLoopCloser(LoopCloser(cfg, est.cameras))
+        self.runner = ThreadedLoopCloser(LoopCloser(cfg, est.cameras), cfg.synchronous)
         self.history.listeners.append(self.runner.submit_record)
         self._stamps: list[int] = []
         self._T_raw: list[np.ndarray] = []

@@ -36,6 +36,9 @@ class LoopConfig:
     correct_state: bool = param(True, "apply the pose-graph correction to estimator/state and estimator/keyframes")
     relocalise_after_s: float = param(1.0, "after this long without tracking, the next keyframes are matched "
                                       "against the map built before the loss, whatever their age", "s")
+    synchronous: bool = param(False, "handle loop-closure events in the back end's own thread as they come, not in "
+                              "the loop thread: reproducible runs over recorded data (evaluation), at the cost of "
+                              "frames that wait for verification and pose-graph solves")
     queue_depth: int = param(200, "keyframe events waiting for the loop thread at most (oldest dropped, counted)")
     # --- final bundle adjustment ---
     final_ba: bool = param(True, "at the end of the stream, bundle-adjust all keyframes and publish "

@@ -190,8 +190,8 @@ class LoopCloser:
             elif self.graph.add_map_to_map(t):
                 self.counts["map_to_map_accepted"] += 1
                 self._dirty = True
-            else:
-                self.counts["map_to_map_no_overlap"] += 1
+            else:  # map_to_map_too_few_inside (no overlap at the graph's estimate) or map_to_map_chi2
+                self.counts[f"map_to_map_{self.graph.last_map_to_map_reason}"] += 1
         self._m2m_pending = keep
 
     def map_to_map_for_final(self) -> list:
@@ -253,10 +253,15 @@ class LoopCloser:
 
 
 class ThreadedLoopCloser:
-    """Runs a :class:`LoopCloser` in its own thread; ``submit_*`` only enqueue (oldest dropped when full)."""
+    """Runs a :class:`LoopCloser` in its own thread; ``submit_*`` only enqueue (oldest dropped when full).
 
-    def __init__(self, closer: LoopCloser) -> None:
+    With ``synchronous`` (``loop.synchronous``) there is no thread: every event is handled in the caller's
+    thread as it is submitted, so a run over recorded data gives the same trajectory every time (evaluation);
+    the live back end keeps the thread, so that ``estimator/state`` never waits for a pose-graph solve."""
+
+    def __init__(self, closer: LoopCloser, synchronous: bool = False) -> None:
         self.closer = closer
+        self.synchronous = synchronous
         self._q: queue.Queue = queue.Queue()
         self._lock = threading.Lock()
         self._correction = np.eye(4)
@@ -265,10 +270,15 @@ class ThreadedLoopCloser:
         self._solves = 0
         self.dropped = 0
         self.errors = 0
-        self._thread = threading.Thread(target=self._run, name="loop-closer", daemon=True)
-        self._thread.start()
+        self._thread = None
+        if not synchronous:
+            self._thread = threading.Thread(target=self._run, name="loop-closer", daemon=True)
+            self._thread.start()
 
     def _put(self, item) -> None:
+        if self.synchronous:
+            self._handle(item)
+            return
         if self._q.qsize() >= self.closer.cfg.queue_depth:
             try:
                 self._q.get_nowait()
@@ -300,40 +310,46 @@ class ThreadedLoopCloser:
 
     def drain(self, timeout_s: float = 30.0) -> bool:
         """Wait until everything submitted so far is processed."""
+        if self.synchronous:  # nothing waits
+            return True
         done = threading.Event()
         self._q.put(("mark", done))
         return done.wait(timeout_s)
 
     def close(self) -> None:
-        self._q.put(("stop",))
-        self._thread.join(timeout=10)
+        if self._thread is not None:
+            self._q.put(("stop",))
+            self._thread.join(timeout=10)
 
     def _run(self) -> None:
-        c = self.closer
         while True:
             item = self._q.get()
-            kind = item[0]
-            if kind == "stop":
+            if item[0] == "stop":
                 return
-            if kind == "mark":
+            if item[0] == "mark":
                 item[1].set()
                 continue
-            try:
-                if kind == "features":
-                    c.add_keyframe_features(item[1], item[2])
-                elif kind == "status":
-                    c.note_status(item[1], item[2])
-                else:
-                    (c.add_record if kind == "record" else c.add_map_to_map)(item[1])
-                    corr = c.correction()
-                    solved = len(c.solve_ms) != self._solves
-                    snap = c.corrected_keyframes() if solved else None
-                    with self._lock:
-                        self._correction = corr
-                        if solved:  # past keyframes moved: a new generation of corrected nodes
-                            self._solves = len(c.solve_ms)
-                            self._keyframes = snap
-                            self.generation += 1
-            except Exception:  # noqa: BLE001 - a bad keyframe must not kill loop closing; counted and logged
-                self.errors += 1
-                log.exception("loop closer: %s event failed", kind)
+            self._handle(item)
+
+    def _handle(self, item) -> None:
+        """One event: features, status, a keyframe record or a map-to-map term; publishes the correction."""
+        c, kind = self.closer, item[0]
+        try:
+            if kind == "features":
+                c.add_keyframe_features(item[1], item[2])
+            elif kind == "status":
+                c.note_status(item[1], item[2])
+            else:
+                (c.add_record if kind == "record" else c.add_map_to_map)(item[1])
+                corr = c.correction()
+                solved = len(c.solve_ms) != self._solves
+                snap = c.corrected_keyframes() if solved else None
+                with self._lock:
+                    self._correction = corr
+                    if solved:  # past keyframes moved: a new generation of corrected nodes
+                        self._solves = len(c.solve_ms)
+                        self._keyframes = snap
+                        self.generation += 1
+        except Exception:  # noqa: BLE001 - a bad keyframe must not kill loop closing; counted and logged
+            self.errors += 1
+            log.exception("loop closer: %s event failed", kind)

@@ -91,6 +91,11 @@ def resolve_replica(name: str, duration_s: float) -> tuple[str, Path]:
     return name, ensure_replica(name, scene_for(name), imu="real", duration_s=duration_s, progress=False)
 
 
+# under every row, before the user's --set: loop events handled in the back end's thread, so that a row's result
+# depends on its input alone (with the loop thread, runs differ by a few mm of ATE with the machine's load)
+EVAL_DEFAULTS = ("loop.synchronous=true",)
+
+
 def row_overrides(row: str) -> list[str]:
     """The config keys that make a row what it is (applied after the user's ``--set``)."""
     if row == "baseline":
@@ -174,7 +179,7 @@ def run_row(row: str, dataset: Path, overrides: list[str], seconds: float, depth
         raise ValueError(f"unknown row {row!r} (rows: {', '.join(ROWS)})")
     mono = row == "mono"
     try:
-        cfg = load_system_config(None, [*overrides, *row_overrides(row)])
+        cfg = load_system_config(None, [*EVAL_DEFAULTS, *overrides, *row_overrides(row)])
     except ConfigError as exc:
         if mono and "mono" in str(exc):
             raise ValueError("this build has no monocular depth (the config has no depth.mono)") from None
@@ -425,7 +430,7 @@ def main(args: argparse.Namespace) -> int:
         for row in rows:
             path = rep_out / f"{row}.json"
             settings = {"seconds": args.seconds, "depth_every_arg": args.depth_every, "heuristic_px": args.heuristic_px,
-                        "mesh": not args.no_mesh, "overrides": [*args.set, *row_overrides(row)]}
+                        "mesh": not args.no_mesh, "overrides": [*EVAL_DEFAULTS, *args.set, *row_overrides(row)]}
             if args.resume and path.is_file():
                 old = json.loads(path.read_text())
                 same = all(old.get(k) == v for k, v in settings.items())
