@@ -72,7 +72,8 @@ def test_map_to_map_waits_in_the_loop_closer_for_its_anchor_nodes(room):
     T_far = term.T_KM_m.copy()
     T_far[0, 3] += 50.0  # submap m 50 m away from o
     closer.add_map_to_map(dataclasses.replace(term, T_KM_m=T_far))
-    assert closer.counts["map_to_map_no_overlap"] == 1 and len(closer.graph.map_to_map) == 1
+    assert closer.counts["map_to_map_too_few_inside"] == 1 and len(closer.graph.map_to_map) == 1
+    assert "map_to_map_chi2" not in closer.counts
 
 
 def test_threaded_loop_closer_takes_map_to_map_terms(room):

@@ -135,6 +135,11 @@ class MapToMap:
         """The factor between gtsam Pose3 keys of the two anchors (body poses), with its Tukey threshold set
         by the points inside o's field at the given anchor poses; None when the gates (:func:`consistency`)
         reject it there (fewer than M_min points inside, too little overlap, or chi-square)."""
+        return self.gated_build(key_m, key_o, T_WK_m, T_WK_o)[0]
+
+    def gated_build(self, key_m: int, key_o: int, T_WK_m: np.ndarray,
+                    T_WK_o: np.ndarray) -> tuple[gtsam.NonlinearFactor | None, GateResult]:
+        """:meth:`build` and the gates' verdict (``reason`` says why a None factor was rejected)."""
         c = self.cfg
         p_A = self.points_M @ self.T_KM_m[:3, :3].T + self.T_KM_m[:3, 3]
         f = OccupancyToPoint(self.field, self.l_min, p_A, self.sigma, key_a=key_m, key_b=key_o, T_BM=self.T_KM_o,
@@ -144,8 +149,8 @@ class MapToMap:
         if g.reason:
             log.info("o2p map-to-map %d -> %d rejected (%s): %d/%d points inside, chi2 %.1f (limit %.1f, dof %.0f)",
                      self.submap, self.target, g.reason, g.n_valid, g.n_points, g.chi2, g.limit, g.dof)
-            return None
-        return f.factor(g.n_valid)
+            return None, g
+        return f.factor(g.n_valid), g
 
 
 class OccupancyTerms:

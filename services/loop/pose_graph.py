@@ -58,6 +58,7 @@ class PoseGraph:
         self.keys: list[int] = []
         self.loops: list[LoopConstraint] = []
         self.map_to_map: list = []  # services.backend.o2p_terms.MapToMap terms in the graph
+        self.last_map_to_map_reason = ""  # why the last term offered was rejected ('' accepted)
         self._prior = (prior_sigma_rad, prior_sigma_m)
         self._cauchy = loop_cauchy_k
         self.estimate: dict[int, np.ndarray] = {}
@@ -95,12 +96,14 @@ class PoseGraph:
 
     def add_map_to_map(self, term) -> bool:
         """A map-to-map occupancy-to-point term (``MapToMap``) between the nodes anchoring its two submaps;
-        False (nothing added) when fewer than M_min of its points lie in the target's field at the current
-        estimate."""
+        False (nothing added) when its gates reject it at the current estimate (fewer than M_min of its points
+        in the target's field, or chi-square); :attr:`last_map_to_map_reason` says which."""
         for k in (term.state_m, term.state_o):
             if k not in self.odom:
                 raise KeyError(f"map-to-map term refers to keyframe {k}, not in the pose graph")
-        f = term.build(_sym(term.state_m), _sym(term.state_o), self.estimate[term.state_m], self.estimate[term.state_o])
+        f, gate = term.gated_build(_sym(term.state_m), _sym(term.state_o), self.estimate[term.state_m],
+                                   self.estimate[term.state_o])
+        self.last_map_to_map_reason = gate.reason
         if f is None:
             return False
         self.graph.add(f)
