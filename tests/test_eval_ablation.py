@@ -1,5 +1,6 @@
 """``sigmaslam eval ablation`` (tools/eval/ablation.py): a short real run through the CLI entry (4 s of the 25 s
-V1_02 replica, baseline + learned rows, depth on every 8th frame, mesh on), --resume, and the table."""
+V1_02 replica, baseline + learned rows, depth on every 8th frame, mesh on), --resume, a rerun that gives the same
+trajectories, and the table."""
 
 from __future__ import annotations
 
@@ -57,6 +58,15 @@ def test_short_ablation_writes_results_and_resume_skips_finished_rows(tmp_path, 
     assert (out / label / "baseline.json").stat().st_mtime_ns == before
     again = json.loads((out / "ablation.json").read_text())["replicas"][label]["baseline"]
     assert again["ate_causal_m"] == res["baseline"]["ate_causal_m"]
+
+    # a second run of the same row (not resumed) gives the same trajectories to the bit: loop.synchronous (set by
+    # eval ablation) takes the loop thread's timing out of the result
+    rerun = tmp_path / "rerun"
+    assert main(["eval", "ablation", str(replica), "--rows", "learned", "--seconds", "4", "--depth-every", "8",
+                 "--no-mesh", "--out", str(rerun)]) == 0
+    assert json.loads((rerun / label / "learned.json").read_text())["overrides"][0] == "loop.synchronous=true"
+    for name in ("trajectory_causal.txt", "trajectory_final.txt"):
+        assert (rerun / label / "learned" / name).read_bytes() == (out / label / "learned" / name).read_bytes(), name
 
 
 @pytest.mark.e2e
