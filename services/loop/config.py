@@ -27,6 +27,9 @@ class LoopConfig:
     cov_inflation: float = param(4.0, "loop covariance = this x the inverse reprojection information "
                                  "(the old landmarks are uncertain too)")
     loop_cauchy_k: float = param(3.0, "Cauchy scale of loop factors, in sigmas")
+    attitude_sigma_deg: float = param(0.2, "each pose-graph node keeps the window's roll and pitch (observable from "
+                                      "gravity) within this: loops and map-to-map terms move yaw and position "
+                                      "(0: a 6-DoF pose graph, the tilt free)", "deg")
     max_translation_jump_m: float = param(0.0, "reject a loop moving the keyframe further than this from its "
                                           "odometry pose (0: no limit)", "m")
     min_solve_interval_s: float = param(1.0, "pose-graph solves at most this often (sensor time); loops found in "

@@ -57,7 +57,7 @@ class LoopCloser:
         self.cfg = cfg
         self.voc = vocabulary or Vocabulary.load(cfg.vocabulary or DEFAULT_PATH)
         self.db = PlaceDatabase(self.voc.size)
-        self.graph = PoseGraph(loop_cauchy_k=cfg.loop_cauchy_k)
+        self.graph = PoseGraph(loop_cauchy_k=cfg.loop_cauchy_k, attitude_sigma_rad=np.deg2rad(cfg.attitude_sigma_deg))
         self.covisibility = Covisibility()
         self._undistort = [c.undistort for c in cameras]
         self._T_SC = np.array([c.T_SC for c in cameras])

@@ -2,7 +2,10 @@
 
 Nodes are keyframe body poses ``T_WS``; consecutive nodes are linked by the relative pose the window
 estimated, with the covariance of that relative pose taken from the window's joint marginal covariance
-(:func:`relative_covariance`); accepted loops add relative-pose factors from PnP (robust, Cauchy); map-to-map
+(:func:`relative_covariance`); each node also keeps the window's tilt (roll and pitch: gravity is observable
+in visual-inertial odometry, only yaw and position drift) through an attitude factor of ``attitude_sigma_rad``,
+so that a loop or map-to-map term cannot tilt the trajectory (a tilt of a few tenths of a degree moves poses
+metres away by cm); accepted loops add relative-pose factors from PnP (robust, Cauchy); map-to-map
 occupancy-to-point terms (eq. 5-7, services/backend/o2p_terms.py) tie the keyframes anchoring two submaps. The graph
 is solved by Levenberg-Marquardt (in the loop closer's own thread, see services/loop/loop_closer.py, so the
 estimator never waits for it).
@@ -17,6 +20,9 @@ import gtsam
 import numpy as np
 
 from shared.geometry import inv_T
+
+
+_UP = np.array([0.0, 0.0, 1.0])  # W's z axis, opposite to gravity (services/backend/imu_factors.py)
 
 
 def _sym(key: int) -> int:
@@ -51,7 +57,8 @@ class LoopConstraint:
 class PoseGraph:
     """Keyframe nodes (added in time order), odometry and loop factors; not thread safe by itself."""
 
-    def __init__(self, prior_sigma_rad: float = 1e-4, prior_sigma_m: float = 1e-4, loop_cauchy_k: float = 3.0):
+    def __init__(self, prior_sigma_rad: float = 1e-4, prior_sigma_m: float = 1e-4, loop_cauchy_k: float = 3.0,
+                 attitude_sigma_rad: float = 0.0):
         self.graph = gtsam.NonlinearFactorGraph()
         self.initial = gtsam.Values()
         self.odom: dict[int, np.ndarray] = {}  # key -> odometry (window) estimate T_WS
@@ -61,6 +68,7 @@ class PoseGraph:
         self.last_map_to_map_reason = ""  # why the last term offered was rejected ('' accepted)
         self._prior = (prior_sigma_rad, prior_sigma_m)
         self._cauchy = loop_cauchy_k
+        self._attitude = (gtsam.noiseModel.Isotropic.Sigma(2, attitude_sigma_rad) if attitude_sigma_rad > 0 else None)
         self.estimate: dict[int, np.ndarray] = {}
 
     def add_node(self, key: int, T_WS: np.ndarray, rel_cov: np.ndarray | None = None,
@@ -82,6 +90,9 @@ class PoseGraph:
                                                   gtsam.noiseModel.Diagonal.Sigmas(np.array([r] * 3 + [t] * 3))))
             guess = T_WS
         self.initial.insert(_sym(key), gtsam.Pose3(guess))
+        if self._attitude is not None and self.keys:  # W's z is up (gravity along -z): keep the window's tilt
+            self.graph.add(gtsam.AttitudeFactorPose3(_sym(key), gtsam.Unit3(_UP), self._attitude,
+                                                     gtsam.Unit3(T_WS[:3, :3].T @ _UP)))
         self.odom[key] = T_WS
         self.estimate[key] = guess
         self.keys.append(int(key))
