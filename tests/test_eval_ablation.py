@@ -111,3 +111,17 @@ def test_table_marks_failed_rows_and_says_which_dense_rows_beat_the_baseline():
 def test_unknown_row_is_refused(tmp_path, capsys):
     assert main(["eval", "ablation", "V1_02", "--rows", "baseline,nope", "--out", str(tmp_path)]) == 2
     assert "unknown rows ['nope']" in capsys.readouterr().err
+
+
+def test_mono_row_is_judged_against_the_mono_baseline():
+    from tools.eval.ablation import row_overrides, verdict
+
+    assert row_overrides("mono_baseline")[-1] == "o2p.enabled=false" and row_overrides("mono")[-1] == "o2p.enabled=true"
+    rows = {"baseline": {"ate_causal_m": 0.010}, "learned": {"ate_causal_m": 0.012},
+            "mono_baseline": {"ate_causal_m": 0.30}, "mono": {"ate_causal_m": 0.25}}
+    v = verdict("MH_04", rows)
+    # mono (0.25 m) is worse than the stereo baseline but better than its own baseline: it counts as beating
+    assert v == ("- MH_04: dense rows beating the baseline's causal ATE (0.0100 m): mono 0.2500 (vs mono_baseline 0.3000); "
+                 "not beating: learned 0.0120."), v
+    v = verdict("MH_04", {"mono_baseline": {"ate_causal_m": 0.30}, "mono": {"ate_causal_m": 0.35}})
+    assert v == "- MH_04: dense rows beating their baseline's causal ATE: none; not beating: mono 0.3500 (vs mono_baseline 0.3000).", v
