@@ -35,7 +35,7 @@ def test_short_ablation_writes_results_and_resume_skips_finished_rows(tmp_path, 
     assert set(res) == {"baseline", "learned"}
     for row, r in res.items():
         assert "error" not in r, r
-        for key in ("ate_causal_m", "ate_noncausal_m", "accuracy_m", "backend_median_ms", "backend_p99_ms"):
+        for key in ("ate_causal_m", "ate_noncausal_m", "accuracy_m", "accuracy_final_m", "backend_median_ms", "backend_p99_ms"):
             assert math.isfinite(r[key]) and r[key] >= 0, (row, key, r[key])
         assert r["ate_causal_m"] < 0.05 and r["ate_noncausal_m"] < 0.05, r  # a 4 s stretch tracks to cm
         assert 0 < r["completeness_5cm"] <= r["completeness"] <= 1
@@ -93,7 +93,8 @@ def test_mono_row_runs_on_mvs_depth_or_fails_clearly_without_depth_mono(tmp_path
 
 
 def test_table_marks_failed_rows_and_says_which_dense_rows_beat_the_baseline():
-    rows = {"baseline": {"ate_causal_m": 0.010, "ate_noncausal_m": 0.008, "accuracy_m": 0.12, "completeness": 0.15,
+    rows = {"baseline": {"ate_causal_m": 0.010, "ate_noncausal_m": 0.008, "accuracy_m": 0.12, "accuracy_final_m": 0.11,
+                         "completeness": 0.15,
                          "completeness_5cm": 0.05, "backend_median_ms": 10.0, "backend_p99_ms": 80.0, "wall_s": 60},
             "learned": {"ate_causal_m": 0.006, "o2p_counts": {"frame_to_map": 30, "map_to_map": 2}, "wall_s": 70},
             "fused": {"ate_causal_m": 0.012, "o2p_counts": {"frame_to_map": 28}, "wall_s": 90},
@@ -102,7 +103,7 @@ def test_table_marks_failed_rows_and_says_which_dense_rows_beat_the_baseline():
     lines = md.splitlines()
     assert lines[0].count("|") == lines[1].count("|") == lines[2].count("|")
     assert "| V1_02 | + learned sigma | 0.0060 | - |" in md and "| 30 / 2 |" in md and "| 28 / 0 |" in md
-    assert "| V1_02 | baseline (no dense terms) | 0.0100 | 0.0080 | 0.120 | 15.0% | 5.0% | 10.0 / 80 | - | 60 |" in md
+    assert "| V1_02 | baseline (no dense terms) | 0.0100 | 0.0080 | 0.120 / 0.110 | 15.0% | 5.0% | 10.0 / 80 | - | 60 |" in md
     assert "failed: ValueError: no / mono" in md  # a '|' in the reason does not break the table
     assert "- V1_02: dense rows beating the baseline's causal ATE (0.0100 m): learned 0.0060; not beating: fused 0.0120." in md
     assert "- MH_04: no baseline causal ATE to compare with." in md

@@ -105,6 +105,15 @@ def test_mapping_service_end_to_end(tmp_path):
                                          T_WS=delta @ T_WS))
                 T_WM_new = delta @ frames[0][1]
                 assert wait_for(lambda: any(np.allclose(g.T_WM, T_WM_new, atol=1e-9) for g in got), 10.0), "".join(lines)
+                # the back end's non-causal trajectory after the stream: every submap moves onto it
+                p_final = Publisher(session, f"{ns}/{topics.TRAJECTORY_FINAL.key}", m.FinalTrajectory, tcfg, block=True)
+                assert p_final.wait_for_subscribers(10.0)
+                delta = make_T(so3_exp(np.array([0.0, 0.0, -0.03])), np.array([-0.1, 0.05, 0.02]))
+                p_final.publish(m.FinalTrajectory(header=Header(stamp_ns=stamps[-1]), stamps_ns=stamps, T_WS=delta @ T_WS,
+                                                  keyframes=n, loops_proposed=0, loops_verified=0, loops_accepted=0,
+                                                  relocalisations=0))
+                T_WM_final = delta @ frames[0][1]
+                assert wait_for(lambda: any(np.allclose(g.T_WM, T_WM_final, atol=1e-9) for g in got), 10.0), "".join(lines)
                 time.sleep(1.0)  # let the unknown-stamp frame time out
                 proc.send_signal(signal.SIGTERM)
                 proc.wait(timeout=30)
@@ -119,7 +128,8 @@ def test_mapping_service_end_to_end(tmp_path):
     assert report["counts"]["integrated"] == n and report["counts"]["dropped_no_pose"] == 1, report
     world = o3d.io.read_triangle_mesh(str(out / "mesh.ply"))
     assert len(world.triangles) > 1000 and (out / "submaps" / "submap_000.ply").is_file()
-    # the world mesh is where the room is, after undoing the keyframe correction applied to every submap
+    assert report["counts"]["final_trajectories"] == 1, report
+    # the world mesh is where the room is, after undoing the final trajectory's move of every submap
     v = np.asarray(world.vertices)
     v = (v - delta[:3, 3]) @ delta[:3, :3]
     scene = o3d.t.geometry.RaycastingScene()
@@ -127,7 +137,7 @@ def test_mapping_service_end_to_end(tmp_path):
     dist = scene.compute_distance(o3d.core.Tensor(v.astype(np.float32))).numpy()
     assert dist.mean() < 0.01, dist.mean()
     assert len(load_map(out / "map.npz").submaps) == len(report["submaps"])
-    # the near-surface field of every submap went out at exit (at least), with the corrected pose
+    # the near-surface field of every submap went out at exit (at least), with the final pose
     from services.mapping.export import field_of_message
     from services.mapping.query import interpolate
 

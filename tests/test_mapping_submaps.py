@@ -100,6 +100,34 @@ def test_submap_poses_follow_keyframes_and_move_the_mesh(mapped):
     mapper.update_keyframes(ids, stamps, T_WS)  # back, for the other tests of this module
 
 
+def test_submaps_follow_a_final_trajectory_at_their_keyframes(mapped):
+    # the non-causal trajectory (one pose per published frame) moves each bound submap as its keyframe moved;
+    # a submap whose keyframe the trajectory lacks stays put
+    mapper, reports = mapped
+    stamps = np.array([st for _, _, st in reports])
+    T_WS = np.array([T @ inv_T(T_SC) for _, T, _ in reports])
+    ids = np.arange(len(stamps)) + 100
+    mapper.update_keyframes(ids, stamps, T_WS)
+    assert len(mapper.submaps) >= 3 and all(sm.keyframe_stamp_ns in set(stamps.tolist()) for sm in mapper.submaps)
+    before = {sm.id: sm.T_WM.copy() for sm in mapper.submaps}
+    delta = make_T(so3_exp(np.array([0.0, 0.0, 0.05])), np.array([0.1, 0.2, 0.0]))
+    split = int(np.flatnonzero(stamps == mapper.submaps[1].keyframe_stamp_ns)[0])
+    final = T_WS.copy()
+    final[split:] = delta @ final[split:]  # the run from the second submap on moved
+    last = mapper.submaps[-1]
+    keep = stamps != last.keyframe_stamp_ns  # the trajectory lacks the last submap's keyframe
+    moved = mapper.follow_trajectory(stamps[keep], final[keep])
+    for sm in mapper.submaps:
+        late = sm.keyframe_stamp_ns >= stamps[split]
+        if sm is last or not late:
+            assert sm.id not in moved and np.allclose(sm.T_WM, before[sm.id], atol=1e-9)
+        else:
+            assert sm.id in moved and np.allclose(sm.T_WM, delta @ before[sm.id], atol=1e-9)
+    assert mapper.submaps[1].id in moved
+    mapper.follow_trajectory(stamps, T_WS)  # back, for the other tests of this module
+    assert all(np.allclose(sm.T_WM, before[sm.id], atol=1e-9) for sm in mapper.submaps)
+
+
 def test_save_load_round_trip(mapped, tmp_path):
     mapper, _ = mapped
     path = save_map(mapper, tmp_path / "map.npz")
@@ -109,6 +137,7 @@ def test_save_load_round_trip(mapped, tmp_path):
     rng = np.random.default_rng(0)
     for a, b in zip(mapper.submaps, back.submaps):
         assert np.allclose(a.T_WM, b.T_WM) and a.keyframe_id == b.keyframe_id and a.n_frames == b.n_frames
+        assert a.keyframe_stamp_ns == b.keyframe_stamp_ns
         p = rng.uniform([-1, -1, 0], [4, 3, 5], (3000, 3))
         La, ga, va = interpolate(a.field(), p)
         Lb, gb, vb = interpolate(b.field(), p)

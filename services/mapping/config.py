@@ -60,6 +60,8 @@ class MappingConfig:
     depth_topic: str = param("depth/stereo", "depth input: 'depth/stereo' or 'depth/fused' (stereo by default: with the "
                              "shipped networks the fused map is less accurate, docs/o2p.md Table IV)")
     pose_source: str = param("estimator", "'estimator': T_WS(stamp) from estimator/state; 'frame': the DepthFrame's T_WC (ground-truth-pose runs; falls back to the estimator when T_WC is identity)")
+    follow_final: bool = param(True, "when the back end publishes the non-causal trajectory (estimator/trajectory_final, "
+                               "after the stream), move every submap onto it: the written map is the final one")
     state_buffer: int = param(2000, "estimator states kept for pose look-up by stamp")
     pose_tolerance_ms: float = param(1.0, "a state this close to the depth stamp is used as is; otherwise the pose is interpolated", "ms")
     max_interp_gap_ms: float = param(250.0, "largest gap between two states to interpolate across", "ms")

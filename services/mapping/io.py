@@ -61,7 +61,7 @@ def save_map(mapper: SubmapMapper, path: str | Path) -> Path:
     arrays: dict[str, np.ndarray] = {}
     for sm in mapper.submaps:
         meta["submaps"].append({"id": sm.id, "anchor_stamp_ns": sm.anchor_stamp_ns, "n_frames": sm.n_frames,
-                                "keyframe_id": sm.keyframe_id})
+                                "keyframe_id": sm.keyframe_id, "keyframe_stamp_ns": sm.keyframe_stamp_ns})
         arrays[f"s{sm.id}/T_WM"] = sm.T_WM
         arrays[f"s{sm.id}/T_KM"] = sm.T_KM
         if sm.anchor_view is not None:
@@ -91,6 +91,7 @@ def load_map(path: str | Path) -> SubmapMapper:
         sm = mapper.new_submap(sub["T_WM"], info["anchor_stamp_ns"])
         sm.store = BlockStore.from_arrays(sub)
         sm.n_frames, sm.keyframe_id, sm.T_KM = info["n_frames"], info["keyframe_id"], sub["T_KM"]
+        sm.keyframe_stamp_ns = int(info.get("keyframe_stamp_ns", -1))  # maps written before it: not known
         if "anchor_depth" in sub:
             sm.anchor_view = (sub["anchor_depth"], sub["anchor_K"], sub["anchor_T_MC"])
         sm.mesher.mark(sm.store, sm.store.refined_slots())

@@ -1,7 +1,8 @@
 """``sigmaslam mapping CONFIG``: occupancy submapping as a service.
 
 Subscribes ``mapping.depth_topic`` (depth/fused or depth/stereo), ``estimator/state`` (buffered by
-stamp) and ``estimator/keyframes`` (submap poses follow them). Each depth frame is integrated at
+stamp), ``estimator/keyframes`` (submap poses follow them) and ``estimator/trajectory_final`` (after the
+stream, with ``follow_final``, every submap moves onto the non-causal trajectory). Each depth frame is integrated at
 ``T_WC = T_WS(stamp) T_SC`` (or at its own T_WC when ``pose_source: frame`` and it is not identity);
 a frame whose state has not arrived waits up to ``pose_wait_s`` and is then dropped (counted).
 Changed submaps are re-meshed within a time budget at most every ``mesh_period_s`` and published on
@@ -74,6 +75,15 @@ class MappingLoop:
 
     def on_keyframes(self, msg: messages.Keyframes) -> None:
         self.to_publish.update(self.mapper.update_keyframes(msg.ids, msg.stamps_ns, msg.T_WS))
+
+    def on_final(self, msg: messages.FinalTrajectory) -> None:
+        """The non-causal trajectory: submaps follow it (``mapping.follow_final``); counted."""
+        if not self.cfg.follow_final:
+            return
+        moved = self.mapper.follow_trajectory(msg.stamps_ns, msg.T_WS)
+        self.to_publish.update(moved)
+        self.counts["final_trajectories"] += 1
+        log.info("final trajectory: %d of %d submaps moved onto it", len(moved), len(self.mapper.submaps))
 
     def on_depth(self, msg: messages.DepthFrame) -> None:
         if len(self.waiting) == self.waiting.maxlen:
@@ -228,6 +238,7 @@ def main(args: argparse.Namespace) -> int:
     with Node("mapping", sys_cfg.transport) as node:
         node.subscriber(topics.STATE, policy="all", depth=cfg.state_buffer, handler=loop.on_state)
         kfs = node.subscriber(topics.KEYFRAMES)
+        finals = node.subscriber(topics.TRAJECTORY_FINAL)
         depth = node.subscriber(DEPTH_TOPICS[cfg.depth_topic])
         pub = node.publisher(topics.SUBMAP)
         pub_field = node.publisher(topics.MAP_FIELD)
@@ -247,6 +258,8 @@ def main(args: argparse.Namespace) -> int:
             for msg in kfs.drain():
                 loop.on_keyframes(msg)
             loop.process_waiting(timer)
+            for msg in finals.drain():  # after the stream: no depth follows it
+                loop.on_final(msg)
             if time.monotonic() - last_mesh >= cfg.mesh_period_s:
                 last_mesh = time.monotonic()
                 with mesh_timer:
@@ -268,6 +281,10 @@ def main(args: argparse.Namespace) -> int:
         for msg in depth.drain():
             loop.on_depth(msg)
         loop.process_waiting(timer)
+        for msg in kfs.drain():
+            loop.on_keyframes(msg)
+        for msg in finals.drain():  # stopped right after the back end's final trajectory: still applied
+            loop.on_final(msg)
         loop.remesh(None)
         loop.to_publish.update(sm.id for sm in loop.mapper.submaps)
         for m in loop.submap_messages():

@@ -4,7 +4,8 @@ frustum's overlap with it falls below eps_vol, and submap poses that follow keyf
 Submap j is anchored in M_j, the body frame S at its creation: ``T_WM = T_WS(creation)``. When the
 estimator reports keyframes, each submap binds to the keyframe nearest its creation time (within a
 tolerance) by the fixed offset ``T_KM = T_WK^-1 T_WM``; later keyframe updates then move it as
-``T_WM = T_WK T_KM``, which keeps the map consistent after loop closures.
+``T_WM = T_WK T_KM``, which keeps the map consistent after loop closures. At the end of a run the non-causal
+trajectory (final bundle adjustment) moves every bound submap the same way (:meth:`SubmapMapper.follow_trajectory`).
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ class Submap:
     n_frames: int = 0
     keyframe_id: int = -1  # keyframe this submap follows (-1: not bound yet; FROZEN: never moves again)
     T_KM: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
+    keyframe_stamp_ns: int = -1  # the bound keyframe's time
     pose_version: int = 0  # incremented when T_WM changes
     anchor_view: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # first frame: (depth 1/4 size, K, T_MC)
 
@@ -153,12 +155,30 @@ class SubmapMapper:
                 i = int(np.argmin(np.abs(stamps_ns - sm.anchor_stamp_ns)))
                 if abs(int(stamps_ns[i]) - sm.anchor_stamp_ns) <= tol_ns:
                     sm.keyframe_id = int(ids[i])
+                    sm.keyframe_stamp_ns = int(stamps_ns[i])
                     sm.T_KM = inv_T(T_WS[i]) @ sm.T_WM
                 continue
             i = index.get(sm.keyframe_id)
             if i is None:
                 continue
             T_new = T_WS[i] @ sm.T_KM
+            if not np.allclose(T_new, sm.T_WM, atol=1e-9):
+                sm.T_WM = T_new
+                sm.pose_version += 1
+                moved.append(sm.id)
+        return moved
+
+    def follow_trajectory(self, stamps_ns: np.ndarray, T_WS: np.ndarray) -> list[int]:
+        """Move every bound submap onto a trajectory that has a pose at its keyframe's time (the final bundle
+        adjustment's, one pose per published frame): ``T_WM = T_WS(keyframe) T_KM``. Returns the ids moved;
+        submaps not bound, frozen, or whose keyframe the trajectory lacks stay where they are."""
+        index = {int(s): i for i, s in enumerate(np.asarray(stamps_ns, np.int64))}
+        moved = []
+        for sm in self.submaps:
+            i = index.get(sm.keyframe_stamp_ns) if sm.keyframe_id >= 0 else None
+            if i is None:
+                continue
+            T_new = np.asarray(T_WS[i], float) @ sm.T_KM
             if not np.allclose(T_new, sm.T_WM, atol=1e-9):
                 sm.T_WM = T_new
                 sm.pose_version += 1

@@ -25,7 +25,9 @@ per replica and shared by the rows; MVS (fused, mono) runs per row.
 
 Per row: causal ATE (published states) and non-causal ATE (final bundle adjustment) [m] after SE(3)
 alignment, mesh accuracy and completeness at 0.2 m and 0.05 m against the replica's scene mesh
-(tools/eval/mesh.py), the back end's per-frame wall time (median, p99), the o2p factor counts, the row's
+(tools/eval/mesh.py) of the map as built (submaps at the causal keyframe poses), and accuracy and completeness
+of the final map (submaps moved onto the final bundle adjustment's trajectory, as the mapping service writes it
+with ``mapping.follow_final``), the back end's per-frame wall time (median, p99), the o2p factor counts, the row's
 wall time. A row that fails is recorded as ``failed: why`` and the others still run.
 
 Writes ``--out``/ablation.json, table.md and, per replica and row, ``<replica>/<row>.json`` (the result),
@@ -326,7 +328,7 @@ def _evaluate(dataset: Path, stamps, T_pub, final, mapper, out_dir: Path | None)
             if key in trajs and len(trajs[key][0]):
                 write_tum(out_dir / name, series_from_matrices(*trajs[key]))
     gt_path = EurocDataset(dataset).groundtruth_path
-    align = None
+    align = {}
     if gt_path is not None:
         gt = read_trajectory(gt_path)
         for key, (st, T) in trajs.items():
@@ -336,7 +338,7 @@ def _evaluate(dataset: Path, stamps, T_pub, final, mapper, out_dir: Path | None)
                 res[f"error_ate_{key}"] = str(exc)
                 continue
             res[f"ate_{key}_m"] = ate.rmse_m
-            align = ate.alignment if key == "causal" else align
+            align[key] = ate.alignment
     scene = sorted(Path(dataset).glob("mav0/scene/*.ply"))
     if mapper is not None and scene:
         from tools.eval.mesh import evaluate_points
@@ -344,12 +346,17 @@ def _evaluate(dataset: Path, stamps, T_pub, final, mapper, out_dir: Path | None)
         t0 = time.perf_counter()
         mapper.remesh(None)
         v, _ = mapper.world_mesh()
-        if len(v) and align is not None:  # the estimate's W into the ground truth's frame (the causal alignment)
-            ev = evaluate_points(align.apply(np.asarray(v, float)), _gt_points(scene[0]))
+        if len(v) and "causal" in align:  # the estimate's W into the ground truth's frame (the causal alignment)
+            ev = evaluate_points(align["causal"].apply(np.asarray(v, float)), _gt_points(scene[0]))
             res.update(accuracy_m=ev.accuracy_m, completeness=ev.completeness, completeness_5cm=ev.completeness_5cm,
                        mesh_points=ev.n_est, mesh_eval_s=round(time.perf_counter() - t0, 1))
         else:
             res["error_mesh"] = "no mesh vertices" if not len(v) else "no trajectory alignment"
+        if len(v) and final is not None and "noncausal" in align:  # the map the mapping service writes at the end
+            mapper.follow_trajectory(final.stamps_ns, final.T_WS)  # (mapping.follow_final)
+            v, _ = mapper.world_mesh()
+            ev = evaluate_points(align["noncausal"].apply(np.asarray(v, float)), _gt_points(scene[0]))
+            res.update(accuracy_final_m=ev.accuracy_m, completeness_final=ev.completeness)
     return res
 
 
@@ -360,7 +367,7 @@ def _f(x, fmt: str) -> str:
 
 def table_markdown(results: dict[str, dict[str, dict]]) -> str:
     """One markdown table (a replica column) and a verdict line per replica."""
-    head = ("| replica | row | causal ATE [m] | non-causal ATE [m] | mesh acc [m] | compl@0.2 | compl@0.05 "
+    head = ("| replica | row | causal ATE [m] | non-causal ATE [m] | mesh acc causal / final map [m] | compl@0.2 | compl@0.05 "
             "| back end median / p99 [ms] | f2m / m2m factors (in pose graph) | wall [s] |")
     lines = [head, "|" + "---|" * head.count(" | ") + "---|"]
     verdicts = []
@@ -378,7 +385,7 @@ def table_markdown(results: dict[str, dict[str, dict]]) -> str:
                 fac += f" ({r['loop']['map_to_map_accepted']})"  # of which the loop closer's pose graph took
             comp = lambda k: _f(None if r.get(k) is None else 100 * r[k], ".1f") + ("%" if r.get(k) is not None else "")  # noqa: E731
             lines.append(f"| {rep} | {label} | {_f(r.get('ate_causal_m'), '.4f')} | {_f(r.get('ate_noncausal_m'), '.4f')} "
-                         f"| {_f(r.get('accuracy_m'), '.3f')} | {comp('completeness')} | {comp('completeness_5cm')} "
+                         f"| {_f(r.get('accuracy_m'), '.3f')} / {_f(r.get('accuracy_final_m'), '.3f')} | {comp('completeness')} | {comp('completeness_5cm')} "
                          f"| {_f(r.get('backend_median_ms'), '.1f')} / {_f(r.get('backend_p99_ms'), '.0f')} | {fac} "
                          f"| {_f(r.get('wall_s'), '.0f')} |")
         verdicts.append(verdict(rep, rows))
@@ -475,7 +482,7 @@ def main(args: argparse.Namespace) -> int:
             r.update(settings)
             path.write_text(json.dumps(r, indent=1, default=float))
             results[label][row] = r
-            brief = {k: r[k] for k in ("error", "ate_causal_m", "ate_noncausal_m", "accuracy_m", "completeness",
+            brief = {k: r[k] for k in ("error", "ate_causal_m", "ate_noncausal_m", "accuracy_m", "accuracy_final_m", "completeness",
                                        "completeness_5cm", "backend_median_ms", "backend_p99_ms") if k in r}
             if "o2p_counts" in r:
                 brief["f2m/m2m"] = f"{r['o2p_counts'].get('frame_to_map', 0)}/{r['o2p_counts'].get('map_to_map', 0)}"
