@@ -55,6 +55,7 @@ class LoopClosingBackend:
         self._finished = False
         self._last_process = time.monotonic()
         self._T_last = np.eye(4)  # the correction applied to the last state
+        self._published: dict[int, np.ndarray] = {}  # keyframe state -> its pose in the last Keyframes message
         self._attach_o2p()
 
     def _attach_o2p(self) -> None:
@@ -62,13 +63,14 @@ class LoopClosingBackend:
         o2p = self.shell.o2p
         if o2p is not None and o2p.anchor_of is None:
             o2p.anchor_of = self.anchor_of
-            if self.cfg.correct_state:  # depth and submaps arrive in the corrected frame the states are published in
-                o2p.correction = self.runner.correction
+            if self.cfg.correct_state:  # depth and submaps arrive in the corrected frame the states are published in:
+                o2p.correction = self.published_correction  # the correction published, not a newer one
 
     def anchor_of(self, stamp_ns: int, T_WM: np.ndarray) -> tuple[int, np.ndarray] | None:
         """The keyframe a submap created at ``stamp_ns`` with pose ``T_WM`` (as the mapping has it now) follows:
         the keyframe nearest its creation within ``o2p.anchor_tolerance_ms`` (state index) and ``T_KM``, taken
-        against that keyframe's pose as it was last published (the frame the mapping's T_WM lives in)."""
+        against that keyframe's pose as it was last published (the frame the mapping's T_WM lives in): the pose of
+        the last ``Keyframes`` message that carried it, not a newer correction the mapping has not seen yet."""
         tol = self.shell.o2p.cfg.anchor_tolerance_ms * 1e6
         est = self.shell.estimator
         best: tuple[float, int, np.ndarray] | None = None
@@ -84,11 +86,18 @@ class LoopClosingBackend:
         if best is None:
             return None
         _, n, T_WK = best
-        if self.cfg.correct_state:  # published: the pose-graph node after a solve, else corrected by T_W'W
-            _, (g_ids, _, g_T) = self.runner.corrected_keyframes()
-            hit = np.flatnonzero(np.asarray(g_ids) == n)
-            T_WK = g_T[hit[0]] if len(hit) else self.runner.correction() @ T_WK
+        if self.cfg.correct_state:  # as published; never published (yet): moved by the last state's correction
+            T_WK = self._published.get(n, self._T_last @ T_WK)
         return n, inv_T(T_WK) @ np.asarray(T_WM, float)
+
+    def published_correction(self) -> np.ndarray:
+        """T_W'W applied to the last published state."""
+        return self._T_last.copy()
+
+    def note_published(self, kfs: Keyframes) -> None:
+        """Remember the keyframe poses a ``Keyframes`` message carries (:meth:`anchor_of` reads them)."""
+        for n, T in zip(np.asarray(kfs.ids), np.asarray(kfs.T_WS)):
+            self._published[int(n)] = T
 
     @property
     def counts(self) -> dict[str, int]:
@@ -118,11 +127,11 @@ class LoopClosingBackend:
         self.runner.submit_status(int(state.header.stamp_ns), state.status)
         if not self.cfg.correct_state:
             return msgs
-        T = self._T_last = self.runner.correction()
+        T, gen, (g_ids, g_stamps, g_T) = self.runner.snapshot()  # state and keyframes from the same solve
+        self._T_last = T
         state = corrected_state(state, T)
         if kfs is not None:
             ids, stamps, poses = kfs.ids, kfs.stamps_ns, np.einsum("ij,njk->nik", T, kfs.T_WS)
-            gen, (g_ids, g_stamps, g_T) = self.runner.corrected_keyframes()
             if gen != self._generation:  # the correction moved the past keyframes: send them all once
                 self._generation = gen
                 keep = ~np.isin(g_ids, ids)
@@ -130,6 +139,7 @@ class LoopClosingBackend:
                 poses = np.concatenate([g_T[keep], poses])
             kfs = Keyframes(header=kfs.header, ids=np.asarray(ids, np.int64), stamps_ns=np.asarray(stamps, np.int64),
                             T_WS=np.ascontiguousarray(poses, np.float64))
+            self.note_published(kfs)
         return state, kfs
 
     def take_landmarks(self) -> Landmarks | None:

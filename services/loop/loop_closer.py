@@ -308,6 +308,12 @@ class ThreadedLoopCloser:
         with self._lock:
             return self.generation, self._keyframes
 
+    def snapshot(self) -> tuple[np.ndarray, int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """(correction, generation, corrected keyframes) of one and the same solve (the loop thread may finish
+        another between two separate calls)."""
+        with self._lock:
+            return self._correction.copy(), self.generation, self._keyframes
+
     def drain(self, timeout_s: float = 30.0) -> bool:
         """Wait until everything submitted so far is processed."""
         if self.synchronous:  # nothing waits
