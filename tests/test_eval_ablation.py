@@ -11,7 +11,7 @@ import math
 import pytest
 
 from services.cli import main
-from tools.eval.ablation import table_markdown
+from tools.eval.ablation_table import table_markdown
 
 
 @pytest.fixture(scope="module")
@@ -115,7 +115,8 @@ def test_unknown_row_is_refused(tmp_path, capsys):
 
 
 def test_mono_row_is_judged_against_the_mono_baseline():
-    from tools.eval.ablation import row_overrides, verdict
+    from tools.eval.ablation import row_overrides
+    from tools.eval.ablation_table import verdict
 
     assert row_overrides("mono_baseline")[-1] == "o2p.enabled=false" and row_overrides("mono")[-1] == "o2p.enabled=true"
     rows = {"baseline": {"ate_causal_m": 0.010}, "learned": {"ate_causal_m": 0.012},
