@@ -270,6 +270,7 @@ class ThreadedLoopCloser:
         self._solves = 0
         self.dropped = 0
         self.errors = 0
+        self.busy_s = 0.0  # time spent handling events (with ``synchronous``: inside the caller's calls)
         self._thread = None
         if not synchronous:
             self._thread = threading.Thread(target=self._run, name="loop-closer", daemon=True)
@@ -340,6 +341,7 @@ class ThreadedLoopCloser:
     def _handle(self, item) -> None:
         """One event: features, status, a keyframe record or a map-to-map term; publishes the correction."""
         c, kind = self.closer, item[0]
+        t0 = time.perf_counter()
         try:
             if kind == "features":
                 c.add_keyframe_features(item[1], item[2])
@@ -359,3 +361,5 @@ class ThreadedLoopCloser:
         except Exception:  # noqa: BLE001 - a bad keyframe must not kill loop closing; counted and logged
             self.errors += 1
             log.exception("loop closer: %s event failed", kind)
+        finally:
+            self.busy_s += time.perf_counter() - t0
