@@ -255,3 +255,26 @@ def test_loop_correction_maps_published_depth_and_submaps_into_the_window_frame(
         assert len(fs) == 1 and terms.counts["frame_to_map_attached"] == (1 if dt else 0)
         rot, tr = err(solve(fs, values).atPose3(X(5)).matrix(), T_true)
         assert rot < 0.3 and tr < 0.01
+
+
+@pytest.mark.parametrize("min_age_s", [1.5, 2.5])
+def test_frame_to_map_target_must_be_old_enough(room, min_age_s):
+    # submap 0 was mapped from 1 s to 3 s; the frame at 5 s is 2 s after it: a target with a 1.5 s gap, none with 2.5 s
+    msg, renderer = room
+    T_true = view(2.0)
+    terms = OccupancyTerms(O2PConfig(enabled=True, min_target_age_s=min_age_s))
+    for t in range(1, 4):
+        terms.note_frame(t * S, np.arange(0, 50))
+    terms.add_field(msg)
+    terms.note_frame(5 * S, np.arange(40, 90))
+    terms.add_depth(5 * S, renderer.render(K, W, H, T_true), np.full((H, W), 0.03, np.float32), K, np.eye(4))
+    values = gtsam.Values()
+    values.insert(X(5), gtsam.Pose3(perturbed(T_true, 3)))
+    fs = terms.factors({5: 5 * S}, values)
+    if min_age_s < 2.0:
+        assert len(fs) == 1 and terms.counts["frame_to_map_recent_targets_skipped"] == 0
+    else:
+        assert fs == [] and terms.counts["frame_to_map_recent_targets_skipped"] == 1
+        assert terms.counts["frame_to_map_no_target"] == 1
+    with pytest.raises(ValueError):
+        O2PConfig(min_target_age_s=-1.0).check()

@@ -11,7 +11,8 @@ points of finished submaps (map-to-map).
   o(k). Depth arrives after the frame's own optimisation here (the networks are slower than the
   tracker), so the factor joins the window at the next window optimisation while the state is still in
   it, and stays until the state leaves.
-* **o(k)**: the oldest finished submap covisible with the frame (>= ``min_covisible_landmarks`` landmark
+* **o(k)**: the oldest finished submap (finished at least ``min_target_age_s`` before the frame; 0 by default)
+  covisible with the frame (>= ``min_covisible_landmarks`` landmark
   ids shared with the frames recorded during the submap's life) that has >= M_min of the points inside
   its observed field at the current estimate.
 * **Target pose**: a submap follows the keyframe nearest its creation (as in the mapping service); when
@@ -404,7 +405,9 @@ class OccupancyTerms:
                     p_S = self._attached(p_S, T_WA, T_WS)
                 T_pub = T_WA if self.correction is None else self.correction() @ T_WA  # o(k) in the submaps' frame
                 cands = [sm for sm in self._covisible(self._landmarks_near(stamps[n])) if not self._before_hold(sm.start_ns)]
-                sm = self._o(cands, p_S, T_pub)
+                old = [sm for sm in cands if stamps[n] - sm.end_ns >= c.min_target_age_s * 1e9]
+                self.counts["frame_to_map_recent_targets_skipped"] += len(cands) - len(old)
+                sm = self._o(old, p_S, T_pub)
                 built = None if sm is None else self._make(sm, p_S, sig, X(n), stamps, values)
                 self._built[("f2m", n, -1 if sm is None else sm.id)] = built
                 self.counts["frame_to_map" if built else "frame_to_map_no_target"] += 1
