@@ -278,3 +278,28 @@ def test_frame_to_map_target_must_be_old_enough(room, min_age_s):
         assert terms.counts["frame_to_map_no_target"] == 1
     with pytest.raises(ValueError):
         O2PConfig(min_target_age_s=-1.0).check()
+
+
+def test_a_verified_loop_makes_the_old_submap_covisible(room):
+    # the frame at 20 s sees none of submap 0's landmark ids (a revisit: the tracker made new ones), so there is
+    # no target; the loop closer's match of that keyframe to submap 0's landmarks makes submap 0 its o(k)
+    msg, renderer = room
+    T_true = view(2.0)
+    for loop in (False, True):
+        terms = OccupancyTerms(O2PConfig(enabled=True))
+        for t in range(1, 4):
+            terms.note_frame(t * S, np.arange(0, 50))
+        terms.add_field(msg)
+        terms.note_frame(20 * S, np.arange(500, 550))
+        if loop:
+            terms.note_loop(20 * S, np.arange(10, 40))
+        terms.add_depth(20 * S, renderer.render(K, W, H, T_true), np.full((H, W), 0.03, np.float32), K, np.eye(4))
+        values = gtsam.Values()
+        values.insert(X(9), gtsam.Pose3(perturbed(T_true, 3)))
+        fs = terms.factors({9: 20 * S}, values)
+        if loop:
+            assert len(fs) == 1 and terms.counts["frames_with_loop_landmarks"] == 1
+            rot, tr = err(solve(fs, values).atPose3(X(9)).matrix(), T_true)
+            assert rot < 0.3 and tr < 0.01
+        else:
+            assert fs == [] and terms.counts["frame_to_map_no_target"] == 1

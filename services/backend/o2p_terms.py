@@ -14,7 +14,9 @@ points of finished submaps (map-to-map).
 * **o(k)**: the oldest finished submap (finished at least ``min_target_age_s`` before the frame; 0 by default)
   covisible with the frame (>= ``min_covisible_landmarks`` landmark
   ids shared with the frames recorded during the submap's life) that has >= M_min of the points inside
-  its observed field at the current estimate.
+  its observed field at the current estimate. A revisit brings new landmark ids, so a keyframe the loop closer
+  matched to an earlier visit (:meth:`OccupancyTerms.note_loop`, the PnP inliers' old landmark ids) also counts
+  as observing those: the submaps of the earlier visit become covisible.
 * **Target pose**: a submap follows the keyframe nearest its creation (as in the mapping service); when
   that state is still in the window the factor acts on both poses, else the submap pose is held fixed at
   the newest T_WM received (the factor then acts like a geometric loop closure on the frame).
@@ -170,6 +172,7 @@ class OccupancyTerms:
         # (creation stamp, T_WM) -> (anchor keyframe state, T_KM) or None; set by the loop-closing back end
         self.anchor_of: Callable[[int, np.ndarray], tuple[int, np.ndarray] | None] | None = None
         self._map_to_map: list[MapToMap] = []
+        self._loop_landmarks: dict[int, np.ndarray] = {}  # keyframe stamp -> old landmark ids a verified loop matched
         # T_W'W: the loop closer's correction of the published frame W' (where depth poses and submap poses
         # T_WM arrive) relative to the window's frame W; set by the loop-closing back end, identity without
         self.correction: Callable[[], np.ndarray] | None = None
@@ -181,6 +184,7 @@ class OccupancyTerms:
 
     # ------------------------------------------------------------------ inputs
     def note_frame(self, stamp_ns: int, landmark_ids: np.ndarray) -> None:
+        """The landmark ids a frame observes (covisibility with submaps)."""
         self._frames.append((int(stamp_ns), np.unique(np.asarray(landmark_ids, np.int64))))
         horizon = int(stamp_ns) - int(self.cfg.landmark_history_s * 1e9)
         while self._frames and self._frames[0][0] < horizon:
@@ -291,11 +295,24 @@ class OccupancyTerms:
         """A pose in the published frame W' (depth, submaps) expressed in the window's frame W."""
         return T_pub if self.correction is None else inv_T(self.correction()) @ T_pub
 
+    def note_loop(self, stamp_ns: int, old_landmark_ids: np.ndarray) -> None:
+        """A verified loop: the keyframe at ``stamp_ns`` sees these landmarks of an earlier visit (PnP inliers), so
+        it is covisible with the submaps built then (landmark ids of a revisit are new, the tracker's are not)."""
+        ids = np.unique(np.asarray(old_landmark_ids, np.int64))
+        if len(ids):
+            self._loop_landmarks[int(stamp_ns)] = ids
+            self.counts["frames_with_loop_landmarks"] += 1
+            while len(self._loop_landmarks) > self.cfg.max_pending_depth:
+                self._loop_landmarks.pop(min(self._loop_landmarks))
+
     def _landmarks_near(self, stamp_ns: int) -> np.ndarray:
-        for t, ids in reversed(self._frames):
+        ids = np.empty(0, np.int64)
+        for t, got in reversed(self._frames):
             if t == stamp_ns:
-                return ids
-        return np.empty(0, np.int64)
+                ids = got
+                break
+        loop = self._loop_landmarks.get(int(stamp_ns))
+        return ids if loop is None else np.union1d(ids, loop)
 
     def _target_pose(self, sm: _Submap, stamps: dict[int, int], values: gtsam.Values) -> dict:
         """key_b/T_BM when the submap's anchor state is in the window, else the fixed T_WB = T_WM."""

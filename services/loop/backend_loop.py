@@ -118,6 +118,9 @@ class LoopClosingBackend:
         if self.shell.o2p is not None:  # map-to-map terms of submaps closed since the last frame
             for term in self.shell.o2p.pop_map_to_map():
                 self.runner.submit_map_to_map(term)
+            for lp in self.runner.take_verified():  # a revisit: the keyframe co-observes the old landmarks
+                if lp.observations:
+                    self.shell.o2p.note_loop(lp.query_stamp_ns, lp.observations[2])
         msgs = self.shell.process(frame)
         if msgs is None or msgs[0].status in ("initialising", "reset"):
             return msgs

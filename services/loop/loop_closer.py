@@ -76,6 +76,7 @@ class LoopCloser:
         self.node_stamps: dict[int, int] = {}
         self._dirty = False
         self._last_solve_ns = -(1 << 62)
+        self.verified_log: list[VerifiedLoop] = []  # verified loops not yet taken (ThreadedLoopCloser.take_verified)
         self._m2m_pending: list = []  # map-to-map terms waiting for their anchor keyframes to become nodes
         self.max_pending_map_to_map = 100
 
@@ -123,6 +124,7 @@ class LoopCloser:
             obs = (cams, xy, np.asarray(old_fs.landmark_ids, np.int64)[res.old_index])
             loop = VerifiedLoop(c.key, int(stamp_ns), res.T_WS, res.covariance, res.inliers, reloc, obs)
             self._pending.append(loop)
+            self.verified_log.append(loop)
             out.append(loop)
             log.info("loop verified: keyframe at %d ns sees state %d (%d inliers%s)", stamp_ns, c.key, res.inliers,
                      ", relocalisation" if reloc else "")
@@ -271,6 +273,7 @@ class ThreadedLoopCloser:
         self.dropped = 0
         self.errors = 0
         self.busy_s = 0.0  # time spent handling events (with ``synchronous``: inside the caller's calls)
+        self._verified: list[VerifiedLoop] = []
         self._thread = None
         if not synchronous:
             self._thread = threading.Thread(target=self._run, name="loop-closer", daemon=True)
@@ -309,6 +312,12 @@ class ThreadedLoopCloser:
         with self._lock:
             return self.generation, self._keyframes
 
+    def take_verified(self) -> list[VerifiedLoop]:
+        """Loops verified since the last call (the back end's o2p terms learn the old landmarks a keyframe sees)."""
+        with self._lock:
+            out, self._verified = self._verified, []
+        return out
+
     def snapshot(self) -> tuple[np.ndarray, int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """(correction, generation, corrected keyframes) of one and the same solve (the loop thread may finish
         another between two separate calls)."""
@@ -345,6 +354,10 @@ class ThreadedLoopCloser:
         try:
             if kind == "features":
                 c.add_keyframe_features(item[1], item[2])
+                if c.verified_log:
+                    with self._lock:
+                        self._verified.extend(c.verified_log)
+                    c.verified_log.clear()
             elif kind == "status":
                 c.note_status(item[1], item[2])
             else:
