@@ -21,7 +21,8 @@ class O2PConfig:
     max_points_map: int = param(1000, "points per map-to-map factor at most (the lowest-sigma ones)")
     min_points_in_field: int = param(100, "M_min: a target submap needs this many points inside its observed field")
     min_target_age_s: float = param(0.0, "frame-to-map: a target submap must have been finished at least this long before "
-                                    "the frame (0: any finished submap, as the paper); the visual-inertial window knows "
+                                    "the frame (0: before the frame, so never a submap holding the frame's own depth or "
+                                    "later depth, which pull the frame towards itself); the visual-inertial window knows "
                                     "its pose relative to a recent submap better than the factor does (3-4 cm per frame "
                                     "on the replicas, docs/o2p.md), so a gap keeps the factors for revisits", "s")
     min_covisible_landmarks: int = param(5, "landmarks a frame must share with a submap to count it covisible")

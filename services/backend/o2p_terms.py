@@ -11,7 +11,8 @@ points of finished submaps (map-to-map).
   o(k). Depth arrives after the frame's own optimisation here (the networks are slower than the
   tracker), so the factor joins the window at the next window optimisation while the state is still in
   it, and stays until the state leaves.
-* **o(k)**: the oldest finished submap (finished at least ``min_target_age_s`` before the frame; 0 by default)
+* **o(k)**: the oldest finished submap (finished at least ``min_target_age_s`` before the frame; with the default 0
+  a submap whose life reaches past the frame, e.g. the growing one holding the frame's own depth, is never o(k))
   covisible with the frame (>= ``min_covisible_landmarks`` landmark
   ids shared with the frames recorded during the submap's life) that has >= M_min of the points inside
   its observed field at the current estimate. A revisit brings new landmark ids, so a keyframe the loop closer
