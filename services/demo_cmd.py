@@ -62,15 +62,14 @@ def _mesh_figures(out: Path, dataset: Path) -> dict | None:
         counts = json.loads((out / "mapping.json").read_text()).get("counts", {})
     except (OSError, ValueError):
         counts = {}
-    placed_by = "trajectory_final.txt" if counts.get("final_trajectories", 0) and (out / "trajectory_final.txt").is_file() \
-        else "trajectory_causal.txt"
+    final = bool(counts.get("final_trajectories", 0)) and (out / "trajectory_final.txt").is_file()
     try:
-        T0 = run_alignment(out / placed_by, dataset / "mav0" / "state_groundtruth_estimate0" / "data.csv")
+        T0 = run_alignment(out / ("trajectory_final.txt" if final else "trajectory_causal.txt"), dataset / "mav0" / "state_groundtruth_estimate0" / "data.csv")
     except (ValueError, OSError) as exc:
         print(f"[sigmaslam demo] mesh evaluated without trajectory alignment ({exc})", flush=True)
     # ground truth sampled at the 1 cm evaluation resolution (the protocol downsamples to 1 cm anyway)
     res = evaluate_mesh_files(est, gt, gt_sample_spacing_m=0.01, out_dir=out / "mesh_eval", T_gt_est_init=T0)
-    return res.summary() | {"map_placed_by": "final" if placed_by == "trajectory_final.txt" else "causal"}
+    return res.summary() | {"map_placed_by": "final" if final else "causal"}
 
 
 def summary_lines(out: Path, mesh: dict | None, viewer_url: str) -> list[str]:

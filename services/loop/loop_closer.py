@@ -76,7 +76,6 @@ class LoopCloser:
         self.node_stamps: dict[int, int] = {}
         self._dirty = False
         self._last_solve_ns = -(1 << 62)
-        self.verified_log: list[VerifiedLoop] = []  # verified loops not yet taken (ThreadedLoopCloser.take_verified)
         self._m2m_pending: list = []  # map-to-map terms waiting for their anchor keyframes to become nodes
         self.max_pending_map_to_map = 100
 
@@ -124,7 +123,6 @@ class LoopCloser:
             obs = (cams, xy, np.asarray(old_fs.landmark_ids, np.int64)[res.old_index])
             loop = VerifiedLoop(c.key, int(stamp_ns), res.T_WS, res.covariance, res.inliers, reloc, obs)
             self._pending.append(loop)
-            self.verified_log.append(loop)
             out.append(loop)
             log.info("loop verified: keyframe at %d ns sees state %d (%d inliers%s)", stamp_ns, c.key, res.inliers,
                      ", relocalisation" if reloc else "")
@@ -353,11 +351,10 @@ class ThreadedLoopCloser:
         t0 = time.perf_counter()
         try:
             if kind == "features":
-                c.add_keyframe_features(item[1], item[2])
-                if c.verified_log:
+                found = c.add_keyframe_features(item[1], item[2])
+                if found:
                     with self._lock:
-                        self._verified.extend(c.verified_log)
-                    c.verified_log.clear()
+                        self._verified.extend(found)
             elif kind == "status":
                 c.note_status(item[1], item[2])
             else:

@@ -159,14 +159,19 @@ class SubmapMapper:
                     sm.T_KM = inv_T(T_WS[i]) @ sm.T_WM
                 continue
             i = index.get(sm.keyframe_id)
-            if i is None:
-                continue
-            T_new = T_WS[i] @ sm.T_KM
-            if not np.allclose(T_new, sm.T_WM, atol=1e-9):
-                sm.T_WM = T_new
-                sm.pose_version += 1
+            if i is not None and self._follow(sm, T_WS[i]):
                 moved.append(sm.id)
         return moved
+
+    @staticmethod
+    def _follow(sm: Submap, T_WK: np.ndarray) -> bool:
+        """``T_WM = T_WK T_KM`` for the submap's keyframe pose T_WK; True when the pose changed."""
+        T_new = np.asarray(T_WK, float) @ sm.T_KM
+        if np.allclose(T_new, sm.T_WM, atol=1e-9):
+            return False
+        sm.T_WM = T_new
+        sm.pose_version += 1
+        return True
 
     def follow_trajectory(self, stamps_ns: np.ndarray, T_WS: np.ndarray) -> list[int]:
         """Move every bound submap onto a trajectory that has a pose at its keyframe's time (the final bundle
@@ -176,12 +181,7 @@ class SubmapMapper:
         moved = []
         for sm in self.submaps:
             i = index.get(sm.keyframe_stamp_ns) if sm.keyframe_id >= 0 else None
-            if i is None:
-                continue
-            T_new = np.asarray(T_WS[i], float) @ sm.T_KM
-            if not np.allclose(T_new, sm.T_WM, atol=1e-9):
-                sm.T_WM = T_new
-                sm.pose_version += 1
+            if i is not None and self._follow(sm, T_WS[i]):
                 moved.append(sm.id)
         return moved
 
