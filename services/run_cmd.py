@@ -47,6 +47,7 @@ from transport.session import free_local_port
 log = logging.getLogger("sigmaslam.run")
 
 # used when the config lists no pipeline service (besides player and recorder)
+MAPPING_STOP_TIMEOUT_S = 60.0  # SIGKILL a mapping service still writing its map only after this long
 DEFAULT_PIPELINE = (ServiceSpec(name="frontend", argv=["frontend"]), ServiceSpec(name="backend", argv=["backend"]))
 
 # per-frame stages whose medians add up to the estimator's cost per camera frame
@@ -84,7 +85,9 @@ def pipeline_services(cfg, dataset: str, out: Path, realtime: bool, record: bool
                 continue
             s = dataclasses.replace(s, argv=["record", "--out", str(out / "recording.mcap")])
         elif s.argv[0] == "mapping":  # the map goes into the run folder: DIR/mesh.ply, DIR/submaps/, DIR/map.npz
-            s = dataclasses.replace(s, argv=["mapping", "--out", str(out)])
+            # stopped right after the final trajectory, which it meshes and writes: give it time to finish
+            s = dataclasses.replace(s, argv=["mapping", "--out", str(out)],
+                                    stop_timeout_s=s.stop_timeout_s or MAPPING_STOP_TIMEOUT_S)
         services.append(dataclasses.replace(s, restart="never"))
     mode = ["--rate", f"{rate:g}"] if rate > 0 else (["--realtime"] if realtime else ["--lockstep"])
     wait = ["--wait-for", ",".join(s.name for s in services)] if services else []
@@ -221,7 +224,7 @@ def main(args: argparse.Namespace) -> int:
                 final = wait_final(finals, args.final_timeout_s, lambda: node.stopped)
         finally:
             sup.request_stop()
-            sup_thread.join(timeout=cfg.supervisor.shutdown_timeout_s * 2 + 5)
+            sup_thread.join(timeout=cfg.supervisor.longest_stop_s() + cfg.supervisor.shutdown_timeout_s + 5)
     wall = time.monotonic() - t_start
     traj = _trajectory(col.states)
     for name in ("trajectory_causal", "trajectory"):

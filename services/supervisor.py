@@ -56,6 +56,9 @@ class ServiceSpec:
     backoff_max_s: float = param(10.0, "longest delay before a restart", "s")
     nice: int = param(0, "OS scheduling niceness added to the process (0..19); e.g. 10 for depth and mapping so "
                       "that, on a loaded CPU, the estimator's processes get the cores first")
+    stop_timeout_s: float = param(0.0, "after SIGTERM, SIGKILL this service if still alive after this long "
+                                  "(0: the supervisor's shutdown_timeout_s); the mapping meshes and writes its map "
+                                  "when stopped, so it gets longer", "s")
 
 
 @dataclasses.dataclass
@@ -68,6 +71,10 @@ class SupervisorConfig:
     shutdown_timeout_s: float = param(5.0, "after SIGTERM, children still alive after this long are SIGKILLed", "s")
     run_dir: str = param("runs", "parent folder of each run's folder (resolved config, outputs)")
     poll_period_s: float = param(0.05, "how often the supervisor checks its children", "s")
+
+    def longest_stop_s(self) -> float:
+        """The longest a service may take to stop after SIGTERM before it is SIGKILLed."""
+        return max([self.shutdown_timeout_s, *(s.stop_timeout_s for s in self.services)])
 
 
 # ----------------------------------------------------------------------------- restart bookkeeping
@@ -131,6 +138,8 @@ def validate(cfg: SupervisorConfig, known_commands: dict[str, object] | None = N
             raise ConfigError(f"{where}.restart: {spec.restart!r} is not one of {list(RESTART_POLICIES)}")
         if not 0 <= spec.nice <= 19:
             raise ConfigError(f"{where}.nice: must be 0..19, got {spec.nice}")
+        if not spec.stop_timeout_s >= 0:
+            raise ConfigError(f"{where}.stop_timeout_s: must be >= 0 s, got {spec.stop_timeout_s}")
         if spec.max_restarts < 0 or spec.window_s <= 0 or spec.backoff_s < 0:
             raise ConfigError(f"{where}: max_restarts >= 0, window_s > 0 and backoff_s >= 0 required")
 
@@ -263,16 +272,21 @@ class Supervisor:
             c.restart_at = None
         for c in live:
             _signal_group(c.proc, signal.SIGTERM)
-        deadline = time.monotonic() + self.cfg.shutdown_timeout_s
-        while any(c.proc.poll() is None for c in live) and time.monotonic() < deadline:
-            time.sleep(0.02)
+        t0 = time.monotonic()
+        limit = {id(c): c.spec.stop_timeout_s if c.spec.stop_timeout_s > 0 else self.cfg.shutdown_timeout_s for c in group}
+        waiting = list(live)
+        while waiting:
+            for c in list(waiting):
+                if c.proc.poll() is not None:
+                    _signal_group(c.proc, signal.SIGKILL)  # leftovers of its process group, if any
+                    waiting.remove(c)
+                elif time.monotonic() - t0 >= limit[id(c)]:
+                    self._status(c, f"pid {c.proc.pid} still running after {limit[id(c)]:g} s: SIGKILL")
+                    _signal_group(c.proc, signal.SIGKILL)
+                    c.proc.wait()
+                    waiting.remove(c)
+            time.sleep(0.02 if waiting else 0.0)
         for c in live:
-            if c.proc.poll() is None:
-                self._status(c, f"pid {c.proc.pid} still running after {self.cfg.shutdown_timeout_s:g} s: SIGKILL")
-                _signal_group(c.proc, signal.SIGKILL)
-                c.proc.wait()
-            else:
-                _signal_group(c.proc, signal.SIGKILL)  # leftovers of its process group, if any
             c.done = True
             self._status(c, f"pid {c.proc.pid} stopped ({describe_exit(c.proc.returncode)})")
 

@@ -114,6 +114,9 @@ def test_mapping_service_end_to_end(tmp_path):
                                                   relocalisations=0))
                 T_WM_final = delta @ frames[0][1]
                 assert wait_for(lambda: any(np.allclose(g.T_WM, T_WM_final, atol=1e-9) for g in got), 10.0), "".join(lines)
+                # the finished map is written when the final trajectory arrives, before any stop signal
+                assert wait_for(lambda: (out / "mesh.ply").is_file(), 30.0), "".join(lines)
+                assert proc.poll() is None
                 time.sleep(1.0)  # let the unknown-stamp frame time out
                 proc.send_signal(signal.SIGTERM)
                 proc.wait(timeout=30)

@@ -15,7 +15,7 @@ import yaml
 
 from helpers_zenoh import REPO, child_env, free_port, service_config, wait_for
 from services.recorder.mcap_reader import read_metadata
-from services.supervisor import RestartTracker, ServiceSpec, SupervisorConfig, describe_exit, validate
+from services.supervisor import Child, RestartTracker, ServiceSpec, Supervisor, SupervisorConfig, describe_exit, validate
 from shared.config import ConfigError, to_dict
 
 
@@ -156,3 +156,25 @@ def test_children_die_with_a_sigkilled_supervisor(tmp_path):
         assert all(wait_for(lambda p=p: gone(p), 10.0) for p in children), up.text()
     finally:
         up.close()
+
+
+def test_stop_timeout_per_service(tmp_path):
+    """A service with its own stop_timeout_s may take longer than shutdown_timeout_s to exit after SIGTERM
+    (the mapping writes its map then); one without it is SIGKILLed at shutdown_timeout_s."""
+    slow_exit = ("import signal, sys, time\n"
+                 "signal.signal(signal.SIGTERM, lambda *a: (time.sleep(1.5), sys.exit(0)))\n"
+                 "print('ready', flush=True)\n"
+                 "time.sleep(60)\n")
+    sup = Supervisor(SupervisorConfig(start_router=False, shutdown_timeout_s=0.5), tmp_path / "c.yaml", tmp_path)
+    patient = Child(ServiceSpec(name="patient", argv=["x"], stop_timeout_s=10.0), [])
+    hasty = Child(ServiceSpec(name="hasty", argv=["x"]), [])
+    for c in (patient, hasty):
+        c.proc = subprocess.Popen([sys.executable, "-c", slow_exit], stdout=subprocess.PIPE, text=True,
+                                  start_new_session=True)
+        assert c.proc.stdout.readline().strip() == "ready"
+    sup.children = [patient, hasty]
+    sup.shutdown()
+    assert patient.proc.returncode == 0  # finished its SIGTERM handler
+    assert hasty.proc.returncode == -signal.SIGKILL
+    with pytest.raises(ConfigError, match="stop_timeout_s"):
+        validate(SupervisorConfig(services=[ServiceSpec(name="x", argv=["record"], stop_timeout_s=-1.0)]), {"record": None})

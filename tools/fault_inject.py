@@ -167,7 +167,7 @@ def run(dataset: str, out: Path, kill: list[str], rate: float, window_s: float, 
             report["stages"] = probe.stages()
             report["restarts"] = {c.spec.name: c.tracker.total_restarts for c in sup.children}
             sup.request_stop()
-            th.join(timeout=cfg.supervisor.shutdown_timeout_s * 2 + 10)
+            th.join(timeout=cfg.supervisor.longest_stop_s() + cfg.supervisor.shutdown_timeout_s + 10)
     (out / "faults.json").write_text(json.dumps(report, indent=1))
     return report
 

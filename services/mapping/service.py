@@ -8,9 +8,11 @@ a frame whose state has not arrived waits up to ``pose_wait_s`` and is then drop
 Changed submaps are re-meshed within a time budget at most every ``mesh_period_s`` and published on
 ``map/submap``; a submap that moved is re-published with its new pose. The near-surface field of a
 submap (``OccupancyField`` on ``map/field``, for the occupancy-to-point factors) goes out when the
-submap closes, and for the current submap every ``field_period_s``. At exit (SIGTERM/SIGINT) the
-map is meshed completely, published, and, if ``output_dir`` is set, written there: ``mesh.ply``
-(world), ``submaps/submap_NNN.ply`` (each in its own frame M), ``map.npz`` and ``mapping.json``. With an
+submap closes, and for the current submap every ``field_period_s``. When the final trajectory has been
+applied (the stream is over) and again at exit (SIGTERM/SIGINT) if anything changed since, the map is
+meshed completely, published, and, if ``output_dir`` is set, written there: ``mesh.ply``
+(world), ``submaps/submap_NNN.ply`` (each in its own frame M), ``map.npz`` and ``mapping.json``. Writing
+at the final trajectory keeps the finished map on disk even when the process is stopped hard soon after. With an
 output folder, ``map.npz`` is also checkpointed every ``checkpoint_period_s`` (atomic rename); a service
 restarted by the supervisor resumes from that checkpoint (see :func:`resume_map`, docs/reliability.md).
 """
@@ -63,6 +65,8 @@ class MappingLoop:
         # map-to-map points (services/mapping/o2p_points.py), published once per closed submap
         self.points = SubmapPointPool(cfg.o2p_points) if cfg.o2p_points > 0 else None
         self.points_to_publish: set[int] = set()
+        self.changes = 0  # integrations, moves and resets so far
+        self.flushed_changes = -1  # ``changes`` when the complete map was last published and written
 
     def on_state(self, msg: messages.EstimatorState) -> None:
         if msg.status == "reset":  # a restarted back end: new world frame and keyframe ids
@@ -74,7 +78,9 @@ class MappingLoop:
         self.poses.add(msg.header.stamp_ns, msg.T_WS)
 
     def on_keyframes(self, msg: messages.Keyframes) -> None:
-        self.to_publish.update(self.mapper.update_keyframes(msg.ids, msg.stamps_ns, msg.T_WS))
+        moved = self.mapper.update_keyframes(msg.ids, msg.stamps_ns, msg.T_WS)
+        self.to_publish.update(moved)
+        self.changes += len(moved)
 
     def on_final(self, msg: messages.FinalTrajectory) -> None:
         """The non-causal trajectory: submaps follow it (``mapping.follow_final``); counted."""
@@ -82,6 +88,7 @@ class MappingLoop:
             return
         moved = self.mapper.follow_trajectory(msg.stamps_ns, msg.T_WS)
         self.to_publish.update(moved)
+        self.changes += 1
         self.counts["final_trajectories"] += 1
         log.info("final trajectory: %d of %d submaps moved onto it", len(moved), len(self.mapper.submaps))
 
@@ -101,6 +108,7 @@ class MappingLoop:
         if self.reset_pending:
             self.reset_pending = False
             self.mapper.estimator_reset()
+            self.changes += 1
             self.counts["estimator_resets"] += 1
             log.warning("estimator reset: submaps so far frozen, the next frame starts a new submap")
         done = 0
@@ -127,6 +135,7 @@ class MappingLoop:
                 log.warning("depth frame %d dropped: %s", msg.header.stamp_ns, exc)
                 continue
             self.integrate_ms.append(1e3 * (time.perf_counter() - t0))
+            self.changes += 1
             self.counts["integrated"] += 1
             if self.points is not None:
                 T_WM = self.mapper.submaps[rep.submap_id].T_WM
@@ -176,14 +185,16 @@ class MappingLoop:
         self.points_to_publish.clear()
         return out
 
-    def write_outputs(self, out_dir: Path) -> None:
+    def write_outputs(self, out_dir: Path, report_only: bool = False) -> None:
+        """The map (mesh.ply, submaps/, map.npz) and mapping.json; with ``report_only`` only mapping.json."""
         out_dir.mkdir(parents=True, exist_ok=True)
-        v, f = self.mapper.world_mesh()
-        write_ply(out_dir / "mesh.ply", v, f)
-        for sm in self.mapper.submaps:
-            sv, sf = sm.mesher.mesh()
-            write_ply(out_dir / "submaps" / f"submap_{sm.id:03d}.ply", sv, sf)
-        save_map(self.mapper, out_dir / "map.npz")
+        if not report_only:
+            v, f = self.mapper.world_mesh()
+            write_ply(out_dir / "mesh.ply", v, f)
+            for sm in self.mapper.submaps:
+                sv, sf = sm.mesher.mesh()
+                write_ply(out_dir / "submaps" / f"submap_{sm.id:03d}.ply", sv, sf)
+            save_map(self.mapper, out_dir / "map.npz")
         ms = np.array(self.integrate_ms) if self.integrate_ms else np.array([np.nan])
         report = {"counts": dict(self.counts), "integrate_ms_p50": float(np.median(ms)),
                   "integrate_ms_p90": float(np.percentile(ms, 90)), "map_bytes": self.mapper.nbytes(),
@@ -258,8 +269,12 @@ def main(args: argparse.Namespace) -> int:
             for msg in kfs.drain():
                 loop.on_keyframes(msg)
             loop.process_waiting(timer)
+            got_final = False
             for msg in finals.drain():  # after the stream: no depth follows it
                 loop.on_final(msg)
+                got_final = True
+            if got_final:  # the map is finished: publish and write it now, not only when stopped
+                flush_map(loop, pub, pub_field, out_dir)
             if time.monotonic() - last_mesh >= cfg.mesh_period_s:
                 last_mesh = time.monotonic()
                 with mesh_timer:
@@ -285,15 +300,27 @@ def main(args: argparse.Namespace) -> int:
             loop.on_keyframes(msg)
         for msg in finals.drain():  # stopped right after the back end's final trajectory: still applied
             loop.on_final(msg)
-        loop.remesh(None)
-        loop.to_publish.update(sm.id for sm in loop.mapper.submaps)
-        for m in loop.submap_messages():
-            pub.publish(m)
-        loop.fields_to_publish.update(sm.id for sm in loop.mapper.submaps)
-        for m in loop.field_messages():
-            pub_field.publish(m)
-    if out_dir:
-        loop.write_outputs(Path(out_dir))
-        print(f"mapping: wrote {out_dir}/mesh.ply", flush=True)
+        if loop.changes != loop.flushed_changes:
+            flush_map(loop, pub, pub_field, out_dir)
+        elif out_dir:  # counts may have moved (drops); the map on disk is current
+            loop.write_outputs(Path(out_dir), report_only=True)
+            log.info("map unchanged since it was last written; mapping.json updated")
     log.info("mapping done: %s", dict(loop.counts))
     return 0
+
+
+def flush_map(loop: MappingLoop, pub, pub_field, out_dir: str | None) -> None:
+    """Mesh every submap completely, publish all meshes and fields, and write the outputs (if ``out_dir``)."""
+    t0 = time.monotonic()
+    loop.remesh(None)
+    loop.to_publish.update(sm.id for sm in loop.mapper.submaps)
+    for m in loop.submap_messages():
+        pub.publish(m)
+    loop.fields_to_publish.update(sm.id for sm in loop.mapper.submaps)
+    for m in loop.field_messages():
+        pub_field.publish(m)
+    if out_dir:
+        loop.write_outputs(Path(out_dir))
+        print(f"mapping: wrote {out_dir}/mesh.ply ({len(loop.mapper.submaps)} submaps, "
+              f"{time.monotonic() - t0:.1f} s)", flush=True)
+    loop.flushed_changes = loop.changes
