@@ -188,4 +188,6 @@ def main(args: argparse.Namespace) -> int:
                     kf_pub.publish(msgs[1])
             if (lms := (shell if loop is None else loop).take_landmarks()) is not None:
                 lm_pub.publish(lms)
+    if shell.o2p is not None:  # how many dense factors the run used, and why others were not built
+        log.info("o2p counts: %s", dict(sorted(shell.o2p.counts.items())))
     return 0
