@@ -92,7 +92,7 @@ def test_frame_to_map_pulls_a_keyframe_back_and_needs_covisibility(room):
         assert terms.factors({}, gtsam.Values()) == []  # the state left the window: its factor goes
 
 
-def map_to_map_term(room, cfg=None):
+def map_to_map_term(room, cfg=None, expect_term=True):
     """Submap 0 = the mapped room (T_WM = I, created at 1 s, anchored on keyframe state 1 at P_o); submap 1
     created at 4 s, anchored on state 7, integrated at the estimate T_est of its anchor (true pose T_true):
     its points are right in M_1, its pose is off by 2 deg / 4 cm. Returns the queued term and the poses."""
@@ -114,8 +114,21 @@ def map_to_map_term(room, cfg=None):
     p_M, sig = select_depth_points(renderer.render(K, W, H, T_true), np.full((H, W), 0.03, np.float32), K, 1000)
     terms.add_submap_points(1, p_M, sig)
     out = terms.pop_map_to_map()
+    if not expect_term:
+        assert out == [] and terms.counts["map_to_map_no_target"] == 2
+        return None
     assert len(out) == 1 and terms.counts["map_to_map"] == 1 and terms.pop_map_to_map() == []
     return out[0], P_o, T_true, T_est
+
+
+@pytest.mark.parametrize("gap_s", [0.9, 1.1])
+def test_map_to_map_target_gap(room, gap_s):
+    # submap 0 holds frames 1-3 s, submap 1 begins at 4 s: 1 s apart, so a target with a 0.9 s gap, none with 1.1 s
+    cfg = O2PConfig(enabled=True, frame_to_map=False, map_to_map=True, effective_points=0, map_target_gap_s=gap_s)
+    got = map_to_map_term(room, cfg, expect_term=gap_s < 1.0)
+    assert (got is not None) == (gap_s < 1.0)
+    with pytest.raises(ValueError):
+        O2PConfig(map_target_gap_s=-1.0).check()
 
 
 def test_map_to_map_term_binds_both_submaps_to_their_anchor_keyframes(room):

@@ -25,6 +25,8 @@ class O2PConfig:
                                     "later depth, which pull the frame towards itself); the visual-inertial window knows "
                                     "its pose relative to a recent submap better than the factor does (3-4 cm per frame "
                                     "on the replicas, docs/o2p.md), so a gap keeps the factors for revisits", "s")
+    map_target_gap_s: float = param(0.0, "map-to-map: o(m) must have been finished at least this long before m began "
+                                    "(0: any older submap, nearly always m's predecessor)", "s")
     min_covisible_landmarks: int = param(5, "landmarks a frame must share with a submap to count it covisible")
     tukey_k: float = param(3.0, "Tukey threshold on the RMS whitened residual of a whole factor")
     info_scale: float = param(1.0, "scales the information of every point on top of effective_points (1: none; for experiments)")
@@ -58,8 +60,8 @@ class O2PConfig:
                self.max_submaps) < 1:
             raise ValueError("o2p point counts and buffer sizes must be >= 1")
         if not (0 <= self.gate_chi2_p < 1 and 0 <= self.min_inside_fraction <= 1 and self.mono_settle_s >= 0
-                and self.min_target_age_s >= 0):
-            raise ValueError("o2p gate_chi2_p in [0, 1), min_inside_fraction in [0, 1], mono_settle_s >= 0 and "
-                             "min_target_age_s >= 0 are required")
+                and self.min_target_age_s >= 0 and self.map_target_gap_s >= 0):
+            raise ValueError("o2p gate_chi2_p in [0, 1), min_inside_fraction in [0, 1], mono_settle_s >= 0, "
+                             "min_target_age_s >= 0 and map_target_gap_s >= 0 are required")
         if not (self.tukey_k > 0 and self.grad_min >= 0 and self.info_scale > 0 and self.effective_points >= 0):
             raise ValueError("o2p tukey_k > 0, grad_min >= 0, info_scale > 0 and effective_points >= 0 are required")

@@ -272,8 +272,10 @@ class OccupancyTerms:
         if m.anchor is None:
             self.counts["map_to_map_no_anchor"] += 1
             return
+        gap_ns = self.cfg.map_target_gap_s * 1e9
         cands = [o for o in self._covisible(m.landmarks, exclude=m.id)
-                 if o.anchor is not None and o.id < m.id and not self._before_hold(o.start_ns)]
+                 if o.anchor is not None and o.id < m.id and not self._before_hold(o.start_ns)
+                 and m.start_ns - o.end_ns >= gap_ns]
         o = self._o(cands, m.points_M, m.T_WM, exclude=m.id)
         if o is None:
             self.counts["map_to_map_no_target"] += 1
