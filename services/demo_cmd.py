@@ -64,7 +64,8 @@ def _mesh_figures(out: Path, dataset: Path) -> dict | None:
         counts = {}
     final = bool(counts.get("final_trajectories", 0)) and (out / "trajectory_final.txt").is_file()
     try:
-        T0 = run_alignment(out / ("trajectory_final.txt" if final else "trajectory_causal.txt"), dataset / "mav0" / "state_groundtruth_estimate0" / "data.csv")
+        T0 = run_alignment(out / ("trajectory_final.txt" if final else "trajectory_causal.txt"),
+                           dataset / "mav0" / "state_groundtruth_estimate0" / "data.csv")
     except (ValueError, OSError) as exc:
         print(f"[sigmaslam demo] mesh evaluated without trajectory alignment ({exc})", flush=True)
     # ground truth sampled at the 1 cm evaluation resolution (the protocol downsamples to 1 cm anyway)

@@ -72,9 +72,13 @@ class SupervisorConfig:
     run_dir: str = param("runs", "parent folder of each run's folder (resolved config, outputs)")
     poll_period_s: float = param(0.05, "how often the supervisor checks its children", "s")
 
+    def stop_limit_s(self, spec: ServiceSpec) -> float:
+        """How long ``spec``'s process may take to stop after SIGTERM before it is SIGKILLed."""
+        return spec.stop_timeout_s if spec.stop_timeout_s > 0 else self.shutdown_timeout_s
+
     def longest_stop_s(self) -> float:
-        """The longest a service may take to stop after SIGTERM before it is SIGKILLed."""
-        return max([self.shutdown_timeout_s, *(s.stop_timeout_s for s in self.services)])
+        """The longest any service may take to stop after SIGTERM."""
+        return max([self.shutdown_timeout_s, *(self.stop_limit_s(s) for s in self.services)])
 
 
 # ----------------------------------------------------------------------------- restart bookkeeping
@@ -273,15 +277,14 @@ class Supervisor:
         for c in live:
             _signal_group(c.proc, signal.SIGTERM)
         t0 = time.monotonic()
-        limit = {id(c): c.spec.stop_timeout_s if c.spec.stop_timeout_s > 0 else self.cfg.shutdown_timeout_s for c in group}
         waiting = list(live)
         while waiting:
             for c in list(waiting):
                 if c.proc.poll() is not None:
                     _signal_group(c.proc, signal.SIGKILL)  # leftovers of its process group, if any
                     waiting.remove(c)
-                elif time.monotonic() - t0 >= limit[id(c)]:
-                    self._status(c, f"pid {c.proc.pid} still running after {limit[id(c)]:g} s: SIGKILL")
+                elif time.monotonic() - t0 >= (limit := self.cfg.stop_limit_s(c.spec)):
+                    self._status(c, f"pid {c.proc.pid} still running after {limit:g} s: SIGKILL")
                     _signal_group(c.proc, signal.SIGKILL)
                     c.proc.wait()
                     waiting.remove(c)

@@ -65,8 +65,7 @@ class MappingLoop:
         # map-to-map points (services/mapping/o2p_points.py), published once per closed submap
         self.points = SubmapPointPool(cfg.o2p_points) if cfg.o2p_points > 0 else None
         self.points_to_publish: set[int] = set()
-        self.changes = 0  # integrations, moves and resets so far
-        self.flushed_changes = -1  # ``changes`` when the complete map was last published and written
+        self.unflushed = True  # the map changed since it was last completely published and written
 
     def on_state(self, msg: messages.EstimatorState) -> None:
         if msg.status == "reset":  # a restarted back end: new world frame and keyframe ids
@@ -80,7 +79,7 @@ class MappingLoop:
     def on_keyframes(self, msg: messages.Keyframes) -> None:
         moved = self.mapper.update_keyframes(msg.ids, msg.stamps_ns, msg.T_WS)
         self.to_publish.update(moved)
-        self.changes += len(moved)
+        self.unflushed |= bool(moved)
 
     def on_final(self, msg: messages.FinalTrajectory) -> None:
         """The non-causal trajectory: submaps follow it (``mapping.follow_final``); counted."""
@@ -88,7 +87,7 @@ class MappingLoop:
             return
         moved = self.mapper.follow_trajectory(msg.stamps_ns, msg.T_WS)
         self.to_publish.update(moved)
-        self.changes += 1
+        self.unflushed |= bool(moved)
         self.counts["final_trajectories"] += 1
         log.info("final trajectory: %d of %d submaps moved onto it", len(moved), len(self.mapper.submaps))
 
@@ -108,7 +107,7 @@ class MappingLoop:
         if self.reset_pending:
             self.reset_pending = False
             self.mapper.estimator_reset()
-            self.changes += 1
+            self.unflushed = True
             self.counts["estimator_resets"] += 1
             log.warning("estimator reset: submaps so far frozen, the next frame starts a new submap")
         done = 0
@@ -135,7 +134,7 @@ class MappingLoop:
                 log.warning("depth frame %d dropped: %s", msg.header.stamp_ns, exc)
                 continue
             self.integrate_ms.append(1e3 * (time.perf_counter() - t0))
-            self.changes += 1
+            self.unflushed = True
             self.counts["integrated"] += 1
             if self.points is not None:
                 T_WM = self.mapper.submaps[rep.submap_id].T_WM
@@ -269,11 +268,10 @@ def main(args: argparse.Namespace) -> int:
             for msg in kfs.drain():
                 loop.on_keyframes(msg)
             loop.process_waiting(timer)
-            got_final = False
-            for msg in finals.drain():  # after the stream: no depth follows it
+            final_msgs = finals.drain()  # after the stream: no depth follows it
+            for msg in final_msgs:
                 loop.on_final(msg)
-                got_final = True
-            if got_final:  # the map is finished: publish and write it now, not only when stopped
+            if final_msgs:  # the map is finished: publish and write it now, not only when stopped
                 flush_map(loop, pub, pub_field, out_dir)
             if time.monotonic() - last_mesh >= cfg.mesh_period_s:
                 last_mesh = time.monotonic()
@@ -300,7 +298,7 @@ def main(args: argparse.Namespace) -> int:
             loop.on_keyframes(msg)
         for msg in finals.drain():  # stopped right after the back end's final trajectory: still applied
             loop.on_final(msg)
-        if loop.changes != loop.flushed_changes:
+        if loop.unflushed:
             flush_map(loop, pub, pub_field, out_dir)
         elif out_dir:  # counts may have moved (drops); the map on disk is current
             loop.write_outputs(Path(out_dir), report_only=True)
@@ -323,4 +321,4 @@ def flush_map(loop: MappingLoop, pub, pub_field, out_dir: str | None) -> None:
         loop.write_outputs(Path(out_dir))
         print(f"mapping: wrote {out_dir}/mesh.ply ({len(loop.mapper.submaps)} submaps, "
               f"{time.monotonic() - t0:.1f} s)", flush=True)
-    loop.flushed_changes = loop.changes
+    loop.unflushed = False
