@@ -1,6 +1,8 @@
 # The two entry points of the README. Both set up a virtual environment in .venv first.
 PY ?= python3
 VENV := .venv
+SHELL := /bin/bash
+.SHELLFLAGS := -o pipefail -c
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
@@ -12,20 +14,25 @@ system-deps:
 	@if ! ldconfig -p | grep -q libusb-1.0 || ! command -v chromium >/dev/null || ! command -v docker-compose >/dev/null \
 	    || ! command -v openssl >/dev/null || ! command -v ip >/dev/null; then \
 	  if command -v apt-get >/dev/null && [ "$$(id -u)" = 0 ]; then \
+	    echo "[setup] installing Debian packages libusb-1.0-0 chromium docker-compose openssl iproute2"; \
 	    (apt-get install -y -q libusb-1.0-0 chromium docker-compose openssl iproute2 >/dev/null 2>&1 || \
 	     (apt-get update -q >/dev/null 2>&1 && apt-get install -y -q libusb-1.0-0 chromium docker-compose openssl iproute2 >/dev/null)); \
 	  else echo "please install Debian packages libusb-1.0-0 chromium docker-compose openssl iproute2"; fi; fi
 
 $(STAMP): pyproject.toml
+	@echo "[setup] creating $(VENV) and installing sigmaslam with its dependencies (1-3 min on a fresh machine)"
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q -e '.[dev]'
+	$(BIN)/pip install --progress-bar off -e '.[dev]' \
+	  | { grep -E --line-buffered '^(Collecting|Installing|Successfully)' | cut -c1-160 || true; }
 	touch $(STAMP)
 
 setup: system-deps $(STAMP)
 
-demo: setup
-	$(BIN)/sigmaslam demo
+# the demo prints the set-up's wall time among its phases
+demo:
+	@t0=$$(date +%s%N); $(MAKE) --no-print-directory setup && \
+	$(BIN)/sigmaslam demo --setup-s $$(( ($$(date +%s%N) - t0) / 1000000000 ))
 
 test: setup
 	$(BIN)/python -m pytest -q

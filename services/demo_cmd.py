@@ -5,7 +5,8 @@
 2. Runs ``sigmaslam run`` on it with ``configs/demo.yaml``: router, player, frontend, back end (with loop
    closure and final bundle adjustment), depth, mapping and the web viewer, each its own process over Zenoh.
 3. Evaluates what came out against the ground truth and prints one summary: causal and non-causal ATE,
-   mesh accuracy and completeness, per-frame estimator time, and the viewer's address.
+   mesh accuracy and completeness, per-frame estimator time, the viewer's address, and the wall time of each
+   phase (set-up when ``make demo`` passes ``--setup-s``, replica, run, evaluation; also ``DIR/phases.json``).
 
 ``--serve-s S`` keeps the viewer up for S seconds after the run, showing the final map and trajectories.
 """
@@ -29,6 +30,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--realtime", action="store_true", help="play at sensor rate instead of lockstep")
     p.add_argument("--serve-s", type=float, default=0.0,
                    help="after the run, keep the viewer up this long with the final map [s] (0: stop with the run)")
+    p.add_argument("--setup-s", type=float, default=None,
+                   help="seconds the set-up before this command took, to print among the phases (`make demo` passes it)")
 
 
 def _run_pipeline(dataset: Path, args: argparse.Namespace, viewer_overrides: list[str]) -> int:
@@ -44,6 +47,10 @@ def _run_pipeline(dataset: Path, args: argparse.Namespace, viewer_overrides: lis
     if args.realtime:
         argv.append("--realtime")
     return int(run_cmd.main(parser.parse_args(argv)) or 0)
+
+
+def _say(msg: str) -> None:
+    print(f"[sigmaslam demo] {msg}", flush=True)
 
 
 def _mesh_figures(out: Path, dataset: Path) -> dict | None:
@@ -68,12 +75,21 @@ def _mesh_figures(out: Path, dataset: Path) -> dict | None:
                            dataset / "mav0" / "state_groundtruth_estimate0" / "data.csv")
     except (ValueError, OSError) as exc:
         print(f"[sigmaslam demo] mesh evaluated without trajectory alignment ({exc})", flush=True)
-    # ground truth sampled at the 1 cm evaluation resolution (the protocol downsamples to 1 cm anyway)
-    res = evaluate_mesh_files(est, gt, gt_sample_spacing_m=0.01, out_dir=out / "mesh_eval", T_gt_est_init=T0)
+    # ground truth sampled at the 1 cm evaluation resolution (the protocol downsamples to 1 cm anyway); prepared
+    # once per scene and cached
+    t0 = time.monotonic()
+    res = evaluate_mesh_files(est, gt, gt_sample_spacing_m=0.01, out_dir=out / "mesh_eval", T_gt_est_init=T0,
+                              progress=lambda m: _say(f"mesh evaluation {time.monotonic() - t0:5.1f} s: {m}"))
     return res.summary() | {"map_placed_by": "final" if final else "causal"}
 
 
-def summary_lines(out: Path, mesh: dict | None, viewer_url: str) -> list[str]:
+def phase_line(phases: dict[str, float]) -> str:
+    """One line of the demo's phases and their wall times, e.g. ``set-up 52 s, replica 0 s (cached), ...``."""
+    parts = [f"{name} {sec:.0f} s" for name, sec in phases.items()]
+    return ", ".join(parts) + f"; total {sum(phases.values()) / 60:.1f} min"
+
+
+def summary_lines(out: Path, mesh: dict | None, viewer_url: str, phases: dict[str, float] | None = None) -> list[str]:
     """The closing summary of a demo run folder (ate.json, stats.json) and its mesh evaluation."""
     lines = ["", "sigmaslam demo: results", "-----------------------"]
     ate_path, stats_path = out / "ate.json", out / "stats.json"
@@ -98,35 +114,47 @@ def summary_lines(out: Path, mesh: dict | None, viewer_url: str) -> list[str]:
         lines.append(f"loop closure                        {stats['loops']}")
     lines.append(f"outputs                             {out}/ (trajectories, stats.json, mesh.ply, mesh_eval/)")
     lines.append(f"viewer                              {viewer_url}")
+    if phases:
+        lines.append(f"time                                {phase_line(phases)}")
     return lines
 
 
 def main(args: argparse.Namespace) -> int:
     from services.system_config import load_system_config
-    from tools.synth.api import ensure_default_replica
+    from tools.synth.api import ensure_default_replica, replica_exists
 
-    t0 = time.monotonic()
-    print("[sigmaslam demo] default replica: 25 s of EuRoC V1_02 in scene vicon-a, real IMU "
-          "(rendered once, then cached under data/replicas/)", flush=True)
+    phases: dict[str, float] = {}
+    if args.setup_s is not None:
+        phases["set-up"] = args.setup_s
+    cached = replica_exists()
+    _say("default replica: 25 s of EuRoC V1_02 in scene vicon-a, real IMU "
+         + ("(cached under data/replicas/)" if cached else "(rendering it once, about 1-2 min; then cached under data/replicas/)"))
+    t = time.monotonic()
     dataset = ensure_default_replica(progress=True)
+    phases["replica (cached)" if cached else "replica render"] = time.monotonic() - t
     gt = dataset / "mav0" / "state_groundtruth_estimate0" / "data.csv"
     cfg = load_system_config(args.config, args.set)
     url = f"http://{cfg.viewer.host}:{cfg.viewer.port}"
-    print(f"[sigmaslam demo] viewer at {url} while the pipeline runs", flush=True)
+    _say(f"viewer at {url} while the pipeline runs")
     out = Path(args.out)
+    t = time.monotonic()
     rc = _run_pipeline(dataset, args, [f"viewer.ground_truth={gt}"])
+    phases["run"] = time.monotonic() - t
+    t = time.monotonic()
+    _say("evaluating the mesh against the scene (paper sec. V: 1 cm grid, point-to-plane ICP)")
     mesh = _mesh_figures(out, dataset)
+    phases["evaluation"] = time.monotonic() - t
     if mesh is not None:
         (out / "mesh_eval.json").write_text(json.dumps(mesh, indent=1))
     if args.serve_s > 0:
         from services.demo_serve import serve_run
 
-        print(f"[sigmaslam demo] serving the final map at {url} for {args.serve_s:.0f} s (Ctrl-C stops)", flush=True)
+        _say(f"serving the final map at {url} for {args.serve_s:.0f} s (Ctrl-C stops)")
         serve_run(out, args.config, [f"viewer.ground_truth={gt}", *args.set], args.serve_s)
         url += " (served the final map)"
     else:
         url += " (live during the run; `sigmaslam demo --serve-s 600` keeps it up with the final map)"
-    for line in summary_lines(out, mesh, url):
+    (out / "phases.json").write_text(json.dumps({k: round(v, 2) for k, v in phases.items()}, indent=1))
+    for line in summary_lines(out, mesh, url, phases):
         print(line, flush=True)
-    print(f"[sigmaslam demo] done in {time.monotonic() - t0:.0f} s", flush=True)
     return rc

@@ -1,8 +1,16 @@
-"""Where sigmaslam finds the data that lives outside the repository.
+"""Where sigmaslam finds its data.
 
-The real EuRoC files (calibration, ground truth, IMU, image timestamps) are in ``../shared/data/euroc``
-beside the checkout; ``SIGMASLAM_SHARED`` overrides the ``../shared`` folder. Generated data (replicas,
-caches) goes under ``SIGMASLAM_DATA`` (default ``<repo>/data``, git-ignored).
+Real EuRoC files (calibration, ground truth, IMU, image timestamps) are looked up file by file in two places, in
+this order:
+
+1. ``$SIGMASLAM_SHARED/data/euroc`` (default ``../shared/data/euroc`` beside the checkout): all eight sequences
+   the project uses, when that folder is there;
+2. ``<repo>/data/euroc``: the files bundled with the repository (CC BY-NC-SA 3.0, data/euroc/README.md): the rig
+   calibration and V1_02 and V2_01, enough for the default replica, so a fresh clone runs on its own.
+
+Other shared data (real images under ``data/real``) is only in the first place: :func:`real_data_dir`.
+Generated data (replicas, caches) goes under ``SIGMASLAM_DATA`` (default ``<repo>/data``, git-ignored but for
+``data/euroc``).
 """
 from __future__ import annotations
 
@@ -10,8 +18,9 @@ import os
 from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+BUNDLED_EUROC = REPO_ROOT / "data" / "euroc"
 
-# short sequence names and the file stems of ../shared/data/euroc
+# short sequence names and the file stems of data/euroc
 EUROC_SEQUENCES = {
     "V1_02": {"groundtruth": "V1_02_medium", "imu": "V102", "images": "V102"},
     "V2_01": {"groundtruth": "V2_01_easy", "imu": "V201", "images": "V201"},
@@ -19,27 +28,65 @@ EUROC_SEQUENCES = {
 }
 
 
+class DataNotFound(FileNotFoundError):
+    """A data file that is neither in the shared data folder nor bundled with the repository."""
+
+
 def shared_dir() -> Path:
+    """The folder of data kept outside the repository (``$SIGMASLAM_SHARED``, default ``../shared``)."""
     return Path(os.environ.get("SIGMASLAM_SHARED", REPO_ROOT.parent / "shared")).resolve()
 
 
+def euroc_roots() -> list[Path]:
+    """The EuRoC folders searched, in order: the shared one (if present), then the bundled one."""
+    shared = shared_dir() / "data" / "euroc"
+    return [r for r in (shared, BUNDLED_EUROC) if r.is_dir()]
+
+
+def euroc_file(relative: str) -> Path:
+    """``relative`` (e.g. ``calib/cam0_sensor.yaml``) from the first EuRoC folder that has it."""
+    for root in euroc_roots():
+        if (root / relative).exists():
+            return root / relative
+    raise DataNotFound(f"{relative}: not in {shared_dir() / 'data' / 'euroc'} nor bundled in {BUNDLED_EUROC}; "
+                       "set SIGMASLAM_SHARED to a folder holding data/euroc/ with it")
+
+
 def euroc_dir() -> Path:
-    """``../shared/data/euroc`` (calib/, groundtruth/, imu/, image_timestamps/)."""
-    d = shared_dir() / "data" / "euroc"
-    if not d.is_dir():
-        raise FileNotFoundError(f"{d}: EuRoC data folder not found (set SIGMASLAM_SHARED to the folder holding data/euroc)")
-    return d
+    """The EuRoC folder holding the rig calibration (``calib/``): the shared one if present, else the bundled one."""
+    return euroc_file("calib").parent
 
 
 def euroc_files(sequence: str) -> dict[str, Path]:
-    """Paths of the ground truth, real IMU and image timestamps of a sequence ('V1_02', 'V2_01', 'MH_04')."""
+    """Paths of the ground truth, real IMU, image timestamps and rig calibration of a known sequence.
+
+    Each file comes from the first folder of :func:`euroc_roots` that has it; a file that no folder has raises
+    :class:`DataNotFound` naming it (e.g. MH_04 on a fresh clone without ``../shared``)."""
     if sequence not in EUROC_SEQUENCES:
         raise KeyError(f"unknown sequence {sequence!r}; known: {', '.join(EUROC_SEQUENCES)}")
-    names, d = EUROC_SEQUENCES[sequence], euroc_dir()
-    return {"groundtruth": d / "groundtruth" / f"{names['groundtruth']}.state_groundtruth_estimate0.csv.xz",
-            "imu": d / "imu" / f"{names['imu']}.imu0_data.csv.xz",
-            "image_timestamps": d / "image_timestamps" / f"{names['images']}.txt",
-            "calib": d / "calib"}
+    names = EUROC_SEQUENCES[sequence]
+    return {"groundtruth": euroc_file(f"groundtruth/{names['groundtruth']}.state_groundtruth_estimate0.csv.xz"),
+            "imu": euroc_file(f"imu/{names['imu']}.imu0_data.csv.xz"),
+            "image_timestamps": euroc_file(f"image_timestamps/{names['images']}.txt"),
+            "calib": euroc_file("calib")}
+
+
+def has_sequence(sequence: str) -> bool:
+    """Whether every file of ``sequence`` can be found (for tests that skip without it)."""
+    try:
+        euroc_files(sequence)
+    except DataNotFound:
+        return False
+    return True
+
+
+def real_data_dir(name: str = "") -> Path:
+    """``$SIGMASLAM_SHARED/data/real[/name]``: real images kept outside the repository (licences forbid copying
+    them in). Raises :class:`DataNotFound` when absent."""
+    d = shared_dir() / "data" / "real" / name
+    if not d.exists():
+        raise DataNotFound(f"{d}: real image data not found (set SIGMASLAM_SHARED to the folder holding data/real)")
+    return d
 
 
 def data_dir() -> Path:

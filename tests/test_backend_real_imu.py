@@ -10,8 +10,9 @@ import pytest
 
 from services.backend.config import BackendConfig
 from services.backend.imu_factors import ImuBuffer, make_bias, make_params, predict
+from shared.paths import euroc_dir
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "euroc"
+DATA = euroc_dir()  # the shared EuRoC folder, else the files bundled in data/euroc
 
 
 def _head(path: Path, rows: int) -> np.ndarray:
@@ -20,7 +21,6 @@ def _head(path: Path, rows: int) -> np.ndarray:
     return np.loadtxt(lines, delimiter=",")
 
 
-@pytest.mark.skipif(not DATA.is_dir(), reason="EuRoC data folder ../shared/data/euroc not present")
 def test_real_imu_preintegration_matches_ground_truth():
     gt = _head(DATA / "groundtruth" / "V1_02_medium.state_groundtruth_estimate0.csv.xz", 4000)
     imu = _head(DATA / "imu" / "V102.imu0_data.csv.xz", 5000)

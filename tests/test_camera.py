@@ -7,8 +7,9 @@ import pytest
 from shared.camera import (CalibrationError, CameraModel, camera_from_sensor_yaml, camera_to_sensor_yaml, load_rig,
                            read_sensor_yaml_file, stereo_rectification)
 from shared.geometry import transform_points, inv_T
+from shared.paths import euroc_dir
 
-CALIB = Path(__file__).resolve().parents[2] / "shared" / "data" / "euroc" / "calib"
+CALIB = euroc_dir() / "calib"  # the shared EuRoC folder, else the files bundled in data/euroc
 
 
 def euroc_rig():

@@ -5,8 +5,9 @@ import pytest
 
 from shared.euroc import (PoseSeries, TrajectoryFileError, read_euroc_csv, read_trajectory, read_tum,
                           write_euroc_csv, write_tum)
+from shared.paths import euroc_dir
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "euroc"
+DATA = euroc_dir()  # the shared EuRoC folder, else the files bundled in data/euroc
 
 
 def _series(n=10):

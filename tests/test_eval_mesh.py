@@ -85,3 +85,43 @@ def test_cli_and_outputs(tmp_path):
     p = subprocess.run([sys.executable, "-m", "services.cli", "eval", "mesh", "--est", str(tmp_path / "nope.ply"),
                         "--gt", str(gt_path)], cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=120)
     assert p.returncode == 1 and "no such file" in p.stderr
+
+
+def test_prepared_ground_truth_is_cached_and_gives_the_same_figures(tmp_path, monkeypatch):
+    """The first evaluation prepares the ground truth (surface samples with their triangles' normals) and caches it;
+    the second reads the cache and gives the same figures; a changed ground-truth file is prepared anew."""
+    from tools.eval.mesh import load_ground_truth
+
+    monkeypatch.setenv("SIGMASLAM_DATA", str(tmp_path / "data"))
+    gt_path, est_path = tmp_path / "gt.ply", tmp_path / "est.ply"
+    o3d.io.write_triangle_mesh(str(gt_path), sphere(0.5))
+    o3d.io.write_triangle_mesh(str(est_path), sphere(0.52, 80))
+    said: list[str] = []
+    first = evaluate_mesh_files(est_path, gt_path, progress=said.append)
+    assert any("once per scene" in s for s in said) and not any("(cached)" in s for s in said)
+    assert len(list((tmp_path / "data" / "cache" / "mesh_gt").glob("*.npz"))) == 1
+    said.clear()
+    second = evaluate_mesh_files(est_path, gt_path, progress=said.append)
+    assert any("(cached)" in s for s in said)
+    # (ICP sums in parallel threads: the last digits may differ)
+    assert second.accuracy_m == pytest.approx(first.accuracy_m, abs=1e-4) and second.n_gt == first.n_gt
+    assert first.accuracy_m == pytest.approx(0.02, abs=0.004)
+    # triangle normals of a sphere point along the radius
+    gt = load_ground_truth(gt_path)
+    radial = gt.points / np.linalg.norm(gt.points, axis=1, keepdims=True)
+    assert np.median(np.abs(np.sum(radial * gt.normals, axis=1))) > 0.99
+    o3d.io.write_triangle_mesh(str(gt_path), sphere(0.6))  # new contents: the old cache entry is not used
+    said.clear()
+    third = evaluate_mesh_files(est_path, gt_path, progress=said.append)
+    assert any("once per scene" in s for s in said) and third.accuracy_m > 0.05
+
+
+def test_icp_on_a_subset_recovers_the_same_correction():
+    """The ICP estimated from a subset of the estimate removes a known offset as well as from all of it."""
+    gt = np.asarray(o3d.geometry.TriangleMesh.create_box(2.0, 1.5, 1.0).sample_points_uniformly(200_000).points)
+    est = gt[::2] + np.array([0.03, -0.02, 0.01])
+    full = evaluate_points(est, gt, icp=True, icp_max_points=10**9)
+    sub = evaluate_points(est, gt, icp=True, icp_max_points=5000)
+    np.testing.assert_allclose(sub.T_gt_est[:3, 3], full.T_gt_est[:3, 3], atol=2e-3)
+    np.testing.assert_allclose(sub.T_gt_est[:3, 3], [-0.03, 0.02, -0.01], atol=3e-3)
+    assert sub.accuracy_m < 0.006

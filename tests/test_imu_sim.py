@@ -6,8 +6,9 @@ import numpy as np
 from shared.euroc import read_euroc_csv
 from shared.imu_sim import G_W, ImuNoise, read_imu_csv, simulate_imu, time_offset
 from shared.trajectory import Trajectory, procedural
+from shared.paths import euroc_dir
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "euroc"
+DATA = euroc_dir()  # the shared EuRoC folder, else the files bundled in data/euroc
 
 
 def _gt():

@@ -14,7 +14,7 @@ from shared.depth_io import DepthFolder, read_depth_png, write_depth_png
 from shared.euroc import read_euroc_csv
 from shared.euroc_reader import EurocDataset
 from shared.imu_sim import G_W, read_imu_csv, time_offset
-from shared.paths import euroc_files
+from shared.paths import euroc_files, has_sequence
 from shared.trajectory import Trajectory, procedural
 from tools.synth.render import RenderConfig, Renderer
 from tools.synth.replica import ReplicaSpec, generate, load_calibration, plan
@@ -61,24 +61,30 @@ def test_gt_depth_lies_on_mesh_and_reprojects(small_scene, rig, tmp_path):
     assert worst_px < 1e-3
 
 
-def test_scene_clearance_variants_and_ply(tmp_path):
+@pytest.mark.parametrize("scene,site,sequence", [
+    ("vicon-a", "vicon", "V2_01"),
+    pytest.param("machinehall-b", "machinehall", "MH_04", marks=pytest.mark.skipif(
+        not has_sequence("MH_04"), reason="EuRoC MH_04 is not bundled: set SIGMASLAM_SHARED to a folder with "
+        "data/euroc (../shared beside the checkout)")),
+])
+def test_scene_clearance_variants_and_ply(tmp_path, scene, site, sequence):
     """Every ground-truth position of the site keeps >= 0.5 m from all geometry; variants differ; PLY is exact."""
     import open3d as o3d
 
     from tools.synth.scene import site_positions
 
-    a = build_scene("machinehall-b", seed=0, textures=False)
-    pts = site_positions("machinehall")
+    a = build_scene(scene, seed=0, textures=False)
+    pts = site_positions(site)
     rc = o3d.t.geometry.RaycastingScene()
     rc.add_triangles(o3d.core.Tensor(a.vertices.astype(np.float32)), o3d.core.Tensor(a.triangles.astype(np.uint32)))
     dmin = float(rc.compute_distance(o3d.core.Tensor(pts.astype(np.float32))).numpy().min())
-    print(f"machinehall-b: {len(a.triangles)} triangles; closest geometry to MH_04 GT: {dmin:.3f} m")
+    print(f"{scene}: {len(a.triangles)} triangles; closest geometry to the {site} GT ({sequence}, ...): {dmin:.3f} m")
     assert dmin >= 0.5 - 1e-4
     assert (pts >= a.room_min).all() and (pts <= a.room_max).all()
     v, f = read_ply(a.save_ply(tmp_path / "m.ply"))
     np.testing.assert_array_equal(v, a.vertices)
     np.testing.assert_array_equal(f, a.triangles)
-    b = build_scene("machinehall-b", seed=1, textures=False)
+    b = build_scene(scene, seed=1, textures=False)
     assert len(b.triangles) != len(a.triangles) or not np.array_equal(b.vertices, a.vertices)
 
 

@@ -4,8 +4,9 @@ import numpy as np
 
 from shared.euroc import read_euroc_csv
 from shared.trajectory import Trajectory, _quat_to_R, procedural
+from shared.paths import euroc_dir
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "euroc"
+DATA = euroc_dir()  # the shared EuRoC folder, else the files bundled in data/euroc
 
 
 def _rot_err(Ra, Rb):

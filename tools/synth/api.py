@@ -64,6 +64,13 @@ def ensure_replica(sequence: str = "V1_02", scene: str = "vicon-a", imu: str = "
     return ensure_spec(spec, root, progress)
 
 
+def replica_exists(root: Path | None = None, **spec) -> bool:
+    """Whether the replica of ``spec`` (default: the bundled default) is already generated and cached."""
+    spec = ReplicaSpec(**{**DEFAULT, **spec})
+    root = Path(root) if root is not None else data_dir() / "replicas"
+    return (root / replica_name(spec) / "replica.yaml").is_file()
+
+
 def ensure_default_replica(progress: bool = True) -> Path:
     """The bundled default: 25 s of V1_02 in 'vicon-a' with the real IMU (about 500 stereo frames)."""
     return ensure_replica(**DEFAULT, progress=progress)
