@@ -15,15 +15,21 @@ and the last state is in (or no state came for ``--settle-s``), it stops the ser
 - ``DIR/trajectory_final.txt`` / ``.csv``: the non-causal trajectory (final bundle adjustment with loops, from
   ``estimator/trajectory_final``; ``loop.final_ba``), which then also becomes ``DIR/trajectory.txt``; loop counts
   in stats.json;
-- ``DIR/ate.json`` and a printed line when the dataset has ground truth (SE(3) alignment, tools/eval/ate.py),
-  causal and non-causal;
+- ``DIR/ate.json`` and a printed line when there is ground truth (SE(3) alignment, tools/eval/ate.py), causal
+  and non-causal, over the poses that have a ground-truth pose within 10 ms (a ground truth that starts late or
+  ends early only shortens the span; ate.json says how many poses and which span). The ground truth is
+  ``--gt PATH`` (EuRoC CSV or TUM ``.txt``), else the first of :data:`GT_CANDIDATES` found in DATASET; it is also
+  the viewer's overlay unless ``viewer.ground_truth`` is set;
 - ``DIR/config.yaml``: the resolved config every service got.
+
+``--serve-s S`` then shows the run's final map and trajectories in the web viewer for S seconds.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import logging
 import threading
@@ -53,10 +59,19 @@ DEFAULT_PIPELINE = (ServiceSpec(name="frontend", argv=["frontend"]), ServiceSpec
 # per-frame stages whose medians add up to the estimator's cost per camera frame
 FRAME_STAGES = (("frontend", "track"), ("backend", "optimise"))
 
+# where a dataset folder (the one holding mav0/, or mav0 itself) keeps its ground truth, in the order looked for:
+# the ASL layout's own file, then a TUM or CSV file at the folder's top (what trimmed or converted folders carry)
+GT_CANDIDATES = ("mav0/state_groundtruth_estimate0/data.csv", "groundtruth_tum.txt", "groundtruth.txt",
+                 "groundtruth.csv")
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("dataset", help="EuRoC ASL folder (real or replica)")
-    p.add_argument("config", nargs="?", help="YAML system config (default: built-in defaults)")
+    p.add_argument("dataset", help="EuRoC ASL folder (real or replica; the folder holding mav0/, or mav0)")
+    p.add_argument("config", nargs="?", help="YAML system config (default: built-in defaults); before or after "
+                   "the options")
+    p.add_argument("--gt", metavar="PATH", help="ground truth for the ATE: EuRoC CSV (state_groundtruth_estimate0 "
+                   "or 8-column pose CSV, .xz ok) or TUM .txt (default: the first of "
+                   f"{', '.join(GT_CANDIDATES)} in DATASET; none: no ATE)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config field")
     p.add_argument("--realtime", action="store_true", help="play at sensor rate instead of lockstep")
@@ -70,6 +85,25 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--timeout-s", type=float, default=0.0, help="give up after this long (0: no limit) [s]")
     p.add_argument("--final-timeout-s", type=float, default=600.0, help="wait this long for the back end's final "
                    "bundle adjustment (estimator/trajectory_final) after the stream ended [s]")
+    p.add_argument("--serve-s", type=float, default=0.0, help="after the run, show its final map and trajectories "
+                   "in the web viewer (viewer.host:viewer.port) this long [s] (0: no)")
+    _intermixed(p)
+
+
+def _intermixed(p: argparse.ArgumentParser) -> None:
+    """Let CONFIG come after the options (``run DATASET --out DIR CONFIG``): argparse of Python 3.11 binds every
+    positional at the first one (CONFIG to nothing) and then refuses a later CONFIG; intermixed parsing first
+    takes the options, then the positionals. The subcommand parser is called through ``parse_known_args``."""
+    plain = functools.partial(type(p).parse_known_args, p)
+
+    def parse_known_args(args=None, namespace=None):
+        p.parse_known_args = plain  # intermixed parsing calls parse_known_args itself
+        try:
+            return p.parse_known_intermixed_args(args, namespace)
+        finally:
+            p.parse_known_args = parse_known_args
+
+    p.parse_known_args = parse_known_args
 
 
 def pipeline_services(cfg, dataset: str, out: Path, realtime: bool, record: bool,
@@ -174,25 +208,42 @@ def stats_summary(col: _Collector) -> dict:
     return out
 
 
-def _ground_truth(dataset: Path) -> Path | None:
-    root = dataset / "mav0" if (dataset / "mav0").is_dir() else dataset
-    gt = root / "state_groundtruth_estimate0" / "data.csv"
-    return gt if gt.is_file() else None
+def find_ground_truth(dataset: Path) -> Path | None:
+    """The first of :data:`GT_CANDIDATES` in ``dataset`` (the folder holding mav0/, or mav0 itself), or None."""
+    root = dataset / "mav0" if (dataset / "mav0").is_dir() else dataset  # the reader's root (mav0 or its content)
+    base = root.parent if root.name == "mav0" else root
+    paths = [root / "state_groundtruth_estimate0" / "data.csv", *(base / c for c in GT_CANDIDATES[1:])]
+    return next((q for q in paths if q.is_file()), None)
 
 
 def evaluate(traj: PoseSeries, gt_path: Path) -> dict:
+    """SE(3)-aligned ATE of ``traj`` over its poses that have a ground-truth pose within 10 ms (the overlap)."""
     from tools.eval.ate import compute_ate
 
     gt = read_trajectory(gt_path)
     res = compute_ate(gt.stamps_ns, gt.p_WS, traj.stamps_ns, traj.p_WS, mode="se3")
     return {"ate_rmse_m": res.rmse_m, "ate_mean_m": res.mean_m, "ate_median_m": res.median_m,
-            "ate_max_m": res.max_m, "matched": res.matched, "alignment": "se3", "groundtruth": str(gt_path)}
+            "ate_max_m": res.max_m, "matched": res.matched, "poses": len(traj.stamps_ns),
+            "matched_span_ns": [int(res.stamps_ns[0]), int(res.stamps_ns[-1])],
+            "groundtruth_span_ns": [int(gt.stamps_ns[0]), int(gt.stamps_ns[-1])],
+            "alignment": "se3", "groundtruth": str(gt_path)}
+
+
+def _ate_line(kind: str, ate: dict) -> str:
+    t0, t1 = ate["matched_span_ns"]
+    return (f"[sigmaslam run] {kind} ATE (SE(3)) RMSE {ate['ate_rmse_m']:.4f} m over {ate['matched']} of "
+            f"{ate['poses']} poses ({(t1 - t0) * 1e-9:.1f} s with ground truth)")
 
 
 def main(args: argparse.Namespace) -> int:
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     dataset = str(Path(args.dataset).resolve())
+    gt_arg = getattr(args, "gt", None)
+    if gt_arg and gt_arg != "none" and not Path(gt_arg).is_file():
+        print(f"sigmaslam run: --gt {gt_arg}: file not found", flush=True)
+        return 2
+    gt = (None if gt_arg == "none" else Path(gt_arg).resolve()) if gt_arg else find_ground_truth(Path(dataset))
+    out.mkdir(parents=True, exist_ok=True)
     port = free_local_port()
     run_id = uuid.uuid4().hex[:8]
     overrides = [f"transport.namespace=sigmaslam/run-{run_id}", f"transport.connect=[tcp/127.0.0.1:{port}]",
@@ -200,6 +251,8 @@ def main(args: argparse.Namespace) -> int:
     cfg = load_system_config(args.config, overrides)
     if not cfg.rig.calibration:
         cfg.rig.calibration = dataset
+    if gt is not None and not cfg.viewer.ground_truth:
+        cfg.viewer.ground_truth = str(gt)  # the viewer overlays it (green)
     cfg.supervisor.services = pipeline_services(cfg, dataset, out.resolve(), args.realtime, args.record,
                                                 args.player_arg, getattr(args, "rate", 0.0))
     cfg.supervisor.start_router = True
@@ -209,6 +262,9 @@ def main(args: argparse.Namespace) -> int:
     sup = Supervisor(cfg.supervisor, config_path, out.resolve())
     names = [s.name for s in cfg.supervisor.services]
     print(f"[sigmaslam run] {dataset}: services {names}, namespace {cfg.transport.namespace}, port {port}", flush=True)
+    url = f"http://{cfg.viewer.host}:{cfg.viewer.port}"
+    if any(s.argv and s.argv[0] == "viewer" for s in cfg.supervisor.services):
+        print(f"[sigmaslam run] viewer at {url} while the pipeline runs", flush=True)
     col = _Collector()
     t_start = time.monotonic()
     with Node("run", cfg.transport) as node:
@@ -239,21 +295,32 @@ def main(args: argparse.Namespace) -> int:
     (out / "stats.json").write_text(json.dumps(summary, indent=2))
     print(f"[sigmaslam run] {why}: {len(traj.stamps_ns)} poses in {wall:.1f} s; frontend+backend median "
           f"{summary['frontend_backend_median_ms']} ms per frame; states {summary['states']}", flush=True)
-    gt = _ground_truth(Path(dataset))
     rc = 0 if why == "done" else 1
-    if gt is not None and len(traj.stamps_ns) >= 3:
-        try:
-            ate = evaluate(traj, gt)
-        except ValueError as exc:
-            print(f"[sigmaslam run] ATE not computed: {exc}", flush=True)
-            return 1
-        (out / "ate.json").write_text(json.dumps(ate, indent=2))
-        print(f"[sigmaslam run] causal ATE (SE(3)) RMSE {ate['ate_rmse_m']:.4f} m over {ate['matched']} poses", flush=True)
-        if final_traj is not None and len(final_traj.stamps_ns) >= 3:
-            ate["non_causal"] = evaluate(final_traj, gt)
-            (out / "ate.json").write_text(json.dumps(ate, indent=2))
-            print(f"[sigmaslam run] non-causal ATE (SE(3)) RMSE {ate['non_causal']['ate_rmse_m']:.4f} m over "
-                  f"{ate['non_causal']['matched']} poses", flush=True)
-    elif len(traj.stamps_ns) < 3:
+    if len(traj.stamps_ns) < 3:
         rc = 1
+    elif gt is not None:
+        try:
+            _write_ate(out, traj, final_traj, gt)
+        except ValueError as exc:
+            print(f"[sigmaslam run] ATE not computed ({gt}): {exc}", flush=True)
+            rc = 1
+    elif gt_arg != "none":
+        print("[sigmaslam run] no ground truth (none of " + ", ".join(GT_CANDIDATES) + " in the dataset, no --gt): "
+              "no ATE", flush=True)
+    if getattr(args, "serve_s", 0.0) > 0:
+        from services.demo_serve import serve_run
+
+        print(f"[sigmaslam run] serving the final map at {url} for {args.serve_s:.0f} s (Ctrl-C stops)", flush=True)
+        serve_run(out, args.config, [*([f"viewer.ground_truth={gt}"] if gt else []), *args.set], args.serve_s)
     return rc
+
+
+def _write_ate(out: Path, traj: PoseSeries, final_traj: PoseSeries | None, gt: Path) -> None:
+    """DIR/ate.json (causal, and non-causal when there is a final trajectory) and their printed lines."""
+    ate = evaluate(traj, gt)
+    (out / "ate.json").write_text(json.dumps(ate, indent=2))
+    print(_ate_line("causal", ate), flush=True)
+    if final_traj is not None and len(final_traj.stamps_ns) >= 3:
+        ate["non_causal"] = evaluate(final_traj, gt)
+        (out / "ate.json").write_text(json.dumps(ate, indent=2))
+        print(_ate_line("non-causal", ate["non_causal"]), flush=True)

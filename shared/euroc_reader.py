@@ -2,7 +2,11 @@
 
 Frames are synchronised across cameras by exact timestamp; a stamp missing in some camera is counted
 (``stats['frames_missing_camera']``) and skipped. Backward/duplicate timestamps are counted and skipped
-with a warning; unreadable images are counted and skipped when loaded. Missing files/keys -> DatasetError.
+with a warning. Missing or unreadable images skip their frame (all cameras) and count in
+``stats['unreadable_images']``: image files that a ``data.csv`` row names but that do not exist (real
+downloads have such rows) are found when the folder is opened, so ``frame_stamps_ns`` holds only frames
+whose files all exist, with one warning per camera; a file that does not decode is found when loaded.
+Missing sensor files/keys -> DatasetError.
 """
 from __future__ import annotations
 
@@ -55,7 +59,8 @@ class EurocDataset:
         if not root.is_dir():
             raise DatasetError(f"{p}: dataset folder not found")
         self.root = root
-        self.stats = {"frames_missing_camera": 0, "backwards_stamps": 0, "unreadable_images": 0, "nonfinite_imu": 0}
+        self.stats = {"frames_missing_camera": 0, "backwards_stamps": 0, "unreadable_images": 0, "nonfinite_imu": 0,
+                      "imu_outside_frames": 0}
         self.camera_names = sorted((d.name for d in root.glob("cam*") if d.is_dir()), key=lambda n: int(n[3:]))
         if not self.camera_names:
             raise DatasetError(f"{root}: no cam* folder")
@@ -67,7 +72,9 @@ class EurocDataset:
         common = set.intersection(*(set(self._cams[c]) for c in self.camera_names))
         union = set.union(*(set(self._cams[c]) for c in self.camera_names))
         self.stats["frames_missing_camera"] = len(union - common)
-        self.frame_stamps_ns = np.array(sorted(common), dtype=np.int64)
+        no_file = set().union(*(self._missing_files(c, common) for c in self.camera_names))
+        self.stats["unreadable_images"] = len(no_file)
+        self.frame_stamps_ns = np.array(sorted(common - no_file), dtype=np.int64)
         gt = root / "state_groundtruth_estimate0" / "data.csv"
         self.groundtruth_path = gt if gt.is_file() else None
 
@@ -103,6 +110,19 @@ class EurocDataset:
             raise DatasetError(f"{path}: data row {short} has no file name")
         return {stamps[i]: self.root / cam / "data" / rows[i][1] for i in self._monotonic(path, stamps)}
 
+    def _missing_files(self, cam: str, stamps: set[int]) -> set[int]:
+        """Stamps (of ``stamps``) whose image file of ``cam`` does not exist; one warning for all of them."""
+        missing = {t for t in stamps if not self._cams[cam][t].is_file()}
+        if missing:
+            log.warning("%s: %d data.csv rows name image files that do not exist (first at %d); those frames are "
+                        "skipped", self.root / cam / "data.csv", len(missing), min(missing))
+        return missing
+
+    def frame_span_ns(self) -> tuple[int, int] | None:
+        """First and last frame stamp [ns], or None without frames."""
+        f = self.frame_stamps_ns
+        return (int(f[0]), int(f[-1])) if len(f) else None
+
     def _read_imu(self):
         path = self.root / "imu0" / "data.csv"
         rows = self._csv(path)
@@ -132,13 +152,28 @@ class EurocDataset:
             imgs.append(img)
         return imgs
 
-    def messages(self):
-        """Yield ImuSample and MultiCameraFrame in time order (IMU first on ties)."""
+    def messages(self, imu_margin_ns: int | None = None):
+        """Yield ImuSample and MultiCameraFrame in time order (IMU first on ties).
+
+        ``imu_margin_ns``: yield only the IMU samples from this long before the first frame to this long after
+        the last (the rest is counted in ``stats['imu_outside_frames']``); None: every sample.
+        """
         i = j = seq_i = seq_f = 0
         ti, tf = self.imu_stamps_ns, self.frame_stamps_ns
+        span = self.frame_span_ns()
+        if imu_margin_ns is not None and span is not None:
+            keep = (ti >= span[0] - imu_margin_ns) & (ti <= span[1] + imu_margin_ns)
+            self.stats["imu_outside_frames"] = int((~keep).sum())
+            if not keep.all():
+                log.info("%s: %d of %d IMU samples lie more than %.2f s outside the frames' span; not played",
+                         self.root / "imu0" / "data.csv", int((~keep).sum()), len(ti), imu_margin_ns * 1e-9)
+            ti = ti[keep]
+            values = self.imu_values[keep]
+        else:
+            values = self.imu_values
         while i < len(ti) or j < len(tf):
             if j >= len(tf) or (i < len(ti) and ti[i] <= tf[j]):
-                v = self.imu_values[i]
+                v = values[i]
                 yield ImuSample(header=Header(stamp_ns=int(ti[i]), seq=seq_i, frame_id="S"),
                                 omega_S=v[:3].copy(), acc_S=v[3:].copy())
                 i += 1

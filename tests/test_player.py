@@ -210,3 +210,143 @@ def test_error_paths(tmp_path, dataset):
     res = subprocess.run([sys.executable, "-m", "services.cli", "convert", str(tmp_path / "nothing"), str(tmp_path / "o.mcap")],
                          cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=60)
     assert res.returncode == 1 and "not found" in res.stderr
+
+
+# ----------------------------------------------------------------------------- real-download quirks (issue 19)
+
+def _copy(dataset, dst):
+    import shutil
+
+    shutil.copytree(dataset, dst)
+    return dst
+
+
+def test_rows_without_image_files_skip_their_frame_when_opened(tmp_path, dataset, caplog):
+    """A data.csv row naming an image that is not there (real downloads have such cam1 rows): the pair is left
+    out of frame_stamps_ns, counted, one warning per camera; the rest plays."""
+    bad = _copy(dataset, tmp_path / "bad")
+    gone = [T0 + 2 * 50_000_000, T0 + 7 * 50_000_000]
+    for t in gone:
+        (bad / "mav0" / "cam1" / "data" / f"{t}.png").unlink()
+    with caplog.at_level("WARNING", logger="shared.euroc_reader"):
+        ds = EurocDataset(bad)
+    assert ds.stats["unreadable_images"] == 2 and len(ds.frame_stamps_ns) == N_FRAMES - 2
+    assert not set(gone) & set(ds.frame_stamps_ns.tolist())
+    warnings = [r.getMessage() for r in caplog.records if "do not exist" in r.getMessage()]
+    assert len(warnings) == 1 and "cam1" in warnings[0] and "2 data.csv rows" in warnings[0], warnings
+    frames = [m for m in ds.messages() if type(m).__name__ == "MultiCameraFrame"]
+    assert [m.header.stamp_ns for m in frames] == ds.frame_stamps_ns.tolist()
+    assert [m.header.seq for m in frames] == list(range(N_FRAMES - 2))
+    assert ds.stats["unreadable_images"] == 2  # not counted a second time when played
+
+
+def _long_imu_dataset(dataset, dst, before_s: float, after_s: float):
+    """``dataset`` with its IMU extended to ``before_s`` before and ``after_s`` after the frames (200 Hz)."""
+    d = _copy(dataset, dst)
+    csv = d / "mav0" / "imu0" / "data.csv"
+    head, *rows = csv.read_text().splitlines()
+    first, last = int(rows[0].split(",")[0]), int(rows[-1].split(",")[0])
+    pre = np.arange(first - int(before_s * 1e9), first, 5_000_000, dtype=np.int64)
+    post = np.arange(last + 5_000_000, last + int(after_s * 1e9), 5_000_000, dtype=np.int64)
+    fmt = lambda t: f"{t},0.001,-0.002,0.003,0.1,0.2,9.8"  # noqa: E731
+    csv.write_text("\n".join([head, *map(fmt, pre), *rows, *map(fmt, post)]) + "\n")
+    return d, len(pre), len(post)
+
+
+def test_imu_outside_the_frames_span_is_not_played(tmp_path, dataset):
+    long, n_pre, n_post = _long_imu_dataset(dataset, tmp_path / "long", before_s=20.0, after_s=60.0)
+    ds = EurocDataset(long)
+    everything = list(ds.messages())  # default: every sample (what convert needs)
+    assert sum(type(m).__name__ == "ImuSample" for m in everything) == 110 + n_pre + n_post
+    margin = 300_000_000
+    msgs = list(ds.messages(imu_margin_ns=margin))
+    imu = [m.header.stamp_ns for m in msgs if type(m).__name__ == "ImuSample"]
+    t0, t1 = ds.frame_span_ns()
+    assert (t0, t1) == (T0, T0 + 9 * 50_000_000)
+    assert min(imu) >= t0 - margin and max(imu) <= t1 + margin
+    assert min(imu) < t0 - margin + 5_000_000 and max(imu) > t1 + margin - 5_000_000  # the whole margin kept
+    assert ds.stats["imu_outside_frames"] == 110 + n_pre + n_post - len(imu)
+    assert sum(type(m).__name__ == "MultiCameraFrame" for m in msgs) == N_FRAMES
+    stamps = [m.header.stamp_ns for m in msgs]
+    assert stamps == sorted(stamps)
+
+
+def test_realtime_player_does_not_play_a_minute_of_trailing_imu(tmp_path, dataset):
+    """A trimmed folder whose IMU runs on 60 s past its 0.45 s of frames: played at sensor rate, the stream
+    ends about player.imu_margin_s after the last frame, not a minute later."""
+    long, _, _ = _long_imu_dataset(dataset, tmp_path / "long", before_s=30.0, after_s=60.0)
+    with router() as tcfg:
+        cfg = _config(tmp_path, tcfg, mode="rate", rate=1.0, imu_margin_s=0.5)
+        with Node("tester", tcfg) as node:
+            col = Collector(node)
+            t_start = time.monotonic()
+            proc, lines = _start_player(cfg, long)
+            assert wait_for(lambda: col.ends, 20.0), "".join(lines)
+            took = time.monotonic() - t_start
+            _finish(proc, lines)
+    print(f"realtime, 0.45 s of frames inside 90 s of IMU: stream ended after {took:.1f} s")
+    assert len(col.frames) == N_FRAMES and col.ends[0].frames_sent == N_FRAMES
+    assert len(col.imu) == 291  # every 5 ms from 0.5 s before the first frame to 0.5 s after the last, ends included
+    assert "imu_outside_frames" in "".join(lines)
+
+
+def test_run_finds_ground_truth_where_downloads_keep_it(tmp_path, dataset):
+    from services.run_cmd import find_ground_truth
+
+    d = _copy(dataset, tmp_path / "asl")
+    asl = d / "mav0" / "state_groundtruth_estimate0" / "data.csv"
+    (d / "groundtruth_tum.txt").write_text("1403715523.912143104 0 0 0 0 0 0 1\n")
+    assert find_ground_truth(d) == asl and find_ground_truth(d / "mav0") == asl  # the ASL file first
+    asl.unlink()
+    assert find_ground_truth(d) == d / "groundtruth_tum.txt" == find_ground_truth(d / "mav0")
+    (d / "groundtruth_tum.txt").unlink()
+    assert find_ground_truth(d) is None
+
+
+def test_run_ate_is_computed_over_the_ground_truths_span_only():
+    """Ground truth that starts 1 s after the first pose and ends before the last: the poses outside its span
+    are not matched (nor aligned), and ate.json says how many were and over which span."""
+    import tempfile
+    from pathlib import Path
+
+    from services.run_cmd import evaluate
+    from shared.euroc import PoseSeries, write_tum
+
+    t = T0 + np.arange(60, dtype=np.int64) * 50_000_000  # 3 s of poses at 20 Hz
+    p = np.c_[np.linspace(0, 1, 60), np.zeros(60), np.zeros(60)]
+    q = np.tile([1.0, 0, 0, 0], (60, 1))
+    p_far = p.copy()
+    p_far[:20] += 5.0  # before the ground truth starts: would ruin the ATE if it were used
+    tg = T0 + 1_000_000_000 + np.arange(301, dtype=np.int64) * 5_000_000  # 1.0 .. 2.5 s at 200 Hz
+    gt = PoseSeries(tg, np.c_[(tg - T0) * 1e-9 / 2.95, np.zeros(301), np.zeros(301)], np.tile([1.0, 0, 0, 0], (301, 1)))
+    with tempfile.TemporaryDirectory() as d:
+        write_tum(Path(d) / "gt.txt", gt)
+        ate = evaluate(PoseSeries(t, p_far, q), Path(d) / "gt.txt")
+    assert ate["poses"] == 60 and ate["matched"] == 31, ate  # 1.0 .. 2.5 s
+    assert ate["matched_span_ns"] == [T0 + 1_000_000_000, T0 + 2_500_000_000]
+    assert ate["groundtruth_span_ns"] == [int(tg[0]), int(tg[-1])]
+    assert ate["ate_rmse_m"] < 1e-6
+
+
+def test_run_takes_the_config_after_the_options():
+    """``sigmaslam run DATASET --out DIR CONFIG`` (the documented form; Python 3.11's argparse refuses it
+    unless positionals and options are parsed intermixed)."""
+    import argparse
+
+    from services import run_cmd
+
+    top = argparse.ArgumentParser(prog="sigmaslam")
+    run = top.add_subparsers(dest="command").add_parser("run")
+    run_cmd.add_arguments(run)
+    a = top.parse_args(["run", "data/V1_02", "--out", "out/v102", "configs/demo.yaml", "--gt", "gt.txt",
+                        "--player-arg=--max-frames=20", "--set", "o2p.enabled=false"])
+    assert (a.dataset, a.config, a.out, a.gt) == ("data/V1_02", "configs/demo.yaml", "out/v102", "gt.txt")
+    assert a.player_arg == ["--max-frames=20"] and a.set == ["o2p.enabled=false"]
+    a = top.parse_args(["run", "data/V1_02", "configs/demo.yaml", "--out", "o"])
+    assert (a.dataset, a.config, a.gt) == ("data/V1_02", "configs/demo.yaml", None)
+    assert top.parse_args(["run", "d", "--out", "o"]).config is None
+    with pytest.raises(SystemExit):
+        top.parse_args(["run", "d", "--out", "o", "c", "extra"])
+    # a --gt that is not there: refused before anything starts
+    a = top.parse_args(["run", "d", "--out", "o", "--gt", "/nonexistent/gt.txt"])
+    assert run_cmd.main(a) == 2

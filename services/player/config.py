@@ -22,6 +22,9 @@ class PlayerConfig:
     start_paused: bool = param(False, "wait for a 'resume' control command before the first message")
     max_frames: int = param(0, "stop after this many frames (0 = all)")
     end_linger_s: float = param(0.5, "stay on the bus this long after publishing sensors/end", "s")
+    imu_margin_s: float = param(1.0, "EuRoC folders: play IMU samples only from this long before the first camera "
+                                "frame to this long after the last (a trimmed folder may hold minutes of IMU "
+                                "around seconds of images); negative: every sample", "s")
 
     def __post_init__(self) -> None:
         if self.mode not in ("lockstep", "rate"):

@@ -8,6 +8,9 @@ whatever the machine's speed. ``--rate R`` plays at R times sensor rate (``--rea
 ``--wait-for a,b`` waits until those services' heartbeats are seen before playing. The ``control`` topic
 pauses, resumes or stops playback (target 'player' or '*'); time spent paused does not count in rate mode.
 Defaults come from the ``player`` config section (:class:`services.player.config.PlayerConfig`).
+From an EuRoC folder, IMU samples more than ``player.imu_margin_s`` before the first or after the last camera
+frame are not played (a trimmed folder may keep the whole sequence's IMU: no minutes of IMU-only stream);
+frames whose image files are missing are skipped. The closing line prints the dataset's non-zero counters.
 """
 
 from __future__ import annotations
@@ -104,7 +107,7 @@ def main(args: argparse.Namespace) -> int:
         last_frame_ns = 0
         t_wall0 = t_data0 = None
         try:
-            messages = iter(ds.messages())
+            messages = iter(ds.messages(None if pc.imu_margin_s < 0 else int(round(pc.imu_margin_s * 1e9))))
         except DatasetError as exc:
             print(f"sigmaslam player: {exc}", flush=True)
             return 2
@@ -139,7 +142,9 @@ def main(args: argparse.Namespace) -> int:
         end_pub.publish(StreamEnd(header=Header(stamp_ns=last_frame_ns, seq=0, frame_id="player"),
                                   source="player", frames_sent=frames))
         log.info("player: %d frames, %d lockstep timeouts, dataset counters %s", frames, timeouts, ds.stats)
-        print(f"player: {frames} frames sent ({timeouts} lockstep timeouts)", flush=True)
+        skipped = ", ".join(f"{k} {v}" for k, v in ds.stats.items() if v)
+        print(f"player: {frames} frames sent ({timeouts} lockstep timeouts)"
+              + (f"; dataset: {skipped}" if skipped else ""), flush=True)
         node.wait(pc.end_linger_s)
     return 0
 

@@ -24,7 +24,10 @@ class Source:
     name: str
     stats: dict[str, int]
 
-    def messages(self) -> Iterator[ImuSample | MultiCameraFrame]:
+    def messages(self, imu_margin_ns: int | None = None) -> Iterator[ImuSample | MultiCameraFrame]:
+        """Messages in time order. ``imu_margin_ns`` (not None): leave out IMU samples more than this long before
+        the first or after the last frame, where the source knows its frames' span up front (EuRoC folders;
+        a recording plays every sample)."""
         raise NotImplementedError
 
 
@@ -34,8 +37,8 @@ class EurocSource(Source):
         self.name = str(path)
         self.stats = self.ds.stats
 
-    def messages(self):
-        return self.ds.messages()
+    def messages(self, imu_margin_ns: int | None = None):
+        return self.ds.messages(imu_margin_ns)
 
 
 class McapSource(Source):
@@ -51,7 +54,7 @@ class McapSource(Source):
         self.path, self.name = p, str(p)
         self.stats = {"undecodable": 0, "backwards_stamps": 0, "other_messages": 0}
 
-    def messages(self):
+    def messages(self, imu_margin_ns: int | None = None):
         from mcap.reader import make_reader
 
         from services.recorder.mcap_writer import NATIVE_ENCODING
