@@ -138,12 +138,29 @@ class _Collector:
     last_state_time: float = 0.0
 
 
+PROGRESS_EVERY_S = 10.0  # wall time between two progress lines of a run [s]
+
+
+def progress_line(col: _Collector, elapsed_s: float) -> str:
+    """What a run has received so far: states by status and how far into the sequence the last one is."""
+    if not col.states:
+        return f"{elapsed_s:.0f} s: no state yet (services starting, or the back end initialising)"
+    status = [s.status for s in col.states]
+    counts = ", ".join(f"{k} {status.count(k)}" for k in sorted(set(status)))
+    span_s = (col.states[-1].header.stamp_ns - col.states[0].header.stamp_ns) * 1e-9
+    return f"{elapsed_s:.0f} s: {len(col.states)} states ({counts}), {span_s:.1f} s into the sequence"
+
+
 def _collect(node: Node, col: _Collector, sup_thread: threading.Thread, settle_s: float, timeout_s: float) -> str:
     states = node.subscriber(topics.STATE, policy="all", depth=1_000_000)
     stats = node.subscriber(topics.STATS, policy="all", depth=10_000)
     ends = node.subscriber(topics.STREAM_END)
-    t0 = time.monotonic()
+    t0 = next_report = time.monotonic()
     while not node.stopped:
+        if time.monotonic() >= next_report:  # a line now and then, so a long run is never silent
+            if next_report > t0:
+                print(f"[sigmaslam run] {progress_line(col, time.monotonic() - t0)}", flush=True)
+            next_report += PROGRESS_EVERY_S
         for s in stats.drain():
             col.stats[s.service] = s
             for name, p50, n in zip(s.stage_names, s.stage_p50_ms, s.stage_count):

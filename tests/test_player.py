@@ -350,3 +350,17 @@ def test_run_takes_the_config_after_the_options():
     # a --gt that is not there: refused before anything starts
     a = top.parse_args(["run", "d", "--out", "o", "--gt", "/nonexistent/gt.txt"])
     assert run_cmd.main(a) == 2
+
+
+def test_run_progress_line_counts_states_and_sequence_time():
+    """`sigmaslam run` prints a progress line every PROGRESS_EVERY_S: what it has received so far."""
+    from types import SimpleNamespace
+
+    from services.run_cmd import _Collector, progress_line
+
+    col = _Collector()
+    assert "no state yet" in progress_line(col, 12.0)
+    for k, status in enumerate(["initialising"] * 3 + ["tracking"] * 7):
+        col.states.append(SimpleNamespace(header=SimpleNamespace(stamp_ns=1_000_000_000 + k * 50_000_000), status=status))
+    line = progress_line(col, 20.4)
+    assert line == "20 s: 10 states (initialising 3, tracking 7), 0.5 s into the sequence", line

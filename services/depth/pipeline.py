@@ -181,6 +181,18 @@ class DepthPipeline:
             u, su = self.stereo_net(t(left), t(right))
         return disparity_to_depth(u[0].cpu().numpy(), su[0].cpu().numpy() * self.stereo_gain, self.f_px, self.baseline_m)
 
+    def warm_up(self) -> None:
+        """One inference on a blank image, so that the first real frame does not also pay for the networks' lazy
+        set-up (allocations, kernel selection: 1-3 s on a CPU) while the stream has already started."""
+        blank = np.zeros((self.cfg.height, self.cfg.width), np.uint8)
+        if self.stereo_net is not None and not self.cfg.mono:
+            self.stereo(blank, blank)
+        if self.mvs_net is not None:
+            import torch
+
+            with torch.inference_mode():
+                self.mvs_net.encoder(torch.from_numpy(blank).float()[None, None].to(self.device))
+
     def _mask(self, ds: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Depth and sigma with NaN outside ``self.valid``."""
         return tuple(np.where(self.valid, a, np.float32(np.nan)).astype(np.float32, copy=False) for a in ds)

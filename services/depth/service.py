@@ -92,6 +92,9 @@ def main(args: argparse.Namespace) -> int:
         return 2
     log.info("depth: method %s (stereo gain %.3f, MVS %s), %dx%d, f %.1f px, baseline %.3f m", pipe.method,
              pipe.stereo_gain, "on" if pipe.mvs_net is not None else "off", dc.width, dc.height, pipe.f_px, pipe.baseline_m)
+    t_warm = time.monotonic()
+    pipe.warm_up()  # before the node's first heartbeat: a player waiting for it starts once depth is ready
+    log.info("depth: networks warmed up in %.1f s", time.monotonic() - t_warm)
     right_name = None if dc.mono else dc.right_camera
     no_mvs = [0]  # depth.mono: frames without MVS depth yet (no pose or no source views), nothing published
     poses = PoseBook()

@@ -10,10 +10,16 @@ from shared.euroc import series_from_matrices, PoseSeries, write_euroc_csv, writ
 from transport.queues import Empty
 
 
-def wait_final(subscriber, timeout_s: float, stopped=lambda: False):
-    """The first FinalTrajectory on ``subscriber`` within ``timeout_s`` (None if none came)."""
-    t_end = time.monotonic() + timeout_s
+def wait_final(subscriber, timeout_s: float, stopped=lambda: False, report_every_s: float = 10.0):
+    """The first FinalTrajectory on ``subscriber`` within ``timeout_s`` (None if none came); says every
+    ``report_every_s`` that it is still waiting."""
+    t0 = time.monotonic()
+    t_end, next_report = t0 + timeout_s, t0 + report_every_s
     while time.monotonic() < t_end and not stopped():
+        if time.monotonic() >= next_report:
+            print(f"[sigmaslam run] still waiting for the final bundle adjustment ({time.monotonic() - t0:.0f} s)",
+                  flush=True)
+            next_report += report_every_s
         try:
             return subscriber.get(timeout=0.2)
         except Empty:
