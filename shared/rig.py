@@ -1,8 +1,8 @@
 """Which camera rig the pipeline services use: a config section and its loader.
 
 ``rig.calibration`` names an EuRoC dataset folder (``mav0/cam*/sensor.yaml``) or a rig YAML file
-(see :func:`shared.camera.load_rig`); empty means the real EuRoC rig in ``../shared/data/euroc/calib``
-(``cam0_sensor.yaml``, ``cam1_sensor.yaml``). ``sigmaslam run DATASET`` sets it to DATASET.
+(see :func:`shared.camera.load_rig`); empty means the real EuRoC rig: ``cam0_sensor.yaml``, ``cam1_sensor.yaml``
+in ``calib/`` of :func:`shared.paths.euroc_dir` (``../shared/data/euroc``, else the copy bundled in ``data/euroc``). ``sigmaslam run DATASET`` sets it to DATASET.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ class RigConfig:
     """Camera rig of the pipeline."""
 
     calibration: str = param("", "EuRoC dataset folder or rig YAML with the cameras; '' = the real EuRoC rig "
-                             "in ../shared/data/euroc/calib")
+                             "(data/euroc/calib, or ../shared/data/euroc/calib when present)")
     cameras: list[str] = param([], "names of the cameras to use, in this order (empty: all of the rig)")
 
 

@@ -4,7 +4,7 @@ Examples::
 
     sigmaslam synth --sequence V1_02 --scene vicon-a --imu real --out data/v102 --duration 30
     sigmaslam synth --sequence '' --groundtruth gt.csv --imu-data imu.csv --image-timestamps ts.txt \\
-        --calib ../shared/data/euroc/calib --scene machinehall-b --imu sim --out data/custom
+        --calib data/euroc/calib --scene machinehall-b --imu sim --out data/custom
     sigmaslam synth --default          # the cached default replica (prints its path)
 """
 from __future__ import annotations
