@@ -24,7 +24,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install --progress-bar off -e '.[dev]' \
-	  | { grep -E --line-buffered '^(Collecting|Installing|Successfully)' | cut -c1-160 || true; }
+	  | awk '/^(Collecting|Installing|Successfully)/ { print substr($$0, 1, 160); fflush() }'
 	touch $(STAMP)
 
 setup: system-deps $(STAMP)

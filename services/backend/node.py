@@ -1,0 +1,193 @@
+"""The back end as a transport-free process node, and its composition root.
+
+sensors/imu (keep-all) + frontend/frame -> estimator/state (every frame), estimator/keyframes (after each
+optimisation), estimator/landmarks (after each keyframe's optimisation); with loop closure, frontend/keyframe_features
+in and, at the end of the stream, estimator/trajectory_final out; with occupancy-to-point factors, map/field,
+map/o2p_points and depth/stereo in.
+
+:class:`BackendNode` builds, in one place, what the back end is made of from the system config: the windowed VIO
+estimator (:class:`BackendShell`), the occupancy-to-point terms (``cfg.o2p.enabled``) and the loop closer
+(``cfg.loop.enabled``), in the order their hooks need. Run over Zenoh by ``sigmaslam backend``
+(services/backend/service.py) or in one process by :class:`shared.dataflow.InProcessRunner`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+
+from services.backend.backlog import shed_backlog
+from services.backend.estimator import BackendInputError, WindowedVioEstimator, camera_from_calib
+from services.backend.imu_factors import ImuDataError
+from services.backend.outputs import keyframes_message, landmarks_message, state_message
+from services.frontend.undistort import LookupCamera
+from services.loop.backend_loop import LoopClosingBackend
+from shared import topics
+from shared.dataflow import Emit, Input, ProcessNode
+from shared.messages import (DepthFrame, EstimatorState, FeatureFrame, Header, ImuSample, KeyframeFeatures, Keyframes,
+                             Landmarks, OccupancyField, StreamEnd)
+
+log = logging.getLogger("sigmaslam.backend")
+
+
+class BackendShell:
+    """Per-frame logic of the service without the transport."""
+
+    def __init__(self, cfg, cameras) -> None:
+        # undistortion by table lookup (the exact Newton inverse costs ~10 ms per frame at 300 observations)
+        cams = [dataclasses.replace(c, camera=LookupCamera(c.camera)) for c in cameras]
+        self.estimator = WindowedVioEstimator(cfg, [camera_from_calib(c) for c in cams])
+        self.dropped = 0
+        self.seq = 0
+        self.newest_imu_ns = -1
+        self.restarted = False  # set by main() after a supervisor restart: the first state says 'reset'
+        self.o2p = None  # OccupancyTerms when occupancy-to-point factors are on (enable_o2p)
+        self.landmarks: Landmarks | None = None  # of the last keyframe processed, until take_landmarks()
+
+    def enable_o2p(self, cfg) -> None:
+        """Occupancy-to-point factors (services/backend/o2p_terms.py) in every window optimisation."""
+        from services.backend.o2p_terms import OccupancyTerms
+
+        self.o2p = terms = OccupancyTerms(cfg)
+        self.estimator.extra_factors = terms.window_factors  # none until the window has a metric scale (mono)
+
+    def add_map_input(self, msg) -> None:
+        """map/field (OccupancyField), depth/stereo (DepthFrame) or map/o2p_points (SubmapPoints) for o2p."""
+        if self.o2p is None:
+            return
+        try:
+            if isinstance(msg, DepthFrame):
+                T_WS = None if np.allclose(msg.T_WC, np.eye(4)) else msg.T_WC @ np.linalg.inv(msg.T_SC)
+                est = self.estimator
+                self.o2p.add_depth(msg.header.stamp_ns, msg.depth, msg.sigma, msg.K, msg.T_SC, T_WS, est.stamps, est.values)
+            elif isinstance(msg, OccupancyField):
+                self.o2p.add_field(msg)
+            else:
+                self.o2p.add_submap_points(msg.submap_id, msg.points_M, msg.sigma)
+        except ValueError as exc:
+            self.o2p.counts["dropped_bad_input"] += 1
+            log.warning("o2p input %s dropped: %s", type(msg).__name__, exc)
+
+    def add_imu(self, sample) -> None:
+        self.estimator.add_imu(int(sample.header.stamp_ns), sample.omega_S, sample.acc_S)
+        self.newest_imu_ns = max(self.newest_imu_ns, int(sample.header.stamp_ns))
+
+    def process(self, frame: FeatureFrame) -> tuple[EstimatorState, Keyframes | None] | None:
+        msgs = self._process(frame)
+        if msgs is not None and self.restarted:
+            # a restarted back end lost its window: its first state says so (consumers treat 'reset' like
+            # 'initialising': no pose to use), then it re-initialises from scratch
+            self.restarted = False
+            log.warning("back end restarted: state history lost, re-initialising (status 'reset' at %d)",
+                        msgs[0].header.stamp_ns)
+            msgs = (dataclasses.replace(msgs[0], status="reset"), msgs[1])
+        return msgs
+
+    def _process(self, frame: FeatureFrame) -> tuple[EstimatorState, Keyframes | None] | None:
+        stamp = int(frame.header.stamp_ns)
+        if self.o2p is not None:
+            self.o2p.note_frame(stamp, frame.landmark_ids)
+        try:
+            res = self.estimator.process_frame(stamp, frame.landmark_ids, frame.camera_index, frame.uv,
+                                               bool(frame.is_keyframe))
+        except (BackendInputError, ImuDataError) as exc:
+            self.dropped += 1
+            log.warning("feature frame %d dropped (%d so far): %s", stamp, self.dropped, exc)
+            return None
+        if res is None:  # not initialised yet (needs IMU before the first frame): say so, for lockstep players
+            msg = EstimatorState(header=Header(stamp_ns=stamp, seq=self.seq, frame_id="W"), T_WS=np.eye(4),
+                                 v_W=np.zeros(3), gyro_bias=np.zeros(3), acc_bias=np.zeros(3),
+                                 covariance=np.full((15, 15), np.nan), status="initialising")
+            self.seq += 1
+            return msg, None
+        msgs = state_message(res, self.seq), keyframes_message(res, self.seq)
+        self.landmarks = landmarks_message(res, self.seq)
+        self.seq += 1
+        return msgs
+
+    def take_landmarks(self) -> Landmarks | None:
+        """estimator/landmarks of the last frame processed if it was a keyframe (once)."""
+        msg, self.landmarks = self.landmarks, None
+        return msg
+
+
+
+class BackendNode(ProcessNode):
+    """The back end's process node: builds estimator, occupancy terms and loop closer from ``cfg`` (the system
+    config) and routes each input to them."""
+
+    name = "backend"
+    stage = "optimise"
+    inputs = (
+        Input(topics.FEATURES, "on_features", role="trigger", shed="shed"),
+        Input(topics.IMU, "on_imu", wait_until_trigger_stamp=True),  # the IMU up to the frame's time
+        Input(topics.MAP_FIELD, "on_map_input", policy="all", depth=64),  # o2p: drained before each frame
+        Input(topics.MAP_O2P_POINTS, "on_map_input"),
+        Input(topics.DEPTH_STEREO, "on_map_input", depth=8),
+        Input(topics.KEYFRAME_FEATURES, "on_keyframe_features"),  # loop closure
+        Input(topics.STREAM_END, "on_stream_end", role="idle"),  # loop closure: final trajectory after the last frame
+    )
+    outputs = (topics.STATE, topics.KEYFRAMES, topics.LANDMARKS, topics.TRAJECTORY_FINAL)
+
+    def __init__(self, cfg, cameras, restarted: bool = False) -> None:
+        bc = cfg.backend
+        self.bc, self.budget_ms, self.wait_s = bc, bc.budget_ms, bc.imu_wait_s
+        self.shell = BackendShell(bc, cameras)
+        self.shell.restarted = restarted
+        if cfg.o2p.enabled:  # before the loop closer, which hooks into the terms (anchors, correction)
+            self.shell.enable_o2p(cfg.o2p)
+        self.loop = LoopClosingBackend(self.shell, cfg.loop) if cfg.loop.enabled else None
+        used = [topics.FEATURES, topics.IMU]
+        if self.shell.o2p is not None:
+            used += [topics.MAP_FIELD, topics.MAP_O2P_POINTS, topics.DEPTH_STEREO]
+        if self.loop is not None:
+            used += [topics.KEYFRAME_FEATURES, topics.STREAM_END]
+        self.use_inputs(used)
+        self.final_seq = 0
+
+    @property
+    def estimator(self) -> WindowedVioEstimator:
+        return self.shell.estimator
+
+    def shed(self, pending) -> tuple[list, int]:
+        return shed_backlog(pending, self.bc.max_backlog_frames)
+
+    def on_imu(self, sample: ImuSample) -> None:
+        self.shell.add_imu(sample)
+
+    def on_map_input(self, msg) -> None:
+        self.shell.add_map_input(msg)
+
+    def on_keyframe_features(self, msg: KeyframeFeatures) -> None:
+        self.loop.add_keyframe_features(msg)
+
+    def on_features(self, frame: FeatureFrame) -> list[Emit]:
+        msgs = self.shell.process(frame) if self.loop is None else self.loop.process(frame)
+        out = []
+        if msgs is not None:
+            out.append(Emit(topics.STATE, msgs[0]))
+            if msgs[1] is not None:
+                out.append(Emit(topics.KEYFRAMES, msgs[1]))
+        if (lms := (self.shell if self.loop is None else self.loop).take_landmarks()) is not None:
+            out.append(Emit(topics.LANDMARKS, lms))
+        return out
+
+    def _final(self, ends: list[StreamEnd]) -> list[Emit]:
+        final = self.loop.poll_end(ends) if self.loop is not None else None
+        return [] if final is None else [Emit(topics.TRAJECTORY_FINAL, final)]
+
+    def on_stream_end(self, msg: StreamEnd) -> list[Emit]:
+        return self._final([msg])
+
+    def tick(self) -> list[Emit]:
+        """While idle: the final trajectory once the stream has ended and no frame came for a while."""
+        return self._final([])
+
+    def close(self) -> list[Emit]:
+        if self.shell.o2p is not None:  # how many dense factors the run used, and why others were not built
+            log.info("o2p counts: %s", dict(sorted(self.shell.o2p.counts.items())))
+        if self.loop is not None:
+            self.loop.close()
+        return []

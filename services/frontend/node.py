@@ -1,0 +1,100 @@
+"""The frontend as a transport-free process node: sensors/frame (+ sensors/imu gyro, estimator/state gyro bias)
+-> frontend/frame (+ frontend/keyframe_features for loop closure).
+
+:class:`FrontendNode` wraps :class:`services.frontend.tracker.MultiCameraTracker`: the gyro samples between two
+frames give the rotation prior (bias-corrected with the estimator's latest gyro bias); a frame whose cameras do
+not match the rig, or that goes back in time, is dropped, counted and logged. Run over Zenoh by
+``sigmaslam frontend`` (services/frontend/service.py) or in one process by :class:`shared.dataflow.InProcessRunner`.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from services.frontend.gyro import GyroIntegrator
+from services.frontend.tracker import FrontendInputError, MultiCameraTracker, TrackerOutput
+from services.loop.frontend_hook import keyframe_features_message
+from shared import topics
+from shared.dataflow import Emit, Input, ProcessNode
+from shared.messages import EstimatorState, FeatureFrame, Header, ImuSample, MultiCameraFrame
+
+log = logging.getLogger("sigmaslam.frontend")
+
+
+def feature_message(out: TrackerOutput, seq: int) -> FeatureFrame:
+    n = len(out.landmark_ids)
+    return FeatureFrame(header=Header(stamp_ns=out.stamp_ns, seq=seq, frame_id="rig"),
+                        landmark_ids=np.asarray(out.landmark_ids, np.int64),
+                        camera_index=np.asarray(out.camera_index, np.int16),
+                        uv=np.ascontiguousarray(out.uv, np.float32).reshape(n, 2),
+                        p_W_init=np.full((n, 3), np.nan), is_keyframe=bool(out.is_keyframe))
+
+
+class FrontendNode(ProcessNode):
+    """Per-frame logic of the frontend (images in, FeatureFrame out), without the transport."""
+
+    name = "frontend"
+    stage = "track"
+    inputs = (
+        Input(topics.FRAME, "on_frame", role="trigger"),
+        Input(topics.IMU, "on_imu", wait_until_trigger_stamp=True),  # the gyro up to the frame's time
+        Input(topics.STATE, "on_state", policy="latest", depth=1),  # only the newest gyro bias matters
+    )
+    outputs = (topics.FEATURES, topics.KEYFRAME_FEATURES)
+
+    def __init__(self, cfg, cameras, first_landmark_id: int = 0) -> None:
+        self.cfg = cfg
+        self.budget_ms, self.wait_s = cfg.budget_ms, cfg.imu_wait_s
+        self.tracker = MultiCameraTracker(cfg, cameras, first_landmark_id)
+        self.names = [c.name for c in cameras]
+        self.gyro = GyroIntegrator()
+        self.gyro_bias = np.zeros(3)
+        self.last_stamp: int | None = None
+        self.dropped = 0
+        self.seq = 0
+
+    def on_imu(self, sample: ImuSample) -> None:
+        self.gyro.add(int(sample.header.stamp_ns), sample.omega_S)
+
+    def on_state(self, state: EstimatorState) -> None:
+        self.gyro_bias = np.asarray(state.gyro_bias, float)
+
+    def on_frame(self, frame: MultiCameraFrame) -> list[Emit]:
+        msg = self.process(frame)
+        if msg is None:
+            return []
+        out = []
+        if msg.is_keyframe:  # descriptors first: the back end's loop closer wants them with the frame
+            kff = keyframe_features_message(self.tracker, msg.header.stamp_ns, msg.header.seq)
+            if kff is not None:
+                out.append(Emit(topics.KEYFRAME_FEATURES, kff))
+        out.append(Emit(topics.FEATURES, msg))
+        return out
+
+    def images_in_rig_order(self, frame: MultiCameraFrame):
+        names = list(frame.camera_names)
+        if names == self.names:
+            return list(frame.images)
+        try:
+            return [frame.images[names.index(n)] for n in self.names]
+        except ValueError:
+            raise FrontendInputError(f"frame cameras {names} do not include the rig's {self.names}") from None
+
+    def process(self, frame: MultiCameraFrame) -> FeatureFrame | None:
+        stamp = int(frame.header.stamp_ns)
+        try:
+            images = self.images_in_rig_order(frame)
+            R = None if self.last_stamp is None else self.gyro.rotation(self.last_stamp, stamp, self.gyro_bias)
+            out = self.tracker.process(stamp, images, R)
+        except FrontendInputError as exc:
+            self.dropped += 1
+            log.warning("frame %d dropped (%d so far): %s", stamp, self.dropped, exc)
+            return None
+        if self.last_stamp is not None:
+            self.gyro.prune_before(self.last_stamp)
+        self.last_stamp = stamp
+        msg = feature_message(out, self.seq)
+        self.seq += 1
+        return msg

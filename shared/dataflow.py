@@ -1,0 +1,177 @@
+"""Processes as transport-free nodes that declare their topics, and the in-process runner that drives them.
+
+A process of sigmaslam is a :class:`ProcessNode`: it declares what it reads (:class:`Input`: a topic, the method
+that handles each message, how its queue behaves) and what it writes (``outputs``: topics); each handler
+returns the messages to publish as :class:`Emit` values, in order. Two runners drive the same nodes:
+
+- ``transport.runner.run_node`` runs one node as a process over Zenoh (``sigmaslam frontend``, ...);
+- :class:`InProcessRunner` (here) runs several nodes in one process, deterministically: every message, from the
+  data source or emitted by a node, is delivered in stamp order (emitted messages before source messages of the
+  same stamp, ties first-in first-out), which is what a lockstep player over Zenoh produces.
+
+How a node's inputs are drained (``Input.role``) is part of the declaration, so both runners agree:
+
+- ``"trigger"``: the input the process is paced by (camera frames, feature frames): each message is handled
+  on its own, after the side inputs have been drained; its handler is timed as the node's stage;
+- ``"side"``: drained (every message handled, in arrival order) before each trigger message; with
+  ``wait_until_trigger_stamp`` the Zenoh runner first waits up to ``wait_s`` for a message stamped at or after
+  the trigger's (IMU up to the frame's time);
+- ``"idle"``: handled only when no trigger message is pending (the end of a stream: after the last frame).
+
+Queue behaviour (``policy``/``depth``: keep all or keep the newest N) and shedding (``shed``: the name of a
+node method that, given the pending trigger messages, returns which to keep and how many it skipped) are
+declared on the input too. :func:`graph` lists who publishes and who reads each topic (docs/architecture.md).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import heapq
+import itertools
+import time
+from typing import Any, ClassVar, Iterable, Literal
+
+from shared.codec import Message
+from shared.topics import Topic
+
+
+@dataclasses.dataclass(frozen=True)
+class Input:
+    """One declared input of a node."""
+
+    topic: Topic
+    handler: str  # name of the node's method called with each message
+    role: Literal["trigger", "side", "idle"] = "side"
+    policy: Literal["all", "latest"] | None = None  # queue policy (None: the topic's)
+    depth: int | None = None  # queue depth (None: the topic's)
+    wait_until_trigger_stamp: bool = False  # side input the trigger waits for (up to the node's wait_s)
+    shed: str | None = None  # trigger input: node method (pending list) -> (kept list, skipped count)
+
+
+@dataclasses.dataclass(frozen=True)
+class Emit:
+    """A message a handler wants published on ``topic`` (``key``: per-service key, else the topic's)."""
+
+    topic: Topic
+    msg: Message
+
+
+class UndeclaredTopic(ValueError):
+    """A node published (or was wired to read) a topic it did not declare."""
+
+
+class ProcessNode:
+    """Base of the transport-free process nodes. Subclasses set the class attributes and write the handlers."""
+
+    name: ClassVar[str]
+    inputs: ClassVar[tuple[Input, ...]]
+    outputs: ClassVar[tuple[Topic, ...]]
+    stage: ClassVar[str] = "process"  # stage name of the trigger handler in stats/<name>
+    budget_ms: float | None = None  # the stage's budget (per instance: from its config)
+    wait_s: float = 0.0  # longest wait for a wait_until_trigger_stamp input [s] (per instance: from its config)
+
+    def handle(self, inp: Input, msg: Message) -> list[Emit]:
+        """Call ``inp``'s handler and check that everything it emits is a declared output."""
+        out = getattr(self, inp.handler)(msg) or []
+        for e in out:
+            if e.topic not in self.outputs:
+                raise UndeclaredTopic(f"{self.name}: emitted {e.topic.key!r}, not among its outputs "
+                                      f"{[t.key for t in self.outputs]}")
+        return out
+
+    def use_inputs(self, used: Iterable[Topic]) -> None:
+        """Read only these of the declared inputs (e.g. loop-closure inputs when loop closure is off): the
+        instance's ``inputs`` become that subset, in declared order; a topic not declared is refused."""
+        used = list(used)
+        for t in used:
+            type(self).input_for(t)
+        self.inputs = tuple(i for i in type(self).inputs if i.topic in used)
+
+    def tick(self) -> list[Emit]:
+        """Periodic work, called by the Zenoh runner while no trigger message is pending; may emit."""
+        return []
+
+    def close(self) -> list[Emit]:
+        """Called once when the runner stops (after the stream); may emit last messages."""
+        return []
+
+    @classmethod
+    def input_for(cls, topic: Topic) -> Input:
+        for inp in cls.inputs:
+            if inp.topic == topic:
+                return inp
+        raise UndeclaredTopic(f"{cls.name} does not read {topic.key!r}")
+
+
+def graph(nodes: Iterable[type[ProcessNode]]) -> dict[str, dict[str, list[str]]]:
+    """topic key -> {'publishers': [...], 'subscribers': [...]} over the given node classes."""
+    out: dict[str, dict[str, list[str]]] = {}
+    for n in nodes:
+        for t in n.outputs:
+            out.setdefault(t.key, {"publishers": [], "subscribers": []})["publishers"].append(n.name)
+        for inp in n.inputs:
+            out.setdefault(inp.topic.key, {"publishers": [], "subscribers": []})["subscribers"].append(n.name)
+    return dict(sorted(out.items()))
+
+
+class InProcessRunner:
+    """Drives nodes in one process, deterministically, the way a lockstep run over Zenoh does.
+
+    ``run(source)`` takes (topic, message) pairs in time order (a dataset's IMU and frames, then a StreamEnd) and
+    hands each to every node that reads its topic; whatever the nodes emit is delivered in turn (stamp order, ties
+    first-in first-out) until nothing is left, before the next source message: a frame is fully processed before
+    the next is read, as with a player that waits for each state. ``idle`` inputs are handled when nothing else is
+    pending. ``taps`` are called with every (topic, message) delivered (what a subscriber of everything sees)."""
+
+    def __init__(self, nodes: list[ProcessNode], taps: Iterable[Any] = ()) -> None:
+        self.nodes = nodes
+        self.taps = list(taps)
+        self._heap: list = []
+        self._idle: list = []
+        self._seq = itertools.count()
+        self.emitted: dict[str, int] = {}
+        # (node name, handler) -> [(wall s, thread CPU s)] of every call: the per-stage times of an in-process run
+        self.times: dict[tuple[str, str], list[tuple[float, float]]] = {}
+
+    def _handle(self, node: ProcessNode, inp: Input, msg: Message) -> list[Emit]:
+        t0, c0 = time.perf_counter(), time.thread_time()
+        out = node.handle(inp, msg)
+        self.times.setdefault((node.name, inp.handler), []).append((time.perf_counter() - t0, time.thread_time() - c0))
+        return out
+
+    def _push(self, topic: Topic, msg: Message) -> None:
+        heapq.heappush(self._heap, (int(msg.header.stamp_ns), next(self._seq), topic, msg))
+
+    def _deliver(self, topic: Topic, msg: Message) -> None:
+        for tap in self.taps:
+            tap(topic, msg)
+        for node in self.nodes:
+            for inp in node.inputs:
+                if inp.topic != topic:
+                    continue
+                if inp.role == "idle":
+                    self._idle.append((node, inp, msg))
+                else:
+                    self._emit(self._handle(node, inp, msg))
+
+    def _emit(self, emits: list[Emit]) -> None:
+        for e in emits:
+            self.emitted[e.topic.key] = self.emitted.get(e.topic.key, 0) + 1
+            self._push(e.topic, e.msg)
+
+    def _drain(self) -> None:
+        while self._heap or self._idle:
+            if self._heap:
+                _, _, topic, msg = heapq.heappop(self._heap)
+                self._deliver(topic, msg)
+            else:  # nothing else pending: the idle inputs' turn
+                node, inp, msg = self._idle.pop(0)
+                self._emit(self._handle(node, inp, msg))
+
+    def run(self, source: Iterable[tuple[Topic, Message]]) -> None:
+        for topic, msg in source:
+            self._push(topic, msg)
+            self._drain()
+        for node in self.nodes:
+            self._emit(node.close())
+        self._drain()

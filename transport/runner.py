@@ -1,0 +1,100 @@
+"""Runs one transport-free process node (:class:`shared.dataflow.ProcessNode`) as a process over Zenoh.
+
+::
+
+    node = FrontendNode(cfg.frontend, cameras)
+    run_node(node, cfg.transport)        # until SIGTERM/SIGINT
+
+The node's declared inputs become subscribers (their queue policy and depth), its outputs publishers. The loop
+blocks on the trigger input; before each trigger message it drains the side inputs (first those the trigger waits
+for, up to ``node.wait_s`` until one is stamped at or after the trigger, then the others in declared order), sheds
+a backlog with the node's ``shed`` method when the trigger input declares one, and times the trigger's handler as
+the node's stage in ``stats/<name>``. While no trigger message comes it drains the side inputs, hands the idle
+inputs (end of stream) to the node and calls its ``tick``. What the handlers return is published in order. A node without a trigger
+input handles every input as it arrives (the same loop with no pacing message).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import deque
+
+from shared.dataflow import Emit, Input, ProcessNode
+from transport.config import TransportConfig
+from transport.node import Node
+from transport.queues import Empty
+
+log = logging.getLogger(__name__)
+
+POLL_S = 0.1  # how long the loop blocks on the trigger input before draining the others [s]
+
+
+class _Wiring:
+    """The node's subscribers and publishers on an open transport node."""
+
+    def __init__(self, node: ProcessNode, tn: Node) -> None:
+        self.node, self.tn = node, tn
+        self.subs = {inp: tn.subscriber(inp.topic, policy=inp.policy, depth=inp.depth) for inp in node.inputs}
+        self.pubs = {t: tn.publisher(t) for t in node.outputs}
+        self.newest = {inp: -1 for inp in node.inputs}
+
+    def publish(self, emits: list[Emit]) -> None:
+        for e in emits:
+            self.pubs[e.topic].publish(e.msg)
+
+    def drain(self, inputs: list[Input]) -> None:
+        for inp in inputs:
+            for msg in self.subs[inp].drain():
+                self.newest[inp] = max(self.newest[inp], int(msg.header.stamp_ns))
+                self.publish(self.node.handle(inp, msg))
+
+
+def run_node(node: ProcessNode, cfg: TransportConfig, stopped=None) -> None:
+    """Run ``node`` until the process is told to stop (or ``stopped()`` says so); then ``node.close()``."""
+    triggers = [i for i in node.inputs if i.role == "trigger"]
+    if len(triggers) > 1:
+        raise ValueError(f"{node.name}: more than one trigger input")
+    trigger = triggers[0] if triggers else None
+    waited = [i for i in node.inputs if i.role == "side" and i.wait_until_trigger_stamp]
+    side = [i for i in node.inputs if i.role == "side" and not i.wait_until_trigger_stamp]
+    idle = [i for i in node.inputs if i.role == "idle"]
+    with Node(node.name, cfg) as tn:
+        w = _Wiring(node, tn)
+        timer = tn.timer(node.stage, budget_ms=node.budget_ms)
+        done = (lambda: tn.stopped) if stopped is None else (lambda: tn.stopped or stopped())
+        pending: deque = deque()
+        while not done():
+            if trigger is None:
+                w.drain([*waited, *side, *idle])
+                w.publish(node.tick())
+                tn.wait(POLL_S / 10)
+                continue
+            sub = w.subs[trigger]
+            if not pending:
+                try:
+                    pending.append(sub.get(timeout=POLL_S))
+                except Empty:
+                    w.drain([*waited, *side])
+                    w.drain(idle)
+                    w.publish(node.tick())
+                    continue
+            pending.extend(sub.drain())
+            if trigger.shed is not None:
+                kept, skipped = getattr(node, trigger.shed)(pending)
+                if skipped:
+                    sub.queue.count_shed(skipped)
+                    log.warning("%s: %d messages behind, skipped %d to catch up", node.name, len(pending), skipped)
+                pending = deque(kept)
+            msg = pending.popleft()
+            stamp = int(msg.header.stamp_ns)
+            w.drain(waited)
+            deadline = time.monotonic() + node.wait_s
+            while any(w.newest[i] < stamp for i in waited) and time.monotonic() < deadline and not done():
+                time.sleep(0.002)
+                w.drain(waited)
+            w.drain(side)
+            with timer:
+                emits = node.handle(trigger, msg)
+            w.publish(emits)
+        w.publish(node.close())
