@@ -18,6 +18,7 @@ import numpy as np
 from services.backend.service import BackendShell
 from services.frontend.service import FrontendShell
 from services.system_config import load_system_config
+from shared.config import override
 from shared.euroc import series_from_matrices, read_trajectory, write_tum
 from shared.euroc_reader import EurocDataset
 from shared.messages import ImuSample
@@ -27,7 +28,7 @@ from shared.rig import load_rig_config
 def run(dataset: str, config: str | None, overrides: list[str], max_frames: int = 0, verbose: bool = False):
     cfg = load_system_config(config, overrides)
     if not cfg.rig.calibration:
-        cfg.rig.calibration = dataset
+        cfg = override(cfg, {"rig.calibration": dataset})
     cams = load_rig_config(cfg.rig)
     fe, be = FrontendShell(cfg.frontend, cams), BackendShell(cfg.backend, cams)
     ds = EurocDataset(dataset)
