@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 
 from services.system_config import SystemConfig, load_system_config
 from shared.config import describe, to_yaml
@@ -15,8 +17,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    if args.defaults:
-        print(describe(SystemConfig))
-        return 0
-    print(to_yaml(load_system_config(args.config, args.set)), end="")
+    text = describe(SystemConfig) + "\n" if args.defaults else to_yaml(load_system_config(args.config, args.set))
+    try:
+        sys.stdout.write(text)
+        sys.stdout.flush()
+    except BrokenPipeError:  # e.g. `sigmaslam config --defaults | head`: the reader left, nothing to report
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
     return 0

@@ -20,6 +20,7 @@ from typing import Iterator
 from services.backend.node import BackendNode
 from services.frontend.node import FrontendNode
 from shared import topics
+from shared.config import override
 from shared.dataflow import InProcessRunner, ProcessNode
 from shared.euroc_reader import EurocDataset
 from shared.messages import EstimatorState, FinalTrajectory, Header, ImuSample, StreamEnd
@@ -56,7 +57,7 @@ class InProcessRun:
 def run_in_process(dataset: str, cfg, max_frames: int = 0) -> InProcessRun:
     """Frontend and back end (with whatever ``cfg`` enables: loop closure) on ``dataset``, in this process."""
     if not cfg.rig.calibration:
-        cfg = dataclasses.replace(cfg, rig=dataclasses.replace(cfg.rig, calibration=str(dataset)))
+        cfg = override(cfg, {"rig.calibration": str(dataset)})
     cams = load_rig_config(cfg.rig)
     nodes = {"frontend": FrontendNode(cfg.frontend, cams), "backend": BackendNode(cfg, cams)}
     states: list[EstimatorState] = []

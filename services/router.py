@@ -27,7 +27,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def main(args: argparse.Namespace) -> int:
     cfg = load_system_config(args.config, args.set).transport
     if args.listen:
-        cfg = dataclasses.replace(cfg, router_listen=list(args.listen))
+        cfg = dataclasses.replace(cfg, router_listen=tuple(args.listen))
     stop = threading.Event()
 
     def on_signal(signum: int, _frame: object) -> None:

@@ -44,7 +44,7 @@ from services.loop.run_outputs import loop_summary, wait_final, write_final
 from services.supervisor import ServiceSpec, Supervisor, validate
 from services.system_config import load_system_config
 from shared import topics
-from shared.config import to_yaml
+from shared.config import override, to_yaml
 from shared.euroc import series_from_matrices, PoseSeries, read_trajectory, write_euroc_csv, write_tum
 from transport.node import Node
 from transport.queues import Empty
@@ -266,13 +266,14 @@ def main(args: argparse.Namespace) -> int:
     overrides = [f"transport.namespace=sigmaslam/run-{run_id}", f"transport.connect=[tcp/127.0.0.1:{port}]",
                  f"transport.router_listen=[tcp/127.0.0.1:{port}]", *args.set]
     cfg = load_system_config(args.config, overrides)
+    changes: dict = {"supervisor.services": pipeline_services(cfg, dataset, out.resolve(), args.realtime, args.record,
+                                                              args.player_arg, getattr(args, "rate", 0.0)),
+                     "supervisor.start_router": True}
     if not cfg.rig.calibration:
-        cfg.rig.calibration = dataset
+        changes["rig.calibration"] = dataset
     if gt is not None and not cfg.viewer.ground_truth:
-        cfg.viewer.ground_truth = str(gt)  # the viewer overlays it (green)
-    cfg.supervisor.services = pipeline_services(cfg, dataset, out.resolve(), args.realtime, args.record,
-                                                args.player_arg, getattr(args, "rate", 0.0))
-    cfg.supervisor.start_router = True
+        changes["viewer.ground_truth"] = str(gt)  # the viewer overlays it (green)
+    cfg = override(cfg, changes)  # a changed copy: the loaded config is frozen
     validate(cfg.supervisor, SUBCOMMANDS)
     config_path = (out / "config.yaml").resolve()
     config_path.write_text(to_yaml(cfg))

@@ -24,6 +24,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Literal
 
 from shared.config import ConfigError, param
 
@@ -39,17 +40,15 @@ def restart_count() -> int:
     except ValueError:
         return 0
 
-RESTART_POLICIES = ("on-failure", "always", "never")
 
-
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class ServiceSpec:
     """One service process of the deployment."""
 
     name: str = param("", "name used in logs and status lines")
-    argv: list[str] = param([], "the 'sigmaslam ...' arguments, subcommand first, e.g. ['record', '--out', 'run.mcap']")
+    argv: tuple[str, ...] = param((), "the 'sigmaslam ...' arguments, subcommand first, e.g. ['record', '--out', 'run.mcap']")
     enabled: bool = param(True, "start this service")
-    restart: str = param("on-failure", "'on-failure' (exit code != 0 or a signal), 'always' or 'never'")
+    restart: Literal["on-failure", "always", "never"] = param("on-failure", "when to restart: 'on-failure' (exit code != 0 or a signal), 'always' or 'never'")
     max_restarts: int = param(3, "restarts allowed within window_s before the supervisor gives up on the service")
     window_s: float = param(60.0, "sliding window over which restarts are counted", "s")
     backoff_s: float = param(0.5, "delay before the first restart in the window; doubles with each further one", "s")
@@ -61,11 +60,11 @@ class ServiceSpec:
                                   "when stopped, so it gets longer", "s")
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class SupervisorConfig:
     """What ``sigmaslam up`` starts and how it restarts and stops it."""
 
-    services: list[ServiceSpec] = param([], "service processes to run (each its own OS process)")
+    services: tuple[ServiceSpec, ...] = param((), "service processes to run (each its own OS process)")
     start_router: bool = param(True, "start 'sigmaslam router' before the services (and stop it last)")
     router_startup_s: float = param(0.5, "wait after starting the router before starting the services", "s")
     shutdown_timeout_s: float = param(5.0, "after SIGTERM, children still alive after this long are SIGKILLed", "s")
@@ -127,7 +126,7 @@ def describe_exit(returncode: int) -> str:
 
 
 def validate(cfg: SupervisorConfig, known_commands: dict[str, object] | None = None) -> None:
-    """Raise ConfigError for an unusable service list (names, argv, policies)."""
+    """Raise ConfigError for an unusable service list (names, argv, limits; the loader checked the enumerations)."""
     seen = set()
     for i, spec in enumerate(cfg.services):
         where = f"supervisor.services[{i}]"
@@ -138,8 +137,6 @@ def validate(cfg: SupervisorConfig, known_commands: dict[str, object] | None = N
             raise ConfigError(f"{where}.argv: empty; give the sigmaslam subcommand and its arguments")
         if known_commands is not None and spec.enabled and spec.argv[0] not in known_commands:
             raise ConfigError(f"{where}.argv[0]: {spec.argv[0]!r} is not a sigmaslam subcommand ({sorted(known_commands)})")
-        if spec.restart not in RESTART_POLICIES:
-            raise ConfigError(f"{where}.restart: {spec.restart!r} is not one of {list(RESTART_POLICIES)}")
         if not 0 <= spec.nice <= 19:
             raise ConfigError(f"{where}.nice: must be 0..19, got {spec.nice}")
         if not spec.stop_timeout_s >= 0:

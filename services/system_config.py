@@ -24,7 +24,7 @@ from shared.rig import RigConfig
 from transport.config import TransportConfig
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class SystemConfig:
     """Resolved configuration of a sigmaslam deployment."""
 

@@ -1,10 +1,13 @@
 """Config dataclasses loaded from YAML.
 
-Every component declares one dataclass whose fields are made with :func:`param`, which records a
-docstring and a unit for the field. :func:`from_dict` builds an instance from plain data:
-unknown keys are errors (with the dotted path), missing keys take the defaults, values are checked
-against the field's type. :func:`to_dict` gives the resolved config back as plain data (written into
-recordings and output folders).
+Every component declares one frozen dataclass whose fields are made with :func:`param`, which records a
+docstring and a unit for the field. :func:`from_dict` is the one loader that builds an instance from plain
+data: unknown keys are errors (with the dotted path), missing keys take the defaults, values are checked
+against the field's type, enumerations (``typing.Literal[...]``, also inside ``Optional``, lists and tuples)
+against their allowed values, and nested sections are built the same way. Config classes must be frozen
+dataclasses (``@dataclasses.dataclass(frozen=True)``, lists as ``tuple[X, ...]``), so a loaded config
+cannot be changed by accident; :func:`override` gives a changed copy, checked by the loader again.
+:func:`to_dict` gives the resolved config back as plain data (written into recordings and output folders).
 """
 
 from __future__ import annotations
@@ -55,22 +58,26 @@ def _coerce(value: Any, tp: Any, path: str) -> Any:
     if origin in (typing.Union, types.UnionType):
         if value is None and type(None) in args:
             return None
-        errors = []
-        for option in args:
-            if option is type(None):
-                continue
+        options = [a for a in args if a is not type(None)]
+        if len(options) == 1:  # Optional[X]: X's own error is the clearest
+            try:
+                return _coerce(value, options[0], path)
+            except ConfigError as exc:
+                raise ConfigError(f"{exc} (or null)") from None
+        for option in options:
             try:
                 return _coerce(value, option, path)
-            except ConfigError as exc:
-                errors.append(str(exc))
+            except ConfigError:
+                pass
         raise ConfigError(f"{path}: {value!r} matches none of {[_type_name(a) for a in args]}")
     if origin is typing.Literal:
-        if value not in args:
-            raise ConfigError(f"{path}: {value!r} is not one of {list(args)}")
+        # bool is an int and 1 == 1.0: the type must match too
+        if not any(value == a and type(value) is type(a) for a in args):
+            raise ConfigError(f"{path}: {value!r} is not one of the allowed values {list(args)}")
         return value
     if dataclasses.is_dataclass(tp):
-        if isinstance(value, tp):
-            return value
+        if isinstance(value, tp):  # built in code: checked like data
+            value = to_dict(value)
         if not isinstance(value, dict):
             raise ConfigError(f"{path}: expected a mapping for {tp.__name__}, got {type(value).__name__}")
         return from_dict(tp, value, path)
@@ -111,7 +118,13 @@ def _coerce(value: Any, tp: Any, path: str) -> Any:
 
 
 def from_dict(cls: type[T], data: dict[str, Any] | None, path: str = "") -> T:
-    """Build config dataclass ``cls`` from ``data``; unknown keys raise :class:`ConfigError`."""
+    """Build config dataclass ``cls`` from ``data``; unknown keys and bad values raise :class:`ConfigError`.
+
+    ``cls`` must be a frozen dataclass (TypeError otherwise): what the loader returns cannot be mutated.
+    """
+    if not dataclasses.is_dataclass(cls) or not cls.__dataclass_params__.frozen:  # type: ignore[attr-defined]
+        raise TypeError(f"{getattr(cls, '__name__', cls)}: config classes must be frozen dataclasses "
+                        "(@dataclasses.dataclass(frozen=True)) so that loaded configs cannot be changed")
     data = {} if data is None else data
     if not isinstance(data, dict):
         raise ConfigError(f"{path or cls.__name__}: expected a mapping, got {type(data).__name__}")
@@ -160,19 +173,34 @@ def merge(base: dict[str, Any], top: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _nest(key: str, value: Any) -> dict[str, Any]:
+    """``("a.b.c", 3)`` -> ``{"a": {"b": {"c": 3}}}``."""
+    parts = key.strip().split(".")
+    out: dict[str, Any] = {parts[-1]: value}
+    for part in reversed(parts[:-1]):
+        out = {part: out}
+    return out
+
+
 def parse_override(text: str) -> dict[str, Any]:
     """``"a.b.c=3"`` -> ``{"a": {"b": {"c": 3}}}`` (the value is parsed as YAML)."""
     if "=" not in text:
         raise ConfigError(f"override {text!r} is not of the form key.path=value")
     key, raw = text.split("=", 1)
-    value = yaml.safe_load(raw)
-    out: dict[str, Any] = {}
-    node = out
-    parts = key.strip().split(".")
-    for part in parts[:-1]:
-        node = node.setdefault(part, {})
-    node[parts[-1]] = value
-    return out
+    return _nest(key, yaml.safe_load(raw))
+
+
+def override(cfg: T, changes: dict[str, Any]) -> T:
+    """A copy of the config ``cfg`` with ``changes`` applied, built and checked by the loader.
+
+    ``changes`` maps dotted keys to values given as plain data or config dataclasses, e.g.
+    ``override(cfg, {"rig.calibration": "/data/V1_01", "supervisor.services": [ServiceSpec(...)]})``;
+    a bad key or value raises :class:`ConfigError` as it would in a file.
+    """
+    extra: dict[str, Any] = {}
+    for key, value in changes.items():
+        extra = merge(extra, _nest(key, to_dict(value)))
+    return from_dict(type(cfg), merge(to_dict(cfg), extra))
 
 
 def to_dict(cfg: Any) -> Any:
@@ -190,8 +218,28 @@ def to_yaml(cfg: Any) -> str:
     return yaml.safe_dump(to_dict(cfg), sort_keys=False)
 
 
+def allowed_values(tp: Any) -> tuple | None:
+    """The values allowed by a ``Literal`` annotation, also inside ``Optional``, lists and tuples; else None."""
+    if typing.get_origin(tp) is typing.Literal:
+        return typing.get_args(tp)
+    for arg in typing.get_args(tp):
+        if arg is not type(None) and arg is not Ellipsis and (values := allowed_values(arg)) is not None:
+            return values
+    return None
+
+
+def _item_dataclass(tp: Any) -> type | None:
+    """``X`` for ``list[X]`` / ``tuple[X, ...]`` of a config dataclass X."""
+    if typing.get_origin(tp) in (list, tuple):
+        args = [a for a in typing.get_args(tp) if a is not Ellipsis]
+        if len(args) == 1 and dataclasses.is_dataclass(args[0]):
+            return args[0]
+    return None
+
+
 def describe(cls: type, indent: int = 0) -> str:
-    """Documentation of a config dataclass: one line per field with default, unit and docstring."""
+    """Documentation of a config dataclass: one line per field with default, docstring, unit and, for
+    enumerations, the allowed values; nested sections (and the items of lists of sections) indented."""
     lines = []
     pad = "  " * indent
     hints = typing.get_type_hints(cls)
@@ -210,5 +258,11 @@ def describe(cls: type, indent: int = 0) -> str:
         else:
             default = "<required>"
         unit_txt = f" [{unit}]" if unit else ""
-        lines.append(f"{pad}{f.name}: {yaml.safe_dump(default, default_flow_style=True).strip().removesuffix('...').strip()}  # {doc}{unit_txt}")
+        values = allowed_values(tp)
+        allowed_txt = f" (allowed: {', '.join(map(str, values))})" if values is not None else ""
+        default_txt = yaml.safe_dump(to_dict(default), default_flow_style=True).strip().removesuffix('...').strip()
+        lines.append(f"{pad}{f.name}: {default_txt}  # {doc}{unit_txt}{allowed_txt}")
+        if (item := _item_dataclass(tp)) is not None:
+            lines.append(f"{pad}  # each item of {f.name}:")
+            lines.append(describe(item, indent + 2))
     return "\n".join(lines)

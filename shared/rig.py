@@ -14,13 +14,13 @@ from shared.camera import CalibrationError, CameraCalib, camera_from_sensor_yaml
 from shared.config import param
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class RigConfig:
     """Camera rig of the pipeline."""
 
     calibration: str = param("", "EuRoC dataset folder or rig YAML with the cameras; '' = the real EuRoC rig "
                              "(data/euroc/calib, or ../shared/data/euroc/calib when present)")
-    cameras: list[str] = param([], "names of the cameras to use, in this order (empty: all of the rig)")
+    cameras: tuple[str, ...] = param((), "names of the cameras to use, in this order (empty: all of the rig)")
 
 
 def load_rig_config(cfg: RigConfig) -> list[CameraCalib]:

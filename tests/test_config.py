@@ -1,42 +1,45 @@
-"""Config loading: unknown keys are errors, missing keys take defaults, values are type-checked."""
+"""Config loading: unknown keys are errors, missing keys take defaults, values are type-checked, enumerations
+(``Literal``) are checked against their allowed values, and what the loader returns is frozen."""
 
 from __future__ import annotations
 
 import dataclasses
 import subprocess
 import sys
+import typing
+from typing import Literal, Optional
 
 import pytest
 
+from services.supervisor import ServiceSpec
 from services.system_config import SystemConfig, load_system_config
-from shared.config import ConfigError, describe, from_dict, load_yaml, param, parse_override, to_dict
+from shared.config import (ConfigError, allowed_values, describe, from_dict, load_yaml, override, param,
+                           parse_override, to_dict)
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class Inner:
     rate_hz: float = param(10.0, "a rate", "Hz")
-    names: list[str] = param(["a"], "some names")
+    names: tuple[str, ...] = param(("a",), "some names")
+    kinds: tuple[Literal["x", "y"], ...] = param(("x",), "enumerations in a list")
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class Outer:
     count: int = param(3, "a count")
     mode: str = param("peer", "a mode")
     flag: bool = param(False, "a flag")
     inner: Inner = param(Inner(), "nested section")
     budget_ms: float | None = param(None, "optional budget", "ms")
+    shape: Literal["box", "ball"] = param("box", "an enumeration")
+    level: Optional[Literal[1, 2]] = param(None, "an optional enumeration")
+    items: tuple[Inner, ...] = param((), "a list of sections")
 
 
 def test_missing_keys_take_defaults_and_nested_sections_are_built():
     cfg = from_dict(Outer, {"inner": {"rate_hz": 20}})
     assert cfg.count == 3 and cfg.inner.rate_hz == 20.0 and isinstance(cfg.inner.rate_hz, float)
-    assert cfg.inner.names == ["a"]
-
-
-def test_mutable_defaults_are_not_shared():
-    a, b = Outer(), Outer()
-    a.inner.names.append("x")
-    assert b.inner.names == ["a"]
+    assert cfg.inner.names == ("a",)
 
 
 @pytest.mark.parametrize("data, fragment", [
@@ -47,6 +50,12 @@ def test_mutable_defaults_are_not_shared():
     ({"flag": "yes"}, "flag: expected true or false"),
     ({"inner": {"names": "a"}}, "inner.names: expected a list"),
     ({"inner": 5}, "inner: expected a mapping"),
+    ({"shape": "cube"}, "shape: 'cube' is not one of the allowed values ['box', 'ball']"),
+    ({"shape": None}, "shape: None is not one of the allowed values"),
+    ({"level": 3}, "level: 3 is not one of the allowed values [1, 2] (or null)"),
+    ({"level": True}, "level: True is not one of the allowed values [1, 2]"),  # bool is an int, but not 1
+    ({"inner": {"kinds": ["x", "z"]}}, "inner.kinds[1]: 'z' is not one of the allowed values ['x', 'y']"),
+    ({"items": [{}, {"kinds": ["w"]}]}, "items[1].kinds[0]: 'w' is not one of the allowed values ['x', 'y']"),
 ])
 def test_bad_values_name_the_key(data, fragment):
     with pytest.raises(ConfigError) as exc:
@@ -57,6 +66,24 @@ def test_bad_values_name_the_key(data, fragment):
 def test_optional_field_accepts_none_and_numbers():
     assert from_dict(Outer, {"budget_ms": None}).budget_ms is None
     assert from_dict(Outer, {"budget_ms": 5}).budget_ms == 5.0
+
+
+def test_enumerations_accept_their_values_in_optionals_lists_and_nested_sections():
+    cfg = from_dict(Outer, {"shape": "ball", "level": 2, "inner": {"kinds": ["y", "x"]}, "items": [{"kinds": ["y"]}]})
+    assert cfg.shape == "ball" and cfg.level == 2 and cfg.inner.kinds == ("y", "x") and cfg.items[0].kinds == ("y",)
+    assert from_dict(Outer, {"level": None}).level is None
+    assert allowed_values(typing.get_type_hints(Outer)["level"]) == (1, 2)
+    assert allowed_values(typing.get_type_hints(Inner)["kinds"]) == ("x", "y")
+    assert allowed_values(int) is None
+
+
+def test_loader_refuses_config_classes_that_are_not_frozen():
+    @dataclasses.dataclass
+    class Loose:
+        x: int = param(1, "x")
+
+    with pytest.raises(TypeError, match="frozen"):
+        from_dict(Loose, {})
 
 
 def test_yaml_file_round_trip_and_errors(tmp_path):
@@ -93,3 +120,144 @@ def test_cli_rejects_unknown_key_with_exit_code_2():
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     assert "unknown key(s) ['bogus']" in proc.stderr
+
+
+# ----------------------------------------------------------------------------- enumerations of the system config
+
+def _config_classes(cls: type, path: tuple = ()) -> list[tuple[tuple, type]]:
+    """(path, class) of ``cls`` and every config dataclass inside it, sections and list items ("[]") alike."""
+    out = [(path, cls)]
+    for f in dataclasses.fields(cls):
+        tp = typing.get_type_hints(cls)[f.name]
+        if dataclasses.is_dataclass(tp):
+            out += _config_classes(tp, (*path, f.name))
+        elif typing.get_origin(tp) in (list, tuple):
+            items = [a for a in typing.get_args(tp) if a is not Ellipsis]
+            if len(items) == 1 and dataclasses.is_dataclass(items[0]):
+                out += _config_classes(items[0], (*path, f.name, "[]"))
+    return out
+
+
+def _data_at(path: tuple, value) -> dict:
+    """Plain data setting ``value`` at ``path``; a list item ("[]") gets the fields a service spec needs."""
+    node = value
+    for i in range(len(path) - 1, -1, -1):
+        if path[i] == "[]":
+            node = [{"name": "x", "argv": ["x"], **node}]
+        else:
+            node = {path[i]: node}
+    return node
+
+
+def _value_at(cfg, path: tuple):
+    for part in path:
+        cfg = cfg[0] if part == "[]" else getattr(cfg, part)
+    return cfg
+
+
+def _dotted(path: tuple) -> str:
+    return ".".join(path).replace(".[]", "[0]")
+
+
+def _enum_fields() -> list[tuple[tuple, tuple]]:
+    """(path of the field, allowed values) of every Literal field of every config dataclass in SystemConfig."""
+    out = []
+    for path, cls in _config_classes(SystemConfig):
+        for f in dataclasses.fields(cls):
+            values = allowed_values(typing.get_type_hints(cls)[f.name])
+            if values is not None:
+                out.append(((*path, f.name), values))
+    return out
+
+
+def test_every_config_class_is_frozen_and_round_trips():
+    for path, cls in _config_classes(SystemConfig):
+        assert cls.__dataclass_params__.frozen, f"{cls.__name__} ({_dotted(path) or 'root'}) is not frozen"
+    assert from_dict(SystemConfig, to_dict(SystemConfig())) == SystemConfig()
+
+
+def test_every_enumeration_rejects_a_value_outside_its_set_and_accepts_its_own():
+    fields = _enum_fields()
+    names = {_dotted(p) for p, _ in fields}
+    assert {"mapping.pose_source", "mapping.sensor.sigma_model", "depth.method", "transport.mode", "player.mode",
+            "supervisor.services[0].restart"} <= names, names
+    assert len(fields) >= 13
+    for path, values in fields:
+        key = _dotted(path)
+        with pytest.raises(ConfigError) as exc:
+            from_dict(SystemConfig, _data_at(path, "not-a-value"))
+        msg = str(exc.value)
+        assert key in msg and "'not-a-value'" in msg and all(repr(v) in msg for v in values), msg
+        for v in values:
+            assert _value_at(from_dict(SystemConfig, _data_at(path, v)), path) == v
+        assert _value_at(from_dict(SystemConfig, _data_at(path[:-1], {})), path) in values, f"{key}: default"
+
+
+@pytest.mark.parametrize("override_text, fragment", [
+    ("mapping.pose_source=gt", "mapping.pose_source: 'gt' is not one of the allowed values ['estimator', 'frame']"),
+    ("mapping.sensor.sigma_model=foo",
+     "mapping.sensor.sigma_model: 'foo' is not one of the allowed values ['input', 'linear', 'quadratic']"),
+])
+def test_set_with_a_bad_enumeration_is_refused(override_text, fragment):
+    with pytest.raises(ConfigError) as exc:
+        load_system_config(None, [override_text])
+    assert fragment in str(exc.value)
+
+
+def test_cli_refuses_a_bad_enumeration_with_exit_code_2():
+    proc = subprocess.run([sys.executable, "-m", "services.cli", "config", "--set", "mapping.pose_source=gt"],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert "mapping.pose_source: 'gt' is not one of the allowed values ['estimator', 'frame']" in proc.stderr
+
+
+def test_yaml_with_a_bad_enumeration_names_the_file_and_the_key(tmp_path):
+    path = tmp_path / "bad.yaml"
+    path.write_text("mapping:\n  sensor:\n    sigma_model: foo\n")
+    with pytest.raises(ConfigError) as exc:
+        load_system_config(path)
+    msg = str(exc.value)
+    assert str(path) in msg and "mapping.sensor.sigma_model: 'foo'" in msg and "'quadratic'" in msg
+
+
+def test_defaults_list_the_allowed_values_of_every_enumeration():
+    text = describe(SystemConfig)
+    assert "pose_source: estimator  # " in text and "(allowed: estimator, frame)" in text
+    for path, values in _enum_fields():
+        line = next(l for l in text.splitlines() if l.strip().startswith(f"{path[-1]}:") and "(allowed:" in l
+                    and all(str(v) in l.split("(allowed:")[1] for v in values))
+        assert line
+
+
+# ----------------------------------------------------------------------------- frozen after loading
+
+def test_a_loaded_config_cannot_be_mutated():
+    cfg = load_system_config(None, ["supervisor.services=[{name: a, argv: [frontend]}]"])
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.rig.calibration = "/somewhere"
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.mapping.sensor.sigma_model = "linear"
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.supervisor.services[0].restart = "never"
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.mapping = None
+    with pytest.raises(AttributeError):  # lists are tuples
+        cfg.transport.connect.append("tcp/10.0.0.1:7447")
+    with pytest.raises(TypeError):
+        cfg.supervisor.services[0] = ServiceSpec(name="b", argv=("backend",))
+
+
+def test_override_gives_a_checked_changed_copy():
+    cfg = load_system_config(None, ["transport.namespace=sigmaslam/r2"])
+    new = override(cfg, {"rig.calibration": "/data/V1_01", "supervisor.start_router": False,
+                         "supervisor.services": [ServiceSpec(name="a", argv=["frontend"], restart="never")]})
+    assert new.rig.calibration == "/data/V1_01" and not new.supervisor.start_router
+    assert new.supervisor.services == (ServiceSpec(name="a", argv=("frontend",), restart="never"),)
+    assert new.transport.namespace == "sigmaslam/r2" and new.mapping == cfg.mapping
+    assert cfg.rig.calibration == "" and cfg.supervisor.services == () and cfg.supervisor.start_router
+    with pytest.raises(ConfigError, match="mapping.pose_source: 'gt' is not one of the allowed values"):
+        override(cfg, {"mapping.pose_source": "gt"})
+    with pytest.raises(ConfigError, match=r"supervisor.services\[0\].restart: 'sometimes'"):
+        override(cfg, {"supervisor.services": [ServiceSpec(name="a", argv=["frontend"], restart="sometimes")]})
+    with pytest.raises(ConfigError, match="unknown key"):
+        override(cfg, {"rig.calib": "/x"})

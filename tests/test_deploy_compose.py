@@ -119,7 +119,7 @@ def test_only_the_viewer_publishes_a_port_and_only_on_localhost(compose: dict) -
 
 def test_docker_config_reaches_the_router_by_name() -> None:
     cfg = load_system_config(REPO / "configs" / "docker.yaml").transport
-    assert cfg.mode == "client" and cfg.connect == ["tcp/router:7447"]
+    assert cfg.mode == "client" and cfg.connect == ("tcp/router:7447",)
     assert not cfg.shared_memory
 
 

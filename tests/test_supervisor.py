@@ -16,6 +16,7 @@ import yaml
 from helpers_zenoh import REPO, child_env, free_port, service_config, wait_for
 from services.recorder.mcap_reader import read_metadata
 from services.supervisor import Child, RestartTracker, ServiceSpec, Supervisor, SupervisorConfig, describe_exit, validate
+from services.system_config import load_system_config
 from shared.config import ConfigError, to_dict
 
 
@@ -54,10 +55,12 @@ def test_validate_rejects_bad_specs():
     ok = ServiceSpec(name="rec", argv=["record"])
     validate(SupervisorConfig(services=[ok]), {"record": None})
     for bad, word in [([ok, ok], "unique"), ([ServiceSpec(name="x", argv=[])], "argv"),
-                      ([ServiceSpec(name="x", argv=["nope"])], "not a sigmaslam subcommand"),
-                      ([ServiceSpec(name="x", argv=["record"], restart="sometimes")], "restart")]:
+                      ([ServiceSpec(name="x", argv=["nope"])], "not a sigmaslam subcommand")]:
         with pytest.raises(ConfigError, match=word):
             validate(SupervisorConfig(services=bad), {"record": None})
+    # the restart policy is an enumeration: the config loader refuses a bad one, naming the item
+    with pytest.raises(ConfigError, match=r"supervisor.services\[0\].restart: 'sometimes' is not one of the allowed"):
+        load_system_config(None, ["supervisor.services=[{name: x, argv: [record], restart: sometimes}]"])
 
 
 # ----------------------------------------------------------------------------- real processes

@@ -16,7 +16,7 @@ from shared.paths import REPO_ROOT
 BUDGETS_FILE = REPO_ROOT / "configs" / "budgets.yaml"
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class Budgets:
     """Per-stage budgets (BRIEF sec. 7)."""
 

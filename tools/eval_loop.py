@@ -23,6 +23,7 @@ from services.frontend.service import FrontendShell
 from services.loop.backend_loop import LoopClosingBackend
 from services.loop.frontend_hook import keyframe_features_message
 from services.system_config import load_system_config
+from shared.config import override
 from shared.euroc import series_from_matrices, read_trajectory, write_tum
 from shared.euroc_reader import EurocDataset
 from shared.messages import ImuSample
@@ -31,7 +32,7 @@ from shared.messages import ImuSample
 def run(dataset: str, overrides: list[str], max_frames: int = 0, loop: bool = True) -> tuple[dict, dict]:
     cfg = load_system_config(None, overrides)
     if not cfg.rig.calibration:
-        cfg.rig.calibration = dataset
+        cfg = override(cfg, {"rig.calibration": dataset})
     from shared.rig import load_rig_config
 
     cams = load_rig_config(cfg.rig)

@@ -30,7 +30,7 @@ from services.cli import SUBCOMMANDS
 from services.supervisor import ServiceSpec, Supervisor, validate
 from services.system_config import load_system_config
 from shared import topics
-from shared.config import to_yaml
+from shared.config import override, to_yaml
 from transport.node import Node
 from transport.session import free_local_port
 
@@ -95,8 +95,6 @@ def build(dataset: str, out: Path, rate: float, sets: list[str], nice: int = 10,
                  f"transport.router_listen=[tcp/127.0.0.1:{port}]", "depth.method=sgbm", "depth.rate_hz=5",
                  "mapping.depth_topic=depth/stereo", "mapping.checkpoint_period_s=2", "loop.enabled=false",
                  "transport.stats_period_s=0.5", f"viewer.port={free_local_port()}", *sets]
-    cfg = load_system_config(None, overrides)
-    cfg.rig.calibration = dataset
     spec = dict(restart="on-failure", max_restarts=5, window_s=120.0, backoff_s=0.2)
     services = [ServiceSpec(name="frontend", argv=["frontend"], **spec),
                 ServiceSpec(name="backend", argv=["backend"], **spec),
@@ -108,8 +106,8 @@ def build(dataset: str, out: Path, rate: float, sets: list[str], nice: int = 10,
         services.insert(0, ServiceSpec(name="viewer", argv=["viewer"], nice=nice, **spec))
     if "recorder" in extra:
         services.insert(0, ServiceSpec(name="recorder", argv=["record", "--out", str(out / "recording.mcap")], **spec))
-    cfg.supervisor.services = services
-    cfg.supervisor.start_router = True
+    cfg = override(load_system_config(None, overrides), {"rig.calibration": dataset, "supervisor.services": services,
+                                                         "supervisor.start_router": True})
     validate(cfg.supervisor, SUBCOMMANDS)
     path = (out / "config.yaml").resolve()
     path.write_text(to_yaml(cfg))

@@ -132,11 +132,12 @@ def main(argv: list[str] | None = None) -> int:
     from services.mapping.o2p_points import SubmapPointPool, select_depth_points
     from services.mapping.submaps import SubmapMapper
     from services.system_config import load_system_config
+    from shared.config import override
     from shared.rig import load_rig_config
     from tools.depth.evaluate import _replica_frames
 
     cfg = load_system_config(None, a.set)
-    cfg.rig.calibration = a.replica
+    cfg = override(cfg, {"rig.calibration": a.replica})
     by_name = {c.name: c for c in load_rig_config(cfg.rig)}
     pipe = DepthPipeline(cfg.depth, by_name[cfg.depth.left_camera], by_name[cfg.depth.right_camera])
     K, T_SC = pipe.K, pipe.T_SC

@@ -36,11 +36,11 @@ def main() -> None:
     from services.depth.pipeline import DepthPipeline
     from services.mapping.o2p_points import select_depth_points
     from services.system_config import load_system_config
+    from shared.config import override
     from shared.rig import load_rig_config
     from tools.depth.evaluate import _replica_frames
 
-    cfg = load_system_config(None, [])
-    cfg.rig.calibration = a.replica
+    cfg = override(load_system_config(None, []), {"rig.calibration": a.replica})
     by_name = {c.name: c for c in load_rig_config(cfg.rig)}
     pipe = DepthPipeline(cfg.depth, by_name[cfg.depth.left_camera], by_name[cfg.depth.right_camera])
     K = pipe.K

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import Literal
 
 from shared.config import param
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class TransportConfig:
     """Zenoh session settings shared by every sigmaslam process.
 
@@ -17,11 +18,11 @@ class TransportConfig:
     """
 
     namespace: str = param("sigmaslam/robot0", "key-expression prefix of every topic; one per robot")
-    mode: str = param("peer", "Zenoh mode of service sessions: 'peer' or 'client'")
-    connect: list[str] = param(["tcp/127.0.0.1:7447"], "endpoints to connect to (the router)")
-    listen: list[str] = param(["tcp/127.0.0.1:0"], "endpoints this session listens on (port 0: any free port)")
-    router_listen: list[str] = param(["tcp/127.0.0.1:7447"], "endpoints the router session listens on")
-    router_connect: list[str] = param([], "other routers this router links to (multi-host: each host's router connects to the hub's)")
+    mode: Literal["peer", "client"] = param("peer", "Zenoh mode of service sessions")
+    connect: tuple[str, ...] = param(("tcp/127.0.0.1:7447",), "endpoints to connect to (the router)")
+    listen: tuple[str, ...] = param(("tcp/127.0.0.1:0",), "endpoints this session listens on (port 0: any free port)")
+    router_listen: tuple[str, ...] = param(("tcp/127.0.0.1:7447",), "endpoints the router session listens on")
+    router_connect: tuple[str, ...] = param((), "other routers this router links to (multi-host: each host's router connects to the hub's)")
     multicast_scouting: bool = param(False, "discover peers by UDP multicast (off: explicit endpoints only)")
     shared_memory: bool = param(True, "use Zenoh shared memory for large payloads between processes on one host")
     shm_threshold_bytes: int = param(65536, "payloads at least this large go through shared memory", "B")
@@ -31,8 +32,6 @@ class TransportConfig:
     stats_period_s: float = param(1.0, "period of each service's stats message", "s")
 
     def __post_init__(self) -> None:
-        if self.mode not in ("peer", "client"):
-            raise ValueError(f"transport.mode must be 'peer' or 'client', got {self.mode!r}")
         if not self.heartbeat_period_s > 0 or not self.stats_period_s > 0:
             raise ValueError(f"transport.heartbeat_period_s and stats_period_s must be positive, got "
                              f"{self.heartbeat_period_s}, {self.stats_period_s}")

@@ -7,7 +7,7 @@ import dataclasses
 from shared.config import param
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class BackendConfig:
     """Windowed visual-inertial smoother (gtsam)."""
 

@@ -7,24 +7,22 @@ import dataclasses
 from shared.config import param
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class O2PConfig:
     """Frame-to-map and map-to-map occupancy-to-point factors; off until shown to help."""
 
     enabled: bool = param(False, "add occupancy-to-point factors to the back end's window (needs map/field and depth)")
     frame_to_map: bool = param(True, "frame-to-map: live stereo depth of a window keyframe against its o(k)")
     map_to_map: bool = param(False, "map-to-map: fused-depth points of a finished submap m against o(m), between the two "
-                             "submaps' anchor keyframes in the loop closer's pose graph and final BA (needs loop.enabled). "
-                             "Off by default: in the causal pose graph one such term stepped the published trajectory by "
-                             "6-24 cm on the V2_01 replica (docs/o2p.md, stop 15)")
+                             "submaps' anchor keyframes in the loop closer's pose graph and final BA (needs loop.enabled "
+                             "and mapping.o2p_points > 0; why off: docs/o2p.md)")
     max_points_frame: int = param(200, "points per frame-to-map factor at most (the lowest-sigma ones)")
     max_points_map: int = param(1000, "points per map-to-map factor at most (the lowest-sigma ones)")
     min_points_in_field: int = param(100, "M_min: a target submap needs this many points inside its observed field")
     min_target_age_s: float = param(0.0, "frame-to-map: a target submap must have been finished at least this long before "
                                     "the frame (0: before the frame, so never a submap holding the frame's own depth or "
-                                    "later depth, which pull the frame towards itself); the visual-inertial window knows "
-                                    "its pose relative to a recent submap better than the factor does (3-4 cm per frame "
-                                    "on the replicas, docs/o2p.md), so a gap keeps the factors for revisits", "s")
+                                    "later depth, which pull the frame towards itself); > 0 keeps the factors for "
+                                    "revisits (docs/o2p.md)", "s")
     map_target_gap_s: float = param(0.0, "map-to-map: o(m) must have been finished at least this long before m began "
                                     "(0: any older submap, nearly always m's predecessor)", "s")
     min_covisible_landmarks: int = param(5, "landmarks a frame must share with a submap to count it covisible")
@@ -32,7 +30,7 @@ class O2PConfig:
     info_scale: float = param(1.0, "scales the information of every point on top of effective_points (1: none; for experiments)")
     effective_points: float = param(10.0, "N_eff: a factor carries at most the information of this many independent points "
                                     "(depth errors are correlated across an image; rows scaled by min(1, N_eff / n_valid)); "
-                                    "0: no cap (eq. 7 as it is). 10: measured on the V1_02/MH_04/V2_01 replicas (docs/o2p.md)")
+                                    "0: no cap (eq. 7 as it is); why 10: docs/o2p.md")
     grad_min: float = param(1.0, "points where |grad L| is below this (saturated free space) drop out", "1/m")
     depth_stamp_tolerance_ms: float = param(1.0, "a depth frame belongs to the window state with this stamp", "ms")
     attach_tolerance_ms: float = param(150.0, "a depth frame without a window state at its stamp attaches to the nearest "

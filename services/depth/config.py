@@ -2,16 +2,18 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import Literal
 
 from shared.config import param
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class DepthConfig:
     """Stereo (+ MVS) depth with per-pixel sigma, fused by inverse variance (paper sec. IV-D)."""
 
-    method: str = param("network", "'network' (stereo + MVS networks, fused) or 'sgbm' (OpenCV SGBM with "
-                        "heuristic sigma); 'network' falls back to 'sgbm' when the stereo weights are missing")
+    method: Literal["network", "sgbm"] = param("network", "'network' (stereo + MVS networks, fused) or 'sgbm' (OpenCV "
+                                               "SGBM with heuristic sigma); 'network' falls back to 'sgbm' when the "
+                                               "stereo weights are missing")
     rate_hz: float = param(10.0, "processing rate; newer frames replace older ones waiting (drops counted)", "Hz")
     left_camera: str = param("cam0", "rig camera used as the left (reference) camera")
     right_camera: str = param("cam1", "rig camera used as the right camera")
@@ -42,20 +44,16 @@ class DepthConfig:
                                     "it has no MVS depth at all)", "s")
     sgbm_num_disparities: int = param(96, "SGBM disparity search range (multiple of 16)", "px")
     sgbm_block_size: int = param(5, "SGBM block size (odd)", "px")
-    heuristic_sigma_model: str = param("quadratic", "SGBM sigma model: 'quadratic' (constant disparity sigma, "
-                                       "eq. 11) or 'linear' (relative depth sigma)")
+    heuristic_sigma_model: Literal["quadratic", "linear"] = param("quadratic", "SGBM sigma model: 'quadratic' (constant "
+                                                                  "disparity sigma, eq. 11) or 'linear' (relative depth sigma)")
     heuristic_sigma_coeff: float = param(1.0, "disparity sigma [px] for 'quadratic'; relative sigma [-] for 'linear'")
-    device: str = param("auto", "'auto' (CUDA when present), 'cpu' or 'cuda'")
+    device: Literal["auto", "cpu", "cuda"] = param("auto", "where the networks run ('auto': CUDA when present)")
     threads: int = param(2, "CPU threads of the networks")
     budget_ms: float = param(100.0, "budget of one depth frame (networks + fusion), reported in stats", "ms")
     inject_delay_ms: float = param(0.0, "TEST/BENCH KNOB: extra sleep added to every depth frame inside the timed "
                                    "stage, to overload the service on purpose (docs/reliability.md); keep 0", "ms")
 
     def __post_init__(self) -> None:
-        if self.method not in ("network", "sgbm"):
-            raise ValueError(f"depth.method must be 'network' or 'sgbm', got {self.method!r}")
-        if self.heuristic_sigma_model not in ("quadratic", "linear"):
-            raise ValueError(f"depth.heuristic_sigma_model must be 'quadratic' or 'linear', got {self.heuristic_sigma_model!r}")
         if self.width % 16 or self.height % 16 or self.width <= 0 or self.height <= 0:
             raise ValueError(f"depth.width/height must be positive multiples of 16, got {self.width}x{self.height}")
         if not 1 <= self.mvs_sources <= 7:

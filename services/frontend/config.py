@@ -7,7 +7,7 @@ import dataclasses
 from shared.config import param
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class FrontendConfig:
     """Multi-camera KLT frontend."""
 

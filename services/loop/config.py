@@ -7,7 +7,7 @@ import dataclasses
 from shared.config import param
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class LoopConfig:
     """Loop closure (bag of binary words + PnP), pose graph, relocalisation, final BA (runs in the back end)."""
 

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import Literal
 
 from shared.config import param
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class SensorModelConfig:
     """Piecewise-linear inverse sensor model of eq. 3 and the running mean of eq. 4."""
 
@@ -17,12 +18,9 @@ class SensorModelConfig:
     tau_k: float = param(0.05, "surface thickness tau as a fraction of the measured depth (eq. 3)")
     tau_min_m: float = param(0.075, "lower bound on the surface thickness tau", "m")
     tau_max_m: float = param(0.3, "upper bound on the surface thickness tau", "m")
-    tau_sigma_k: float = param(0.0, "tau is at least this many sigma_d (within tau_min_m..tau_max_m); 0 (default): eq. 3's tau "
-                               "as printed. With 6 the linear part of eq. 3 spans -3..+3 sigma_d about the measurement, so "
-                               "independent depth noise averages (eq. 4) to a zero crossing on the surface instead of behind "
-                               "it, but the thicker band costs mesh accuracy (V1_02 at GT poses 0.048 -> 0.063 m) and does not "
-                               "remove the replicas' map bias (docs/o2p.md, factor bias)")
-    sigma_model: str = param("input", "per-pixel sigma_d: 'input' (the DepthFrame's sigma), 'linear' (k_sigma*d) or 'quadratic' (k_sigma*d^2)")
+    tau_sigma_k: float = param(0.0, "tau is at least this many sigma_d (within tau_min_m..tau_max_m); 0: eq. 3's tau as "
+                               "printed (why 0: docs/mapping.md)")
+    sigma_model: Literal["input", "linear", "quadratic"] = param("input", "per-pixel sigma_d: 'input' (the DepthFrame's sigma), 'linear' (k_sigma*d) or 'quadratic' (k_sigma*d^2)")
     k_sigma: float = param(0.01, "heuristic sigma gain for sigma_model linear [1] or quadratic [1/m]")
     sigma_min_m: float = param(0.025, "lower bound on sigma_d (keeps the surface band at least a voxel wide)", "m")
     sigma_max_m: float = param(0.5, "upper bound on sigma_d", "m")
@@ -33,33 +31,31 @@ class SensorModelConfig:
     def check(self) -> None:
         if not (self.voxel_size_m > 0 and self.l_min < 0 and 1 <= self.w_max <= 65535):
             raise ValueError("voxel_size_m > 0, l_min < 0 and 1 <= w_max <= 65535 are required")
-        if self.sigma_model not in ("input", "linear", "quadratic"):
-            raise ValueError(f"sigma_model must be 'input', 'linear' or 'quadratic', got {self.sigma_model!r}")
         if not (0 < self.tau_min_m <= self.tau_max_m and 0 < self.sigma_min_m <= self.sigma_max_m and self.tau_sigma_k >= 0):
             raise ValueError("0 < tau_min_m <= tau_max_m, 0 < sigma_min_m <= sigma_max_m and tau_sigma_k >= 0 are required")
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class SubmapConfig:
     """When a new submap starts (sec. IV-E) and how submaps are meshed."""
 
     eps_vol: float = param(0.2, "a new submap starts when the observed fraction of sampled frustum points falls below this")
     overlap_samples: int = param(512, "points sampled in the depth frustum to estimate the overlap")
-    overlap_reference: str = param("anchor", "overlap with 'anchor' (the space seen by the submap's first frame) or 'submap' (everything integrated so far, which keeps growing under smooth motion and then rarely splits)")
+    overlap_reference: Literal["anchor", "submap"] = param("anchor", "overlap with 'anchor' (the space seen by the submap's first frame) or 'submap' (everything integrated so far, which keeps growing under smooth motion and then rarely splits)")
     min_frames: int = param(3, "frames integrated into a submap before it may be closed")
     mesh_chunk_blocks: int = param(4, "blocks per edge of a meshing chunk (only chunks with changed blocks are re-meshed)")
     keyframe_bind_tolerance_s: float = param(1.0, "a submap follows the keyframe nearest its creation time if within this", "s")
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class MappingConfig:
     """The ``sigmaslam mapping`` service: inputs, poses, outputs."""
 
     sensor: SensorModelConfig = param(SensorModelConfig(), "inverse sensor model and voxel size")
     submaps: SubmapConfig = param(SubmapConfig(), "submap switching and meshing")
-    depth_topic: str = param("depth/stereo", "depth input: 'depth/stereo' or 'depth/fused' (stereo by default: with the "
-                             "shipped networks the fused map is less accurate, docs/o2p.md Table IV)")
-    pose_source: str = param("estimator", "'estimator': T_WS(stamp) from estimator/state; 'frame': the DepthFrame's T_WC (ground-truth-pose runs; falls back to the estimator when T_WC is identity)")
+    depth_topic: Literal["depth/stereo", "depth/fused"] = param("depth/stereo", "depth input topic (why stereo: "
+                                                                "docs/mapping.md)")
+    pose_source: Literal["estimator", "frame"] = param("estimator", "'estimator': T_WS(stamp) from estimator/state; 'frame': the DepthFrame's T_WC (ground-truth-pose runs; falls back to the estimator when T_WC is identity)")
     follow_final: bool = param(True, "when the back end publishes the non-causal trajectory (estimator/trajectory_final, "
                                "after the stream), move every submap onto it: the written map is the final one")
     state_buffer: int = param(2000, "estimator states kept for pose look-up by stamp")

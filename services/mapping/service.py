@@ -232,13 +232,7 @@ def main(args: argparse.Namespace) -> int:
     from transport.queues import Empty
 
     sys_cfg = load_system_config(args.config, args.set)
-    cfg = sys_cfg.mapping
-    if cfg.depth_topic not in DEPTH_TOPICS:
-        print(f"sigmaslam mapping: mapping.depth_topic must be one of {sorted(DEPTH_TOPICS)}", flush=True)
-        return 2
-    if cfg.pose_source not in ("estimator", "frame"):
-        print("sigmaslam mapping: mapping.pose_source must be 'estimator' or 'frame'", flush=True)
-        return 2
+    cfg = sys_cfg.mapping  # depth_topic and pose_source were checked by the loader
     out_dir = args.out or cfg.output_dir
     loop = MappingLoop(cfg)
     resume_map(loop, out_dir)

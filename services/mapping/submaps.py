@@ -59,8 +59,6 @@ class SubmapMapper:
         self.sensor = sensor or SensorModelConfig()
         self.sensor.check()
         self.cfg = submaps or SubmapConfig()
-        if self.cfg.overlap_reference not in ("anchor", "submap"):
-            raise ValueError(f"overlap_reference must be 'anchor' or 'submap', got {self.cfg.overlap_reference!r}")
         self.submaps: list[Submap] = []
         self._rng = np.random.default_rng(seed)
 

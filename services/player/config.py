@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import Literal
 
 from shared.config import param
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class PlayerConfig:
     """How the player paces a dataset onto sensors/imu and sensors/frame.
 
@@ -16,7 +17,7 @@ class PlayerConfig:
     offline runs at whatever speed the pipeline manages. ``rate`` plays at ``rate`` x sensor time.
     """
 
-    mode: str = param("lockstep", "'lockstep' (wait for estimator/state per frame) or 'rate' (timed by rate)")
+    mode: Literal["lockstep", "rate"] = param("lockstep", "'lockstep' (wait for estimator/state per frame) or 'rate' (timed by rate)")
     rate: float = param(1.0, "mode 'rate': playback speed as a multiple of sensor time (1 = real time)")
     lockstep_timeout_s: float = param(3.0, "mode 'lockstep': longest wait for the estimator's answer to a frame", "s")
     start_paused: bool = param(False, "wait for a 'resume' control command before the first message")
@@ -27,8 +28,6 @@ class PlayerConfig:
                                 "around seconds of images); negative: every sample", "s")
 
     def __post_init__(self) -> None:
-        if self.mode not in ("lockstep", "rate"):
-            raise ValueError(f"player.mode must be 'lockstep' or 'rate', got {self.mode!r}")
         if not self.rate > 0 or not self.lockstep_timeout_s > 0:
             raise ValueError(f"player.rate and player.lockstep_timeout_s must be positive, got {self.rate}, "
                              f"{self.lockstep_timeout_s}")

@@ -85,11 +85,8 @@ def main(args: argparse.Namespace) -> int:
         return 2
     if args.lockstep or args.realtime or args.rate:
         lockstep = args.lockstep
-    elif pc.mode in ("lockstep", "rate"):
-        lockstep = pc.mode == "lockstep"
     else:
-        print(f"sigmaslam player: player.mode must be 'lockstep' or 'rate', got {pc.mode!r}", flush=True)
-        return 2
+        lockstep = pc.mode == "lockstep"  # 'lockstep' or 'rate' (checked by the loader)
     rate = 0.0 if lockstep else (1.0 if args.realtime else (args.rate or pc.rate))
     if not lockstep and rate <= 0:
         print(f"sigmaslam player: the rate must be positive, got {rate}", flush=True)

@@ -86,8 +86,6 @@ class RecordingWriter:
 
     def __init__(self, path: str | Path, *, chunk_size_bytes: int = 4 << 20, compression: str = "lz4",
                  foxglove_mirror: bool = True, config_yaml: str | None = None) -> None:
-        if compression not in COMPRESSIONS:
-            raise RecordingError(f"recorder.compression must be one of {sorted(COMPRESSIONS)}, got {compression!r}")
         if chunk_size_bytes < 1:
             raise RecordingError(f"recorder.chunk_size_bytes must be positive, got {chunk_size_bytes}")
         self.path = Path(path)

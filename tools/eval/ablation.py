@@ -173,7 +173,7 @@ def run_row(row: str, dataset: Path, overrides: list[str], seconds: float, depth
     from services.mapping.o2p_points import SubmapPointPool
     from services.mapping.submaps import SubmapMapper
     from services.system_config import load_system_config
-    from shared.config import ConfigError
+    from shared.config import ConfigError, override
     from shared.messages import ImuSample
     from shared.rig import load_rig_config
 
@@ -187,7 +187,7 @@ def run_row(row: str, dataset: Path, overrides: list[str], seconds: float, depth
             raise ValueError("this build has no monocular depth (the config has no depth.mono)") from None
         raise
     if not cfg.rig.calibration:
-        cfg.rig.calibration = str(dataset)
+        cfg = override(cfg, {"rig.calibration": str(dataset)})
     cams = load_rig_config(cfg.rig)
     fe, shell = FrontendShell(cfg.frontend, cams), BackendShell(cfg.backend, cams)
     dense = row in DENSE

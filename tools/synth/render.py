@@ -26,7 +26,7 @@ from tools.synth.scene import Scene
 INVALID = 0xFFFFFFFF
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class RenderConfig:
     """Photometric knobs of the synthetic camera."""
 

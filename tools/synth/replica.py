@@ -14,6 +14,7 @@ import dataclasses
 import lzma
 import time
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import yaml
@@ -30,13 +31,13 @@ from tools.synth.render import RenderConfig, Renderer
 from tools.synth.scene import build_scene
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class ReplicaSpec:
     """What to generate. A known ``sequence`` fills groundtruth/imu_data/image_timestamps/calib."""
 
     scene: str = param("vicon-a", "scene name (tools.synth.scene.SCENES)")
     sequence: str = param("V1_02", "EuRoC sequence whose real files are used ('' when all paths are given)")
-    imu: str = param("real", "'real': the recorded imu0 data (time-aligned); 'sim': simulated from the trajectory")
+    imu: Literal["real", "sim"] = param("real", "'real': the recorded imu0 data (time-aligned); 'sim': simulated from the trajectory")
     imu_noise: bool = param(True, "simulated IMU: add white noise and bias random walks of the imu0 noise model")
     start_s: float = param(0.0, "skip this much from the first usable image", "s")
     duration_s: float = param(0.0, "length of the replica (0 = to the end)", "s")
@@ -45,7 +46,7 @@ class ReplicaSpec:
     imu_data: str = param("", "imu0 data.csv(.xz); '' = the sequence's")
     image_timestamps: str = param("", "image timestamps [ns], one per line; '' = the sequence's")
     calib: str = param("", "calibration: folder with camN_sensor.yaml + imu0_sensor.yaml, an EuRoC folder or a rig YAML")
-    depth_cameras: list[int] = param([0], "cameras whose ground-truth depth is written (mav0/depth<i>)")
+    depth_cameras: tuple[int, ...] = param((0,), "cameras whose ground-truth depth is written (mav0/depth<i>)")
     knot_spacing_s: float = param(0.05, "knot spacing of the smooth trajectory fitted to the ground truth", "s")
     render: RenderConfig = param(RenderConfig(), "photometric settings")
 

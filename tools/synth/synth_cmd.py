@@ -54,7 +54,7 @@ def main(args: argparse.Namespace) -> int:
     spec = ReplicaSpec(scene=args.scene, sequence=args.sequence, imu=args.imu, start_s=args.start,
                        duration_s=args.duration, seed=args.seed, groundtruth=args.groundtruth, imu_data=args.imu_data,
                        image_timestamps=args.image_timestamps, calib=args.calib,
-                       depth_cameras=[int(x) for x in args.depth_cameras.split(",") if x.strip()], render=render)
+                       depth_cameras=tuple(int(x) for x in args.depth_cameras.split(",") if x.strip()), render=render)
     try:
         out = generate(spec, args.out, progress=not args.no_progress)
     except (FileNotFoundError, FileExistsError, ValueError, KeyError) as exc:
