@@ -69,6 +69,9 @@ class ProcessNode:
     stage: ClassVar[str] = "process"  # stage name of the trigger handler in stats/<name>
     budget_ms: float | None = None  # the stage's budget (per instance: from its config)
     wait_s: float = 0.0  # longest wait for a wait_until_trigger_stamp input [s] (per instance: from its config)
+    trigger_period_s: float = 0.0  # handle a trigger message at most this often [s] (0: every one): the Zenoh
+    # runner paces by wall time (newer messages replace older ones in a keep-latest queue), the in-process runner
+    # by the messages' stamps (a trigger sooner than this after the last handled one is skipped)
 
     def handle(self, inp: Input, msg: Message) -> list[Emit]:
         """Call ``inp``'s handler and check that everything it emits is a declared output."""
@@ -79,13 +82,19 @@ class ProcessNode:
                                       f"{[t.key for t in self.outputs]}")
         return out
 
-    def use_inputs(self, used: Iterable[Topic]) -> None:
-        """Read only these of the declared inputs (e.g. loop-closure inputs when loop closure is off): the
-        instance's ``inputs`` become that subset, in declared order; a topic not declared is refused."""
-        used = list(used)
-        for t in used:
-            type(self).input_for(t)
-        self.inputs = tuple(i for i in type(self).inputs if i.topic in used)
+    def use_inputs(self, handlers: Iterable[str]) -> None:
+        """Read only the declared inputs with these handlers (e.g. no loop-closure inputs when loop closure is
+        off): the instance's ``inputs`` become that subset, in declared order; an undeclared handler is refused."""
+        handlers = set(handlers)
+        unknown = handlers - {i.handler for i in type(self).inputs}
+        if unknown:
+            raise UndeclaredTopic(f"{self.name}: no declared input has handler(s) {sorted(unknown)}")
+        self.inputs = tuple(i for i in type(self).inputs if i.handler in handlers)
+
+    def counters(self) -> dict[str, Any]:
+        """Extra counters for ``stats/<name>``, reported like queues: name -> callable giving (received, dropped,
+        depth)."""
+        return {}
 
     def tick(self) -> list[Emit]:
         """Periodic work, called by the Zenoh runner while no trigger message is pending; may emit."""
@@ -129,6 +138,7 @@ class InProcessRunner:
         self._heap: list = []
         self._idle: list = []
         self._seq = itertools.count()
+        self._last_trigger: dict[int, int] = {}
         self.emitted: dict[str, int] = {}
         # (node name, handler) -> [(wall s, thread CPU s)] of every call: the per-stage times of an in-process run
         self.times: dict[tuple[str, str], list[tuple[float, float]]] = {}
@@ -142,12 +152,22 @@ class InProcessRunner:
     def _push(self, topic: Topic, msg: Message) -> None:
         heapq.heappush(self._heap, (int(msg.header.stamp_ns), next(self._seq), topic, msg))
 
+    def _paced_out(self, node: ProcessNode, inp: Input, msg: Message) -> bool:
+        """A trigger message that comes sooner than the node's trigger_period_s after the last one it handled."""
+        if inp.role != "trigger" or node.trigger_period_s <= 0:
+            return False
+        stamp, last = int(msg.header.stamp_ns), self._last_trigger.get(id(node))
+        if last is not None and stamp - last < node.trigger_period_s * 1e9 - 1e6:  # 1 ms slack for stamp jitter
+            return True
+        self._last_trigger[id(node)] = stamp
+        return False
+
     def _deliver(self, topic: Topic, msg: Message) -> None:
         for tap in self.taps:
             tap(topic, msg)
         for node in self.nodes:
             for inp in node.inputs:
-                if inp.topic != topic:
+                if inp.topic != topic or self._paced_out(node, inp, msg):
                     continue
                 if inp.role == "idle":
                     self._idle.append((node, inp, msg))

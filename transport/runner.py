@@ -9,7 +9,8 @@ The node's declared inputs become subscribers (their queue policy and depth), it
 blocks on the trigger input; before each trigger message it drains the side inputs (first those the trigger waits
 for, up to ``node.wait_s`` until one is stamped at or after the trigger, then the others in declared order), sheds
 a backlog with the node's ``shed`` method when the trigger input declares one, and times the trigger's handler as
-the node's stage in ``stats/<name>``. While no trigger message comes it drains the side inputs, hands the idle
+the node's stage in ``stats/<name>``; with ``node.trigger_period_s`` it takes a trigger message at most that often
+(a keep-latest trigger queue then drops the ones in between, counted). While no trigger message comes it drains the side inputs, hands the idle
 inputs (end of stream) to the node and calls its ``tick``. What the handlers return is published in order. A node without a trigger
 input handles every input as it arrives (the same loop with no pacing message).
 """
@@ -36,6 +37,8 @@ class _Wiring:
     def __init__(self, node: ProcessNode, tn: Node) -> None:
         self.node, self.tn = node, tn
         self.subs = {inp: tn.subscriber(inp.topic, policy=inp.policy, depth=inp.depth) for inp in node.inputs}
+        for name, fn in node.counters().items():
+            tn.stats.add_queue(name, fn)
         self.pubs = {t: tn.publisher(t) for t in node.outputs}
         self.newest = {inp: -1 for inp in node.inputs}
 
@@ -50,8 +53,9 @@ class _Wiring:
                 self.publish(self.node.handle(inp, msg))
 
 
-def run_node(node: ProcessNode, cfg: TransportConfig, stopped=None) -> None:
-    """Run ``node`` until the process is told to stop (or ``stopped()`` says so); then ``node.close()``."""
+def run_node(node: ProcessNode, cfg: TransportConfig, stopped=None, ready=None) -> None:
+    """Run ``node`` until the process is told to stop (or ``stopped()`` says so); then ``node.close()``.
+    ``ready()`` is called once its subscribers and publishers exist (e.g. to print that the service runs)."""
     triggers = [i for i in node.inputs if i.role == "trigger"]
     if len(triggers) > 1:
         raise ValueError(f"{node.name}: more than one trigger input")
@@ -62,8 +66,11 @@ def run_node(node: ProcessNode, cfg: TransportConfig, stopped=None) -> None:
     with Node(node.name, cfg) as tn:
         w = _Wiring(node, tn)
         timer = tn.timer(node.stage, budget_ms=node.budget_ms)
+        if ready is not None:
+            ready()
         done = (lambda: tn.stopped) if stopped is None else (lambda: tn.stopped or stopped())
         pending: deque = deque()
+        next_t = time.monotonic()  # trigger pacing (node.trigger_period_s)
         while not done():
             if trigger is None:
                 w.drain([*waited, *side, *idle])
@@ -71,6 +78,8 @@ def run_node(node: ProcessNode, cfg: TransportConfig, stopped=None) -> None:
                 tn.wait(POLL_S / 10)
                 continue
             sub = w.subs[trigger]
+            if node.trigger_period_s > 0 and not pending and tn.wait(max(0.0, next_t - time.monotonic())):
+                break
             if not pending:
                 try:
                     pending.append(sub.get(timeout=POLL_S))
@@ -87,6 +96,7 @@ def run_node(node: ProcessNode, cfg: TransportConfig, stopped=None) -> None:
                     log.warning("%s: %d messages behind, skipped %d to catch up", node.name, len(pending), skipped)
                 pending = deque(kept)
             msg = pending.popleft()
+            next_t = time.monotonic() + node.trigger_period_s
             stamp = int(msg.header.stamp_ns)
             w.drain(waited)
             deadline = time.monotonic() + node.wait_s

@@ -139,11 +139,11 @@ class BackendNode(ProcessNode):
         if cfg.o2p.enabled:  # before the loop closer, which hooks into the terms (anchors, correction)
             self.shell.enable_o2p(cfg.o2p)
         self.loop = LoopClosingBackend(self.shell, cfg.loop) if cfg.loop.enabled else None
-        used = [topics.FEATURES, topics.IMU]
+        used = ["on_features", "on_imu"]
         if self.shell.o2p is not None:
-            used += [topics.MAP_FIELD, topics.MAP_O2P_POINTS, topics.DEPTH_STEREO]
+            used.append("on_map_input")
         if self.loop is not None:
-            used += [topics.KEYFRAME_FEATURES, topics.STREAM_END]
+            used += ["on_keyframe_features", "on_stream_end"]
         self.use_inputs(used)
         self.final_seq = 0
 
