@@ -56,6 +56,20 @@ class Emit:
     msg: Message
 
 
+class StageClock:
+    """A node's timer of one stage when no transport is there to report it: keeps each duration [s]."""
+
+    def __init__(self, stage: str, budget_ms: float | None = None) -> None:
+        self.stage, self.budget_ms, self.durations_s = stage, budget_ms, []
+
+    def __enter__(self) -> "StageClock":
+        self._t0 = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.durations_s.append(time.perf_counter() - self._t0)
+
+
 class UndeclaredTopic(ValueError):
     """A node published (or was wired to read) a topic it did not declare."""
 
@@ -90,6 +104,15 @@ class ProcessNode:
         if unknown:
             raise UndeclaredTopic(f"{self.name}: no declared input has handler(s) {sorted(unknown)}")
         self.inputs = tuple(i for i in type(self).inputs if i.handler in handlers)
+
+    def timer(self, stage: str, budget_ms: float | None = None):
+        """Context manager timing a stage of the node's own work (beyond the trigger handler): reported in
+        ``stats/<name>`` when run over Zenoh (the runner installs its timers), kept in a :class:`StageClock` else."""
+        timers = self.__dict__.setdefault("_timers", {})
+        if stage not in timers:
+            factory = self.__dict__.get("timer_factory", StageClock)
+            timers[stage] = factory(stage, budget_ms)
+        return timers[stage]
 
     def counters(self) -> dict[str, Any]:
         """Extra counters for ``stats/<name>``, reported like queues: name -> callable giving (received, dropped,

@@ -7,7 +7,7 @@ import numpy as np
 import open3d as o3d
 
 from services.mapping.config import MappingConfig, SubmapConfig
-from services.mapping.service import MappingLoop
+from services.mapping.node import MappingLoop
 from shared import messages as m
 from shared.codec import Header
 from tools.raycast_depth import DepthRenderer, intrinsics, look_at, room_scene

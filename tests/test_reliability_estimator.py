@@ -73,7 +73,7 @@ def test_mapping_freezes_its_submaps_when_the_back_end_resets():
     """After a 'reset' state the old submaps stop following keyframes (the new back end's ids mean other
     keyframes, in another world frame) and the next depth frame starts a new submap."""
     from services.mapping.config import MappingConfig
-    from services.mapping.service import MappingLoop
+    from services.mapping.node import MappingLoop
     from shared.codec import Header
     from shared.messages import DepthFrame, EstimatorState, Keyframes
 

@@ -12,7 +12,8 @@ a backlog with the node's ``shed`` method when the trigger input declares one, a
 the node's stage in ``stats/<name>``; with ``node.trigger_period_s`` it takes a trigger message at most that often
 (a keep-latest trigger queue then drops the ones in between, counted). While no trigger message comes it drains the side inputs, hands the idle
 inputs (end of stream) to the node and calls its ``tick``. What the handlers return is published in order. A node without a trigger
-input handles every input as it arrives (the same loop with no pacing message).
+input handles every input as it arrives and ticks between (every ``POLL_S / 10``). At a stop, what the side and
+idle inputs hold is handled before ``node.close()``.
 """
 
 from __future__ import annotations
@@ -64,6 +65,7 @@ def run_node(node: ProcessNode, cfg: TransportConfig, stopped=None, ready=None) 
     side = [i for i in node.inputs if i.role == "side" and not i.wait_until_trigger_stamp]
     idle = [i for i in node.inputs if i.role == "idle"]
     with Node(node.name, cfg) as tn:
+        node.timer_factory = lambda stage, budget_ms: tn.timer(stage, budget_ms=budget_ms)
         w = _Wiring(node, tn)
         timer = tn.timer(node.stage, budget_ms=node.budget_ms)
         if ready is not None:
@@ -107,4 +109,5 @@ def run_node(node: ProcessNode, cfg: TransportConfig, stopped=None, ready=None) 
             with timer:
                 emits = node.handle(trigger, msg)
             w.publish(emits)
+        w.drain([*waited, *side, *idle])  # what arrived before the stop is handled before the node closes
         w.publish(node.close())

@@ -1,46 +1,21 @@
-"""``sigmaslam mapping CONFIG``: occupancy submapping as a service.
+"""``sigmaslam mapping [CONFIG] [--out DIR]``: the mapping node (services/mapping/node.py) as a process over Zenoh.
 
-Subscribes ``mapping.depth_topic`` (depth/fused or depth/stereo), ``estimator/state`` (buffered by
-stamp), ``estimator/keyframes`` (submap poses follow them) and ``estimator/trajectory_final`` (after the
-stream, with ``follow_final``, every submap moves onto the non-causal trajectory). Each depth frame is integrated at
-``T_WC = T_WS(stamp) T_SC`` (or at its own T_WC when ``pose_source: frame`` and it is not identity);
-a frame whose state has not arrived waits up to ``pose_wait_s`` and is then dropped (counted).
-Changed submaps are re-meshed within a time budget at most every ``mesh_period_s`` and published on
-``map/submap``; a submap that moved is re-published with its new pose. The near-surface field of a
-submap (``OccupancyField`` on ``map/field``, for the occupancy-to-point factors) goes out when the
-submap closes, and for the current submap every ``field_period_s``. When the final trajectory has been
-applied (the stream is over) and again at exit (SIGTERM/SIGINT) if anything changed since, the map is
-meshed completely, published, and, if ``output_dir`` is set, written there: ``mesh.ply``
-(world), ``submaps/submap_NNN.ply`` (each in its own frame M), ``map.npz`` and ``mapping.json``. Writing
-at the final trajectory keeps the finished map on disk even when the process is stopped hard soon after. With an
-output folder, ``map.npz`` is also checkpointed every ``checkpoint_period_s`` (atomic rename); a service
-restarted by the supervisor resumes from that checkpoint (see :func:`resume_map`, docs/reliability.md).
+estimator/state, estimator/keyframes, depth/stereo or depth/fused (``mapping.depth_topic``),
+estimator/trajectory_final -> map/submap, map/field, map/o2p_points; with an output folder, mesh.ply, submaps/,
+map.npz and mapping.json there.
 """
 
 from __future__ import annotations
 
 import argparse
-import collections
-import json
 import logging
-import time
-from pathlib import Path
 
-import numpy as np
-
-from services.mapping.config import MappingConfig
-from services.mapping.io import MapFileError, load_map, remove_stale_temps, save_map, write_ply
-from services.mapping.o2p_points import SubmapPointPool
-from services.mapping.poses import PoseBuffer
-from services.mapping.submaps import SubmapMapper
+from services.mapping.node import MappingNode
 from services.system_config import load_system_config
-from services.supervisor import restart_count
-from shared import messages, topics
-from shared.codec import Header
+from shared import topics
+from transport.runner import run_node
 
 log = logging.getLogger("sigmaslam.mapping")
-
-DEPTH_TOPICS = {topics.DEPTH_FUSED.key: topics.DEPTH_FUSED, topics.DEPTH_STEREO.key: topics.DEPTH_STEREO}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -49,270 +24,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", metavar="DIR", help="write mesh.ply, submaps/, map.npz here at exit (overrides mapping.output_dir)")
 
 
-class MappingLoop:
-    """The service's state between messages; transport-free so that it reads as the algorithm's shell."""
-
-    def __init__(self, cfg: MappingConfig) -> None:
-        self.cfg = cfg
-        self.mapper = SubmapMapper(cfg.sensor, cfg.submaps)
-        self.poses = PoseBuffer(cfg.state_buffer)
-        self.waiting: collections.deque[tuple[float, messages.DepthFrame]] = collections.deque(maxlen=32)
-        self.counts = collections.Counter()
-        self.integrate_ms: list[float] = []
-        self.to_publish: set[int] = set()
-        self.fields_to_publish: set[int] = set()
-        self.reset_pending = False
-        # map-to-map points (services/mapping/o2p_points.py), published once per closed submap
-        self.points = SubmapPointPool(cfg.o2p_points) if cfg.o2p_points > 0 else None
-        self.points_to_publish: set[int] = set()
-        self.unflushed = True  # the map changed since it was last completely published and written
-
-    def on_state(self, msg: messages.EstimatorState) -> None:
-        if msg.status == "reset":  # a restarted back end: new world frame and keyframe ids
-            self.poses = PoseBuffer(self.cfg.state_buffer)  # forget the old frame's poses (atomic swap)
-            self.reset_pending = True  # submaps are frozen in the main loop
-        if msg.status in ("initialising", "reset"):  # placeholders without a pose
-            self.counts["states_without_pose"] += 1
-            return
-        self.poses.add(msg.header.stamp_ns, msg.T_WS)
-
-    def on_keyframes(self, msg: messages.Keyframes) -> None:
-        moved = self.mapper.update_keyframes(msg.ids, msg.stamps_ns, msg.T_WS)
-        self.to_publish.update(moved)
-        self.unflushed |= bool(moved)
-
-    def on_final(self, msg: messages.FinalTrajectory) -> None:
-        """The non-causal trajectory: submaps follow it (``mapping.follow_final``); counted."""
-        if not self.cfg.follow_final:
-            return
-        moved = self.mapper.follow_trajectory(msg.stamps_ns, msg.T_WS)
-        self.to_publish.update(moved)
-        self.unflushed |= bool(moved)
-        self.counts["final_trajectories"] += 1
-        log.info("final trajectory: %d of %d submaps moved onto it", len(moved), len(self.mapper.submaps))
-
-    def on_depth(self, msg: messages.DepthFrame) -> None:
-        if len(self.waiting) == self.waiting.maxlen:
-            self.counts["dropped_waiting_full"] += 1
-        self.waiting.append((time.monotonic(), msg))
-
-    def _pose(self, msg: messages.DepthFrame) -> np.ndarray | None:
-        if self.cfg.pose_source == "frame" and not np.allclose(msg.T_WC, np.eye(4)):
-            return np.asarray(msg.T_WC, float)
-        T_WS = self.poses.lookup(msg.header.stamp_ns, int(self.cfg.pose_tolerance_ms * 1e6), int(self.cfg.max_interp_gap_ms * 1e6))
-        return None if T_WS is None else T_WS @ np.asarray(msg.T_SC, float)
-
-    def process_waiting(self, timer=None) -> int:
-        """Integrate every waiting frame whose pose is known; drop those that waited too long."""
-        if self.reset_pending:
-            self.reset_pending = False
-            self.mapper.estimator_reset()
-            self.unflushed = True
-            self.counts["estimator_resets"] += 1
-            log.warning("estimator reset: submaps so far frozen, the next frame starts a new submap")
-        done = 0
-        keep: collections.deque = collections.deque(maxlen=self.waiting.maxlen)
-        while self.waiting:
-            t_rx, msg = self.waiting.popleft()
-            T_WC = self._pose(msg)
-            if T_WC is None:
-                if time.monotonic() - t_rx > self.cfg.pose_wait_s:
-                    self.counts["dropped_no_pose"] += 1
-                    log.warning("depth frame %d dropped: no estimator state for its stamp", msg.header.stamp_ns)
-                else:
-                    keep.append((t_rx, msg))
-                continue
-            t0 = time.perf_counter()
-            try:
-                if timer is not None:
-                    with timer:
-                        rep = self.mapper.integrate(msg.depth, msg.sigma, msg.K, T_WC, msg.T_SC, msg.header.stamp_ns)
-                else:
-                    rep = self.mapper.integrate(msg.depth, msg.sigma, msg.K, T_WC, msg.T_SC, msg.header.stamp_ns)
-            except ValueError as exc:
-                self.counts["dropped_bad_frame"] += 1
-                log.warning("depth frame %d dropped: %s", msg.header.stamp_ns, exc)
-                continue
-            self.integrate_ms.append(1e3 * (time.perf_counter() - t0))
-            self.unflushed = True
-            self.counts["integrated"] += 1
-            if self.points is not None:
-                T_WM = self.mapper.submaps[rep.submap_id].T_WM
-                self.points.add(rep.submap_id, msg.depth, msg.sigma, msg.K, np.linalg.inv(T_WM) @ T_WC)
-            if rep.new_submap:
-                self.counts["submaps"] += 1
-                if rep.submap_id > 0:
-                    self.fields_to_publish.add(rep.submap_id - 1)  # closed: its field is final
-                    self.points_to_publish.add(rep.submap_id - 1)
-                log.info("submap %d started (overlap %.2f)", rep.submap_id, rep.overlap)
-            done += 1
-        self.waiting = keep
-        return done
-
-    def remesh(self, budget_s: float | None) -> None:
-        self.to_publish.update(self.mapper.remesh(budget_s))
-
-    def submap_messages(self) -> list[messages.SubmapMesh]:
-        out = []
-        for sid in sorted(self.to_publish):
-            sm = self.mapper.submaps[sid]
-            if self.cfg.vertex_colors:
-                v, f, c = self.mapper.colored_mesh(sm)
-            else:
-                (v, f), c = sm.mesher.mesh(), np.empty((0, 3), np.uint8)
-            out.append(messages.SubmapMesh(header=Header(stamp_ns=sm.anchor_stamp_ns, frame_id=f"M{sm.id}"), submap_id=sm.id,
-                                           T_WM=sm.T_WM, vertices_M=v, faces=f, vertex_colors=c))
-        self.to_publish.clear()
-        return out
-
-    def field_messages(self) -> list[messages.OccupancyField]:
-        from services.mapping.export import field_message
-
-        out = [field_message(self.mapper.submaps[i], self.cfg.sensor.l_min) for i in sorted(self.fields_to_publish)]
-        self.fields_to_publish.clear()
-        return out
-
-    def points_messages(self) -> list[messages.SubmapPoints]:
-        out = []
-        for sid in sorted(self.points_to_publish):
-            got = self.points.pop(sid) if self.points is not None else None
-            if got is not None:
-                sm = self.mapper.submaps[sid]
-                out.append(messages.SubmapPoints(header=Header(stamp_ns=sm.anchor_stamp_ns, frame_id=f"M{sid}"),
-                                                 submap_id=sid, points_M=got[0].astype(np.float32),
-                                                 sigma=got[1].astype(np.float32)))
-        self.points_to_publish.clear()
-        return out
-
-    def write_outputs(self, out_dir: Path, report_only: bool = False) -> None:
-        """The map (mesh.ply, submaps/, map.npz) and mapping.json; with ``report_only`` only mapping.json."""
-        out_dir.mkdir(parents=True, exist_ok=True)
-        if not report_only:
-            v, f = self.mapper.world_mesh()
-            write_ply(out_dir / "mesh.ply", v, f)
-            for sm in self.mapper.submaps:
-                sv, sf = sm.mesher.mesh()
-                write_ply(out_dir / "submaps" / f"submap_{sm.id:03d}.ply", sv, sf)
-            save_map(self.mapper, out_dir / "map.npz")
-        ms = np.array(self.integrate_ms) if self.integrate_ms else np.array([np.nan])
-        report = {"counts": dict(self.counts), "integrate_ms_p50": float(np.median(ms)),
-                  "integrate_ms_p90": float(np.percentile(ms, 90)), "map_bytes": self.mapper.nbytes(),
-                  "submaps": [{"id": sm.id, "bytes": sm.store.nbytes(), "blocks": sm.store.n_blocks,
-                               "refined_blocks": sm.store.n_refined - len(sm.store.free_rows), "frames": sm.n_frames,
-                               "T_WM": sm.T_WM.tolist(), "keyframe_id": sm.keyframe_id} for sm in self.mapper.submaps]}
-        (out_dir / "mapping.json").write_text(json.dumps(report, indent=1))
-
-
-def resume_map(loop: MappingLoop, out_dir: str | None) -> bool:
-    """After a supervisor restart (``$SIGMASLAM_RESTARTS`` > 0), continue from the last checkpoint
-    ``<out_dir>/map.npz``: same submaps, ids continue, everything is re-meshed and re-published. A first
-    start, or a restart without a readable checkpoint, begins an empty map (logged)."""
-    if out_dir:
-        for tmp in remove_stale_temps(out_dir):
-            log.warning("removed %s, left by a save that was killed", tmp)
-    if restart_count() <= 0 or not out_dir:
-        return False
-    path = Path(out_dir) / "map.npz"
-    try:
-        loop.mapper = load_map(path)
-    except (MapFileError, FileNotFoundError) as exc:
-        log.warning("mapping restarted without a usable checkpoint (%s): starting an empty map", exc)
-        loop.counts["resumed"] = 0
-        return False
-    loop.mapper.remesh(None)
-    loop.to_publish.update(sm.id for sm in loop.mapper.submaps)
-    loop.counts["resumed"] = 1
-    log.warning("mapping restarted: resumed %d submaps from %s", len(loop.mapper.submaps), path)
-    print(f"mapping: resumed {len(loop.mapper.submaps)} submaps from {path}", flush=True)
-    return True
-
-
 def main(args: argparse.Namespace) -> int:
-    from transport.node import Node
-    from transport.queues import Empty
-
     sys_cfg = load_system_config(args.config, args.set)
     cfg = sys_cfg.mapping  # depth_topic and pose_source were checked by the loader
-    out_dir = args.out or cfg.output_dir
-    loop = MappingLoop(cfg)
-    resume_map(loop, out_dir)
+    node = MappingNode(cfg, args.out or cfg.output_dir)
     from services.mapping.integrate import warm_up
 
     warm_up(cfg.sensor)
-    with Node("mapping", sys_cfg.transport) as node:
-        node.subscriber(topics.STATE, policy="all", depth=cfg.state_buffer, handler=loop.on_state)
-        kfs = node.subscriber(topics.KEYFRAMES)
-        finals = node.subscriber(topics.TRAJECTORY_FINAL)
-        depth = node.subscriber(DEPTH_TOPICS[cfg.depth_topic])
-        pub = node.publisher(topics.SUBMAP)
-        pub_field = node.publisher(topics.MAP_FIELD)
-        pub_points = node.publisher(topics.MAP_O2P_POINTS)
-        last_field = time.monotonic()
-        timer = node.timer("integrate", budget_ms=cfg.integrate_budget_ms)
-        mesh_timer = node.timer("mesh")
-        last_mesh = time.monotonic()
-        checkpoint_timer = node.timer("checkpoint")
-        last_checkpoint = time.monotonic()
-        print(f"mapping: {cfg.depth_topic} -> {topics.SUBMAP.key}", flush=True)
-        while not node.stopped:
-            try:
-                loop.on_depth(depth.get(timeout=0.02))
-            except Empty:
-                pass
-            for msg in kfs.drain():
-                loop.on_keyframes(msg)
-            loop.process_waiting(timer)
-            final_msgs = finals.drain()  # after the stream: no depth follows it
-            for msg in final_msgs:
-                loop.on_final(msg)
-            if final_msgs:  # the map is finished: publish and write it now, not only when stopped
-                flush_map(loop, pub, pub_field, out_dir)
-            if time.monotonic() - last_mesh >= cfg.mesh_period_s:
-                last_mesh = time.monotonic()
-                with mesh_timer:
-                    loop.remesh(cfg.mesh_budget_ms / 1e3)
-                for m in loop.submap_messages():
-                    pub.publish(m)
-            if cfg.field_period_s > 0 and loop.mapper.submaps and time.monotonic() - last_field >= cfg.field_period_s:
-                last_field = time.monotonic()
-                loop.fields_to_publish.add(loop.mapper.current.id)
-            for m in loop.field_messages():
-                pub_field.publish(m)
-            for m in loop.points_messages():  # after the field: the back end pairs them by submap id
-                pub_points.publish(m)
-            if out_dir and cfg.checkpoint_period_s > 0 and time.monotonic() - last_checkpoint >= cfg.checkpoint_period_s:
-                last_checkpoint = time.monotonic()
-                with checkpoint_timer:
-                    save_map(loop.mapper, Path(out_dir) / "map.npz")
-        # drain: everything received is integrated and meshed before exit
-        for msg in depth.drain():
-            loop.on_depth(msg)
-        loop.process_waiting(timer)
-        for msg in kfs.drain():
-            loop.on_keyframes(msg)
-        for msg in finals.drain():  # stopped right after the back end's final trajectory: still applied
-            loop.on_final(msg)
-        if loop.unflushed:
-            flush_map(loop, pub, pub_field, out_dir)
-        elif out_dir:  # counts may have moved (drops); the map on disk is current
-            loop.write_outputs(Path(out_dir), report_only=True)
-            log.info("map unchanged since it was last written; mapping.json updated")
-    log.info("mapping done: %s", dict(loop.counts))
+    run_node(node, sys_cfg.transport,
+             ready=lambda: print(f"mapping: {cfg.depth_topic} -> {topics.SUBMAP.key}", flush=True))
     return 0
-
-
-def flush_map(loop: MappingLoop, pub, pub_field, out_dir: str | None) -> None:
-    """Mesh every submap completely, publish all meshes and fields, and write the outputs (if ``out_dir``)."""
-    t0 = time.monotonic()
-    loop.remesh(None)
-    loop.to_publish.update(sm.id for sm in loop.mapper.submaps)
-    for m in loop.submap_messages():
-        pub.publish(m)
-    loop.fields_to_publish.update(sm.id for sm in loop.mapper.submaps)
-    for m in loop.field_messages():
-        pub_field.publish(m)
-    if out_dir:
-        loop.write_outputs(Path(out_dir))
-        print(f"mapping: wrote {out_dir}/mesh.ply ({len(loop.mapper.submaps)} submaps, "
-              f"{time.monotonic() - t0:.1f} s)", flush=True)
-    loop.unflushed = False
