@@ -49,7 +49,8 @@ LARGE_TYPES = (messages.MultiCameraFrame, messages.DepthFrame, messages.SubmapMe
 class Node:
     """Session, publishers, subscribers, timers and periodic stats/heartbeat of one service."""
 
-    def __init__(self, name: str, cfg: TransportConfig | None = None, *, handle_signals: bool = True) -> None:
+    def __init__(self, name: str, cfg: TransportConfig | None = None, *, handle_signals: bool = True,
+                 declared=None) -> None:
         if not name or "/" in name or "*" in name:
             raise ValueError(f"service name must be non-empty without '/' or '*', got {name!r}")
         self.name = name
@@ -65,6 +66,9 @@ class Node:
         self._closing = threading.Event()
         self._thread: threading.Thread | None = None
         self._state = "starting"
+        # the process's declaration (shared.dataflow.ProcessNode class or instance): subscribing or publishing a
+        # topic it does not declare is refused (stats/ and heartbeat/ belong to every node)
+        self.declared = declared
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -146,6 +150,7 @@ class Node:
         """Publisher of ``topic.msg_type`` on ``<namespace>/<key or topic.key>``; topics with policy
         'all' block instead of dropping when Zenoh's queue is full (unless ``block`` says otherwise)."""
         self._require_open()
+        self._check_declared(topic, "outputs")
         if key is None and "*" in topic.key:
             raise ValueError(f"topic {topic.key!r} is per-service: pass key=topics.per_service(topic, name)")
         block = topic.queue_policy == "all" if block is None else block
@@ -160,6 +165,7 @@ class Node:
         """Subscriber to ``topic`` (queue policy and depth from the topic unless given); its counters
         appear in this node's stats under the relative key."""
         self._require_open()
+        self._check_declared(topic, "inputs")
         rel = key if key is not None else topic.key
         sub = Subscriber(self.session, self.key_expr(topic, key), topic.msg_type,
                          policy or topic.queue_policy, depth or topic.queue_depth,
@@ -174,6 +180,17 @@ class Node:
         if existing is not None:
             return existing
         return self.stats.add_stage(StageTimer(stage, budget_ms))
+
+    def _check_declared(self, topic: Topic, side: str) -> None:
+        if self.declared is None or topic in (topics.STATS, topics.HEARTBEAT):
+            return
+        from shared.dataflow import UndeclaredTopic
+
+        cls = self.declared if isinstance(self.declared, type) else type(self.declared)
+        declared = cls.outputs if side == "outputs" else [i.topic for i in cls.inputs]
+        if topic not in declared:
+            raise UndeclaredTopic(f"{self.name}: {'publishes' if side == 'outputs' else 'subscribes to'} "
+                                  f"{topic.key!r}, which its declaration does not list in its {side}")
 
     def _require_open(self) -> None:
         if self.session is None:

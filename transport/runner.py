@@ -64,7 +64,7 @@ def run_node(node: ProcessNode, cfg: TransportConfig, stopped=None, ready=None) 
     waited = [i for i in node.inputs if i.role == "side" and i.wait_until_trigger_stamp]
     side = [i for i in node.inputs if i.role == "side" and not i.wait_until_trigger_stamp]
     idle = [i for i in node.inputs if i.role == "idle"]
-    with Node(node.name, cfg) as tn:
+    with Node(node.name, cfg, declared=node) as tn:
         node.timer_factory = lambda stage, budget_ms: tn.timer(stage, budget_ms=budget_ms)
         w = _Wiring(node, tn)
         timer = tn.timer(node.stage, budget_ms=node.budget_ms)

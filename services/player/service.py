@@ -25,6 +25,7 @@ from shared import topics
 from services.player.source import open_source
 from shared.euroc_reader import DatasetError
 from shared.messages import Control, Header, ImuSample, StreamEnd
+from services.player.node import PlayerNode
 from transport.node import Node
 from transport.queues import Empty
 
@@ -93,7 +94,7 @@ def main(args: argparse.Namespace) -> int:
         return 2
     timeout_s = pc.lockstep_timeout_s if args.lockstep_timeout_s is None else args.lockstep_timeout_s
     max_frames = pc.max_frames if args.max_frames is None else args.max_frames
-    with Node("player", cfg.transport) as node:
+    with Node("player", cfg.transport, declared=PlayerNode) as node:
         imu_pub = node.publisher(topics.IMU)
         frame_pub = node.publisher(topics.FRAME)
         end_pub = node.publisher(topics.STREAM_END)

@@ -23,6 +23,7 @@ from services.recorder.mcap_writer import RecordingError, RecordingWriter
 from services.recorder.recovery import RecoveryError, recover
 from services.system_config import load_system_config
 from shared.config import to_yaml
+from services.recorder.node import RecorderNode
 from transport.node import Node
 from transport.queues import BoundedQueue, Empty
 
@@ -94,7 +95,7 @@ def main(args: argparse.Namespace) -> int:
     out = fresh_path(Path(args.out) if args.out else default_output(rc.output_dir))
     # the node (and with it the SIGTERM/SIGINT handling) comes first: a stop signal that arrives once the file
     # exists must find a handler that closes it, not the default action that would leave it without a summary
-    with Node("recorder", cfg.transport) as node:
+    with Node("recorder", cfg.transport, declared=RecorderNode) as node:
         try:
             writer = RecordingWriter(out, chunk_size_bytes=rc.chunk_size_bytes, compression=rc.compression,
                                      foxglove_mirror=rc.foxglove, config_yaml=to_yaml(cfg))

@@ -16,6 +16,7 @@ import time
 
 from services.system_config import SystemConfig, load_system_config
 from services.viewer.config import ViewerConfig
+from services.viewer.node import SHOWN_TOPICS, ViewerNode
 from services.viewer.scene_model import ViewerModel
 from shared import messages as m
 from shared import topics
@@ -28,8 +29,6 @@ from transport.pubsub import RateLimitedLog, Subscriber
 
 log = logging.getLogger("sigmaslam.viewer")
 
-SHOWN_TOPICS = (topics.STATE, topics.KEYFRAMES, topics.SUBMAP, topics.FRAME, topics.DEPTH_STEREO, topics.DEPTH_FUSED,
-                topics.LANDMARKS, topics.STATS, topics.STREAM_END)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -94,7 +93,7 @@ def run(vcfg: ViewerConfig, tcfg: TransportConfig, model: ViewerModel) -> int:
         print(f"sigmaslam viewer: cannot serve on {vcfg.host}:{vcfg.port}: {exc}", file=sys.stderr)
         return 1
     try:
-        with Node("viewer", tcfg) as node:
+        with Node("viewer", tcfg, declared=ViewerNode) as node:
             control = node.publisher(topics.CONTROL)
 
             def publish_control(command: str) -> None:
