@@ -54,7 +54,7 @@ def _say(msg: str) -> None:
 
 
 def _mesh_figures(out: Path, dataset: Path) -> dict | None:
-    from tools.eval.ate import run_alignment
+    from shared.metrics.ate import run_alignment
     from tools.eval.mesh import evaluate_mesh_files
 
     est = out / "mesh.ply"

@@ -1,4 +1,4 @@
-"""``sigmaslam eval ate --gt GT --est EST``: ATE RMSE after alignment (tools/eval/ate.py).
+"""``sigmaslam eval ate --gt GT --est EST``: ATE RMSE after alignment (shared/metrics/ate.py).
 
 Reads TUM or EuRoC CSV (ground truth or pose files, .xz too). Alignment: ``se3`` (default, the paper's),
 ``sim3``, ``posyaw`` or ``none``; ``--align-first-s S`` fits the alignment on the first S seconds only.
@@ -21,7 +21,7 @@ def add_arguments(a: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     from shared.euroc import TrajectoryFileError, read_trajectory
-    from tools.eval.ate import compute_ate
+    from shared.metrics.ate import compute_ate
 
     try:
         gt, est = read_trajectory(args.gt), read_trajectory(args.est)

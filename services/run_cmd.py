@@ -15,7 +15,7 @@ and the last state is in (or no state came for ``--settle-s``), it stops the ser
 - ``DIR/trajectory_final.txt`` / ``.csv``: the non-causal trajectory (final bundle adjustment with loops, from
   ``estimator/trajectory_final``; ``loop.final_ba``), which then also becomes ``DIR/trajectory.txt``; loop counts
   in stats.json;
-- ``DIR/ate.json`` and a printed line when there is ground truth (SE(3) alignment, tools/eval/ate.py), causal
+- ``DIR/ate.json`` and a printed line when there is ground truth (SE(3) alignment, shared/metrics/ate.py), causal
   and non-causal, over the poses that have a ground-truth pose within 10 ms (a ground truth that starts late or
   ends early only shortens the span; ate.json says how many poses and which span). The ground truth is
   ``--gt PATH`` (EuRoC CSV or TUM ``.txt``), else the first of :data:`GT_CANDIDATES` found in DATASET; it is also
@@ -235,7 +235,7 @@ def find_ground_truth(dataset: Path) -> Path | None:
 
 def evaluate(traj: PoseSeries, gt_path: Path) -> dict:
     """SE(3)-aligned ATE of ``traj`` over its poses that have a ground-truth pose within 10 ms (the overlap)."""
-    from tools.eval.ate import compute_ate
+    from shared.metrics.ate import compute_ate
 
     gt = read_trajectory(gt_path)
     res = compute_ate(gt.stamps_ns, gt.p_WS, traj.stamps_ns, traj.p_WS, mode="se3")

@@ -26,18 +26,9 @@ import time
 from pathlib import Path
 
 from shared.config import ConfigError, param
+from shared.supervision import RESTARTS_ENV
 
 log = logging.getLogger("sigmaslam.up")
-
-RESTARTS_ENV = "SIGMASLAM_RESTARTS"  # set in each child: how often the supervisor restarted that service
-
-
-def restart_count() -> int:
-    """In a supervised service: how many times it was restarted (0 at its first start or unsupervised)."""
-    try:
-        return max(0, int(os.environ.get(RESTARTS_ENV, "0") or 0))
-    except ValueError:
-        return 0
 
 RESTART_POLICIES = ("on-failure", "always", "never")
 

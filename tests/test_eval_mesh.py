@@ -44,7 +44,7 @@ def test_run_frame_estimate_needs_the_trajectory_alignment(tmp_path):
     trajectory's alignment: with it the accuracy is that of the mesh, without it ICP cannot reach it."""
     from scipy.spatial.transform import Rotation
 
-    from tools.eval.ate import compute_ate
+    from shared.metrics.ate import compute_ate
 
     box = o3d.geometry.TriangleMesh.create_box(2.0, 1.0, 0.5)
     o3d.io.write_triangle_mesh(str(tmp_path / "gt.ply"), box)

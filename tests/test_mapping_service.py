@@ -141,8 +141,8 @@ def test_mapping_service_end_to_end(tmp_path):
     assert dist.mean() < 0.01, dist.mean()
     assert len(load_map(out / "map.npz").submaps) == len(report["submaps"])
     # the near-surface field of every submap went out at exit (at least), with the final pose
-    from services.mapping.export import field_of_message
-    from services.mapping.query import interpolate
+    from shared.occupancy.message import field_of_message
+    from shared.occupancy.query import interpolate
 
     last = {f.submap_id: f for f in fields}
     assert sorted(last) == [s["id"] for s in report["submaps"]]

@@ -44,7 +44,7 @@ from helpers_zenoh import REPO, child_env
 from shared.euroc import read_euroc_csv, read_tum
 from shared.geometry import quat_wxyz_to_R
 from shared.paths import shared_dir
-from tools.eval.ate import associate
+from shared.metrics.ate import associate
 
 MICRO = shared_dir() / "data" / "real" / "euroc_V1_01_micro"
 SERVICES = "supervisor.services=[{name: frontend, argv: [frontend]}, {name: backend, argv: [backend]}, " \

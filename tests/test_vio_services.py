@@ -22,7 +22,7 @@ from shared import topics
 from shared.camera import CameraCalib, CameraModel, camera_to_sensor_yaml
 from shared.config import to_dict
 from shared.messages import FeatureFrame, Header, ImuSample, MultiCameraFrame
-from tools.eval.ate import compute_ate
+from shared.metrics.ate import compute_ate
 from transport.node import Node
 from transport.queues import Empty
 

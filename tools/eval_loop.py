@@ -81,7 +81,7 @@ def run(dataset: str, overrides: list[str], max_frames: int = 0, loop: bool = Tr
             res["final_keyframes"] = final.keyframes
         lb.close()
     if ds.groundtruth_path is not None:
-        from tools.eval.ate import compute_ate
+        from shared.metrics.ate import compute_ate
 
         gt = read_trajectory(ds.groundtruth_path)
         for k, tr in trajs.items():

@@ -54,9 +54,9 @@ from scipy.stats import chi2
 from services.backend.o2p_config import O2PConfig
 from services.backend.mono_init import metric_hold
 from services.backend.o2p_factor import OccupancyToPoint, trilinear_derivatives
-from services.mapping.export import field_of_message
-from services.mapping.o2p_points import select_depth_points  # noqa: F401 (also used by callers)
-from services.mapping.query import BlockField
+from shared.occupancy.message import field_of_message
+from shared.occupancy.o2p_points import select_depth_points  # noqa: F401 (also used by callers)
+from shared.occupancy.query import BlockField
 from shared.geometry import inv_T, transform_points
 
 log = logging.getLogger("sigmaslam.backend.o2p")

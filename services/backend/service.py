@@ -19,11 +19,11 @@ import numpy as np
 from services.backend.backlog import shed_backlog
 from services.backend.estimator import BackendInputError, WindowedVioEstimator, camera_from_calib
 from services.backend.imu_factors import ImuDataError
-from services.frontend.undistort import LookupCamera
+from shared.lookup_camera import LookupCamera
 from services.backend.outputs import keyframes_message, landmarks_message, state_message
 from services.loop.backend_loop import LoopClosingBackend
 from services.system_config import load_system_config
-from services.supervisor import restart_count
+from shared.supervision import restart_count
 from shared import topics
 from shared.camera import CalibrationError
 from shared.messages import DepthFrame, EstimatorState, FeatureFrame, Header, Keyframes, Landmarks, OccupancyField

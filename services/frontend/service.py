@@ -18,7 +18,7 @@ from services.frontend.gyro import GyroIntegrator
 from services.frontend.tracker import FrontendInputError, MultiCameraTracker, TrackerOutput
 from services.loop.frontend_hook import keyframe_features_message
 from services.system_config import load_system_config
-from services.supervisor import restart_count
+from shared.supervision import restart_count
 from shared import topics
 from shared.camera import CalibrationError
 from shared.messages import FeatureFrame, Header, MultiCameraFrame

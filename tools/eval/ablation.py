@@ -170,7 +170,7 @@ def run_row(row: str, dataset: Path, overrides: list[str], seconds: float, depth
     from services.loop.backend_loop import LoopClosingBackend
     from services.loop.frontend_hook import keyframe_features_message
     from services.mapping.export import field_message
-    from services.mapping.o2p_points import SubmapPointPool
+    from shared.occupancy.o2p_points import SubmapPointPool
     from services.mapping.submaps import SubmapMapper
     from services.system_config import load_system_config
     from shared.config import ConfigError
@@ -315,7 +315,7 @@ def _evaluate(dataset: Path, stamps, T_pub, final, mapper, out_dir: Path | None)
     """ATE of the causal and final trajectories, mesh metrics of the mapper's world mesh."""
     from shared.euroc import read_trajectory, series_from_matrices, write_tum
     from shared.euroc_reader import EurocDataset
-    from tools.eval.ate import compute_ate
+    from shared.metrics.ate import compute_ate
 
     res: dict = {}
     trajs = {"causal": (np.array(stamps, np.int64), np.array(T_pub).reshape(-1, 4, 4))}

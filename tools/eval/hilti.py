@@ -19,7 +19,7 @@ import dataclasses
 
 import numpy as np
 
-from tools.eval.ate import umeyama
+from shared.metrics.ate import umeyama
 
 # (upper bound of the error [m], points); errors at or above the last bound earn 0
 THRESHOLDS = ((0.01, 10), (0.03, 6), (0.06, 3), (0.10, 1))

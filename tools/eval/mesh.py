@@ -268,7 +268,7 @@ def evaluate_mesh_files(est_path: str | Path, gt_path: str | Path, voxel_m: floa
     """The paper's protocol on two files; with ``out_dir`` also error_mesh.ply, error_top.png, mesh_eval.json.
 
     ``T_gt_est_init`` first moves the estimate into the ground truth's frame (e.g. the run's trajectory
-    alignment, :func:`tools.eval.ate.run_alignment`); ICP then refines from there. A SLAM run's world frame is
+    alignment, :func:`shared.metrics.ate.run_alignment`); ICP then refines from there. A SLAM run's world frame is
     its own (gravity-aligned, arbitrary yaw and origin), so without it ICP starts metres away. The prepared
     ground truth is cached (:func:`load_ground_truth`); ``progress(str)`` hears each step.
     """

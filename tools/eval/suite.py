@@ -7,7 +7,7 @@ by default so that a loaded machine does not change accuracy, ``--rate R`` for R
 adjustment on), and the outputs are evaluated:
 
 - ATE RMSE after SE(3) alignment of the causal (trajectory_causal.txt) and non-causal (trajectory_final.txt)
-  trajectories (tools/eval/ate.py), Hilti score on control points from the ground truth (tools/eval/hilti.py);
+  trajectories (shared/metrics/ate.py), Hilti score on control points from the ground truth (tools/eval/hilti.py);
 - mesh accuracy / completeness of DIR/mesh.ply against the replica's mav0/scene/mesh.ply (tools/eval/mesh.py),
   with its error image;
 - per-item compute times of every stage (mean +- sigma, pooled over the sequences).
@@ -61,7 +61,7 @@ def evaluate_sequence(seq: str, replica: Path, run_dir: Path, out: Path, hilti_p
     """ATE, Hilti score, mesh metrics and the trajectory figure of one finished run."""
     from services.eval_hilti_cmd import dataset_control_points
     from shared.euroc import read_trajectory
-    from tools.eval.ate import compute_ate
+    from shared.metrics.ate import compute_ate
     from tools.eval.hilti import hilti_score
     from tools.eval.mesh import evaluate_mesh_files
     from tools.eval.suite_plots import trajectory_figure

@@ -66,7 +66,7 @@ def run(dataset: str, config: str | None, overrides: list[str], max_frames: int 
            "cpu_backend_median_ms": 1e3 * float(np.median([c[1] for c in cpu])),
            "status": {k: sum(s.status == k for s in states) for k in ("tracking", "imu_only")}}
     if ds.groundtruth_path is not None and len(stamps) >= 3:
-        from tools.eval.ate import compute_ate
+        from shared.metrics.ate import compute_ate
 
         gt = read_trajectory(ds.groundtruth_path)
         res["ate_rmse_m"] = compute_ate(gt.stamps_ns, gt.p_WS, stamps, traj.p_WS, mode="se3").rmse_m

@@ -15,7 +15,7 @@ import dataclasses
 
 import numpy as np
 
-from services.mapping.blocks import BlockStore, pack_keys
+from shared.occupancy.blocks import BlockStore, pack_keys
 
 UNKNOWN, FREE, OCCUPIED = 0, 1, 2
 
@@ -25,7 +25,7 @@ _CORNERS = np.array([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8
 
 @dataclasses.dataclass(frozen=True)
 class BlockField:
-    """Arrays of a block-sparse field (see :mod:`services.mapping.blocks` for their meaning)."""
+    """Arrays of a block-sparse field (see :mod:`shared.occupancy.blocks` for their meaning)."""
 
     voxel_size: float
     block_size: int

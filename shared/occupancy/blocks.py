@@ -6,7 +6,7 @@ either *coarse* (one L and w for all its voxels: free space carved as a whole) o
 own ``B^3`` voxels in the voxel pool, allocated when a surface comes near). A voxel with w == 0 is
 unknown.
 
-The arrays are what :class:`BlockField` (see :mod:`services.mapping.query`) reads, so the same
+The arrays are what :class:`BlockField` (see :mod:`shared.occupancy.query`) reads, so the same
 query code serves the live map and a compact exported copy of its near-surface blocks.
 """
 

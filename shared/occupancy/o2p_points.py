@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.mapping.blocks import pack_keys
+from shared.occupancy.blocks import pack_keys
 
 
 def select_depth_points(depth: np.ndarray, sigma: np.ndarray, K: np.ndarray, max_points: int,
