@@ -1,4 +1,4 @@
-"""What a supervised process learns from its supervisor (``sigmaslam up``/``run``, :mod:`services.supervisor`)."""
+"""What a supervised process learns from its supervisor (``sigmaslam up``/``run``, :mod:`services.app.supervisor`)."""
 
 from __future__ import annotations
 

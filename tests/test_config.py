@@ -89,7 +89,7 @@ def test_describe_documents_every_field_with_unit():
 
 
 def test_cli_rejects_unknown_key_with_exit_code_2():
-    proc = subprocess.run([sys.executable, "-m", "services.cli", "config", "--set", "transport.bogus=1"],
+    proc = subprocess.run([sys.executable, "-m", "services.app.cli", "config", "--set", "transport.bogus=1"],
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     assert "unknown key(s) ['bogus']" in proc.stderr

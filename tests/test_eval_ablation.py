@@ -10,7 +10,7 @@ import math
 
 import pytest
 
-from services.cli import main
+from services.app.cli import main
 from tools.eval.ablation_table import table_markdown
 
 

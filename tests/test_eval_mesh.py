@@ -78,11 +78,11 @@ def test_cli_and_outputs(tmp_path):
     assert res.accuracy_m == pytest.approx(0.01, abs=0.004)
     assert (tmp_path / "ev" / "error_mesh.ply").is_file() and (tmp_path / "ev" / "error_top.png").is_file()
     assert len(load_points(gt_path, 0.005)) > 10 * len(load_points(gt_path))  # surface sampling of the GT mesh
-    p = subprocess.run([sys.executable, "-m", "services.cli", "eval", "mesh", str(est_path), str(gt_path)], cwd=REPO,
+    p = subprocess.run([sys.executable, "-m", "services.app.cli", "eval", "mesh", str(est_path), str(gt_path)], cwd=REPO,
                        env=child_env(), capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr
     assert p.stdout.startswith("accuracy 0.01")
-    p = subprocess.run([sys.executable, "-m", "services.cli", "eval", "mesh", "--est", str(tmp_path / "nope.ply"),
+    p = subprocess.run([sys.executable, "-m", "services.app.cli", "eval", "mesh", "--est", str(tmp_path / "nope.ply"),
                         "--gt", str(gt_path)], cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=120)
     assert p.returncode == 1 and "no such file" in p.stderr
 

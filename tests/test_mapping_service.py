@@ -54,7 +54,7 @@ def test_mapping_service_end_to_end(tmp_path):
                "mapping": {"depth_topic": "depth/fused", "mesh_period_s": 0.2, "pose_wait_s": 0.5, "output_dir": str(out)}}
         cfg_path = tmp_path / "system.yaml"
         cfg_path.write_text(yaml.safe_dump(cfg))
-        proc = subprocess.Popen([sys.executable, "-m", "services.cli", "mapping", str(cfg_path)], cwd=REPO, env=child_env(),
+        proc = subprocess.Popen([sys.executable, "-m", "services.app.cli", "mapping", str(cfg_path)], cwd=REPO, env=child_env(),
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         lines: list[str] = []
         threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, "")), daemon=True).start()

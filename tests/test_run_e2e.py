@@ -29,7 +29,7 @@ def test_run_end_to_end_with_blank_second(tmp_path):
     data = e2e_dataset.make_dataset(tmp_path / "data", "V1_02", start_s=0.0, seconds=seconds, real_imu=FULL,
                                     blank_s=(4.0, 5.0))
     out = tmp_path / "run"
-    proc = subprocess.run([sys.executable, "-m", "services.cli", "run", str(data), "--out", str(out),
+    proc = subprocess.run([sys.executable, "-m", "services.app.cli", "run", str(data), "--out", str(out),
                            "--timeout-s", "600", "--settle-s", "5"], cwd=REPO, env=child_env(),
                           capture_output=True, text=True, timeout=900)
     log = proc.stdout + proc.stderr
@@ -55,7 +55,7 @@ def test_run_default_replica(tmp_path):
 
     data = ensure_default_replica(progress=False)
     out = tmp_path / "run"
-    proc = subprocess.run([sys.executable, "-m", "services.cli", "run", str(data), "--out", str(out),
+    proc = subprocess.run([sys.executable, "-m", "services.app.cli", "run", str(data), "--out", str(out),
                            "--timeout-s", "1500"], cwd=REPO, env=child_env(), capture_output=True, text=True,
                           timeout=1800)
     assert proc.returncode == 0, (proc.stdout + proc.stderr)[-3000:]

@@ -213,7 +213,7 @@ def test_error_paths(tmp_path):
     cv2.imwrite(str(tmp_path / "eight.png"), np.zeros((4, 4), np.uint8))
     with pytest.raises(ValueError, match="16-bit"):
         read_depth_png(tmp_path / "eight.png", 0.0002)
-    res = subprocess.run([sys.executable, "-m", "services.cli", "synth", "--out", str(tmp_path / "y"),
+    res = subprocess.run([sys.executable, "-m", "services.app.cli", "synth", "--out", str(tmp_path / "y"),
                           "--groundtruth", str(tmp_path / "missing.csv")], cwd=REPO, capture_output=True, text=True)
     assert res.returncode == 1 and "missing.csv" in res.stderr
 

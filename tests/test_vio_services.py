@@ -37,7 +37,7 @@ def _write_config(tmp_path, tcfg, calibs, **sections) -> str:
 
 
 def _start(subcommand: str, config: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "services.cli", subcommand, config], cwd=REPO, env=child_env(),
+    return subprocess.Popen([sys.executable, "-m", "services.app.cli", subcommand, config], cwd=REPO, env=child_env(),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 

@@ -59,7 +59,7 @@ def _aligned(res, est_p: np.ndarray, est_stamps: np.ndarray) -> np.ndarray:
 
 def evaluate_sequence(seq: str, replica: Path, run_dir: Path, out: Path, hilti_points: int) -> dict:
     """ATE, Hilti score, mesh metrics and the trajectory figure of one finished run."""
-    from services.eval_hilti_cmd import dataset_control_points
+    from services.app.eval_hilti_cmd import dataset_control_points
     from shared.euroc import read_trajectory
     from shared.metrics.ate import compute_ate
     from tools.eval.hilti import hilti_score

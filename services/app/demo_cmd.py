@@ -35,7 +35,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _run_pipeline(dataset: Path, args: argparse.Namespace, viewer_overrides: list[str]) -> int:
-    from services import run_cmd
+    from services.app import run_cmd
 
     parser = argparse.ArgumentParser(prog="sigmaslam run")
     run_cmd.add_arguments(parser)
@@ -147,7 +147,7 @@ def main(args: argparse.Namespace) -> int:
     if mesh is not None:
         (out / "mesh_eval.json").write_text(json.dumps(mesh, indent=1))
     if args.serve_s > 0:
-        from services.demo_serve import serve_run
+        from services.app.demo_serve import serve_run
 
         _say(f"serving the final map at {url} for {args.serve_s:.0f} s (Ctrl-C stops)")
         serve_run(out, args.config, [f"viewer.ground_truth={gt}", *args.set], args.serve_s)

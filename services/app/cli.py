@@ -13,23 +13,23 @@ import sys
 
 # name -> (module, one-line help)
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
-    "config": ("services.config_cmd", "print the resolved config or the documented defaults"),
-    "router": ("services.router", "run the Zenoh router that services connect to"),
-    "bench": ("services.bench_cmd", "benchmarks: transport latency and throughput"),
-    "up": ("services.up_cmd", "run the router and all configured services, restarting failed ones"),
-    "health": ("services.health_cmd", "exit 0 when a service's heartbeat (or the router) is seen on the bus"),
+    "config": ("services.app.config_cmd", "print the resolved config or the documented defaults"),
+    "router": ("services.app.router", "run the Zenoh router that services connect to"),
+    "bench": ("services.app.bench_cmd", "benchmarks: transport latency and throughput"),
+    "up": ("services.app.up_cmd", "run the router and all configured services, restarting failed ones"),
+    "health": ("services.app.health_cmd", "exit 0 when a service's heartbeat (or the router) is seen on the bus"),
     "record": ("services.recorder.service", "record topics to MCAP (with Foxglove mirrors); --recover a cut file"),
     "synth": ("tools.synth.synth_cmd", "render a synthetic EuRoC replica (images, GT depth, mesh, IMU) of a real sequence"),
     "convert": ("tools.dataset_convert", "convert a dataset: EuRoC ASL folder <-> sigmaslam MCAP recording"),
     "frontend": ("services.frontend.service", "feature tracker: sensors/frame -> frontend/frame"),
     "backend": ("services.backend.service", "visual-inertial estimator: frontend/frame + sensors/imu -> estimator/state"),
     "player": ("services.player.service", "replay an EuRoC ASL folder onto the sensor topics (--lockstep, --realtime)"),
-    "demo": ("services.demo_cmd", "the README's main job: the whole pipeline on the bundled replica, with its figures"),
-    "run": ("services.run_cmd", "run the pipeline on a dataset; write the trajectory, stats and ATE to --out DIR"),
+    "demo": ("services.app.demo_cmd", "the README's main job: the whole pipeline on the bundled replica, with its figures"),
+    "run": ("services.app.run_cmd", "run the pipeline on a dataset; write the trajectory, stats and ATE to --out DIR"),
     "viewer": ("services.viewer.service", "web viewer (viser): submap meshes, trajectories, live images, stats"),
     "depth": ("services.depth.service", "stereo + MVS depth with learned sigma, fused: sensors/frame -> depth/stereo, depth/fused"),
     "mapping": ("services.mapping.service", "occupancy submapping: depth + estimator poses -> map/submap meshes"),
-    "eval": ("services.eval_cmd", "evaluation: mesh accuracy/completeness"),
+    "eval": ("services.app.eval_cmd", "evaluation: mesh accuracy/completeness"),
 }
 
 

@@ -2,7 +2,7 @@
 
 The resolved config (file plus ``--set`` overrides) is written to
 ``<supervisor.run_dir>/<UTC time>-<pid>/config.yaml`` and passed to each child as its CONFIG
-argument (see :mod:`services.supervisor`). Stop with Ctrl-C or SIGTERM.
+argument (see :mod:`services.app.supervisor`). Stop with Ctrl-C or SIGTERM.
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ import signal
 import time
 from pathlib import Path
 
-from services.cli import SUBCOMMANDS
-from services.supervisor import Supervisor, validate
+from services.app.cli import SUBCOMMANDS
+from services.app.supervisor import Supervisor, validate
 from services.system_config import load_system_config
 from shared.config import to_yaml
 

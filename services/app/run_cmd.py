@@ -3,7 +3,7 @@
 The services are those of ``supervisor.services`` (enabled ones; the recorder only with ``--record``; frontend
 and backend when it names no pipeline service) plus
 the player of DATASET (lockstep by default, ``--realtime`` plays at sensor rate), started by the same
-:class:`services.supervisor.Supervisor` as ``sigmaslam up``, on a router at a free local port and a
+:class:`services.app.supervisor.Supervisor` as ``sigmaslam up``, on a router at a free local port and a
 namespace of their own (so runs never cross ``sigmaslam up`` or each other). ``rig.calibration`` defaults
 to DATASET. This process listens to estimator/state, stats/* and sensors/end; once the player has ended
 and the last state is in (or no state came for ``--settle-s``), it stops the services and writes
@@ -39,9 +39,9 @@ from pathlib import Path
 
 import numpy as np
 
-from services.cli import SUBCOMMANDS
+from services.app.cli import SUBCOMMANDS
 from services.loop.run_outputs import loop_summary, wait_final, write_final
-from services.supervisor import ServiceSpec, Supervisor, validate
+from services.app.supervisor import ServiceSpec, Supervisor, validate
 from services.system_config import load_system_config
 from shared import topics
 from shared.config import to_yaml
@@ -325,7 +325,7 @@ def main(args: argparse.Namespace) -> int:
         print("[sigmaslam run] no ground truth (none of " + ", ".join(GT_CANDIDATES) + " in the dataset, no --gt): "
               "no ATE", flush=True)
     if getattr(args, "serve_s", 0.0) > 0:
-        from services.demo_serve import serve_run
+        from services.app.demo_serve import serve_run
 
         print(f"[sigmaslam run] serving the final map at {url} for {args.serve_s:.0f} s (Ctrl-C stops)", flush=True)
         serve_run(out, args.config, [*([f"viewer.ground_truth={gt}"] if gt else []), *args.set], args.serve_s)

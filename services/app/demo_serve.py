@@ -76,7 +76,7 @@ def serve_run(out: Path, config: str | None, overrides: list[str], seconds: floa
     states = load_states(out / "trajectory_causal.txt")
     final = load_states(out / "trajectory_final.txt")
     router = open_session(cfg.transport, role="router")
-    viewer = subprocess.Popen([sys.executable, "-m", "services.cli", "viewer", str(serve_cfg)])
+    viewer = subprocess.Popen([sys.executable, "-m", "services.app.cli", "viewer", str(serve_cfg)])
     try:
         with Node("demo-serve", cfg.transport) as node:
             pub_mesh = node.publisher(topics.SUBMAP)

@@ -1,6 +1,6 @@
 """Process supervisor behind ``sigmaslam up``: one OS process per service, bounded restarts.
 
-Each enabled :class:`ServiceSpec` runs as ``[sys.executable, "-m", "services.cli", argv[0], CONFIG,
+Each enabled :class:`ServiceSpec` runs as ``[sys.executable, "-m", "services.app.cli", argv[0], CONFIG,
 *argv[1:]]`` in its own session / process group, where CONFIG is the resolved system config the
 supervisor wrote to ``<run_dir>/config.yaml`` (also in ``$SIGMASLAM_CONFIG``; ``$SIGMASLAM_RUN_DIR``
 is the run folder; ``$SIGMASLAM_RESTARTS`` counts the restarts of that service, 0 at its first start). With ``start_router`` the router (``sigmaslam router CONFIG``) starts first.
@@ -25,51 +25,11 @@ import sys
 import time
 from pathlib import Path
 
-from shared.config import ConfigError, param
+from services.app.config import RESTART_POLICIES, ServiceSpec, SupervisorConfig
+from shared.config import ConfigError
 from shared.supervision import RESTARTS_ENV
 
 log = logging.getLogger("sigmaslam.up")
-
-RESTART_POLICIES = ("on-failure", "always", "never")
-
-
-@dataclasses.dataclass
-class ServiceSpec:
-    """One service process of the deployment."""
-
-    name: str = param("", "name used in logs and status lines")
-    argv: list[str] = param([], "the 'sigmaslam ...' arguments, subcommand first, e.g. ['record', '--out', 'run.mcap']")
-    enabled: bool = param(True, "start this service")
-    restart: str = param("on-failure", "'on-failure' (exit code != 0 or a signal), 'always' or 'never'")
-    max_restarts: int = param(3, "restarts allowed within window_s before the supervisor gives up on the service")
-    window_s: float = param(60.0, "sliding window over which restarts are counted", "s")
-    backoff_s: float = param(0.5, "delay before the first restart in the window; doubles with each further one", "s")
-    backoff_max_s: float = param(10.0, "longest delay before a restart", "s")
-    nice: int = param(0, "OS scheduling niceness added to the process (0..19); e.g. 10 for depth and mapping so "
-                      "that, on a loaded CPU, the estimator's processes get the cores first")
-    stop_timeout_s: float = param(0.0, "after SIGTERM, SIGKILL this service if still alive after this long "
-                                  "(0: the supervisor's shutdown_timeout_s); the mapping meshes and writes its map "
-                                  "when stopped, so it gets longer", "s")
-
-
-@dataclasses.dataclass
-class SupervisorConfig:
-    """What ``sigmaslam up`` starts and how it restarts and stops it."""
-
-    services: list[ServiceSpec] = param([], "service processes to run (each its own OS process)")
-    start_router: bool = param(True, "start 'sigmaslam router' before the services (and stop it last)")
-    router_startup_s: float = param(0.5, "wait after starting the router before starting the services", "s")
-    shutdown_timeout_s: float = param(5.0, "after SIGTERM, children still alive after this long are SIGKILLed", "s")
-    run_dir: str = param("runs", "parent folder of each run's folder (resolved config, outputs)")
-    poll_period_s: float = param(0.05, "how often the supervisor checks its children", "s")
-
-    def stop_limit_s(self, spec: ServiceSpec) -> float:
-        """How long ``spec``'s process may take to stop after SIGTERM before it is SIGKILLed."""
-        return spec.stop_timeout_s if spec.stop_timeout_s > 0 else self.shutdown_timeout_s
-
-    def longest_stop_s(self) -> float:
-        """The longest any service may take to stop after SIGTERM."""
-        return max([self.shutdown_timeout_s, *(self.stop_limit_s(s) for s in self.services)])
 
 
 # ----------------------------------------------------------------------------- restart bookkeeping
@@ -188,7 +148,7 @@ class Supervisor:
         self.children = [Child(s, self._argv(s.argv)) for s in cfg.services if s.enabled]
 
     def _argv(self, argv: list[str]) -> list[str]:
-        return [sys.executable, "-m", "services.cli", argv[0], str(self.config_path), *argv[1:]]
+        return [sys.executable, "-m", "services.app.cli", argv[0], str(self.config_path), *argv[1:]]
 
     def _env(self) -> dict[str, str]:
         env = dict(os.environ)

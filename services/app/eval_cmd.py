@@ -8,10 +8,10 @@ import importlib
 
 # name -> (module, one-line help)
 EVALS: dict[str, tuple[str, str]] = {
-    "ate": ("services.eval_ate_cmd", "ATE RMSE after SE(3)/Sim(3)/position+yaw alignment: --gt GT --est EST (TUM or EuRoC CSV)"),
-    "mesh": ("services.eval_mesh_cmd", "mesh accuracy (mean est->GT distance) and completeness (GT within 0.2 m), paper sec. V"),
+    "ate": ("services.app.eval_ate_cmd", "ATE RMSE after SE(3)/Sim(3)/position+yaw alignment: --gt GT --est EST (TUM or EuRoC CSV)"),
+    "mesh": ("services.app.eval_mesh_cmd", "mesh accuracy (mean est->GT distance) and completeness (GT within 0.2 m), paper sec. V"),
     "depth": ("tools.depth.evaluate", "depth + sigma of SGBM, stereo/MVS networks and their fusion against GT: table, calibration plot, CPU time"),
-    "hilti": ("services.eval_hilti_cmd", "Hilti 2022 score from sparse control points (--control CSV, or sampled from --dataset GT)"),
+    "hilti": ("services.app.eval_hilti_cmd", "Hilti 2022 score from sparse control points (--control CSV, or sampled from --dataset GT)"),
     "ablation": ("tools.eval.ablation", "the paper's Table IV (o2p factors, depth sigma, fusion) + mono-inertial rows on replicas, in one process: markdown table"),
     "suite": ("tools.eval.suite", "the paper's tables I, II, V on replicas (runs the pipeline per sequence): markdown + PNG report"),
 }
