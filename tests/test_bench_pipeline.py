@@ -130,7 +130,7 @@ def test_bench_pipeline_end_to_end(tmp_path):
     from helpers_zenoh import REPO, child_env
 
     if FULL:
-        from tools.synth.api import ensure_default_replica
+        from services.app.synth.api import ensure_default_replica
 
         data, seconds = ensure_default_replica(progress=False), 25.0
     else:

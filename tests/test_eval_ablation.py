@@ -16,7 +16,7 @@ from tools.eval.ablation_table import table_markdown
 
 @pytest.fixture(scope="module")
 def replica():
-    from tools.synth.api import ensure_default_replica
+    from services.app.synth.api import ensure_default_replica
 
     return ensure_default_replica(progress=False)
 

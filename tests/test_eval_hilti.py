@@ -1,4 +1,4 @@
-"""Hilti 2022 scoring (tools/eval/hilti.py, sigmaslam eval hilti) against hand-computed cases."""
+"""Hilti 2022 scoring (services/app/metrics/hilti.py, sigmaslam eval hilti) against hand-computed cases."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from shared.geometry import so3_exp
-from tools.eval.hilti import control_points_from_groundtruth, hilti_score, nearest, points_for_error
+from services.app.metrics.hilti import control_points_from_groundtruth, hilti_score, nearest, points_for_error
 
 
 def test_points_per_error_band():

@@ -10,7 +10,7 @@ import open3d as o3d
 import pytest
 
 from tests.helpers_zenoh import REPO, child_env
-from tools.eval.mesh import error_colors, evaluate_mesh_files, evaluate_points, load_points
+from services.app.metrics.mesh import error_colors, evaluate_mesh_files, evaluate_points, load_points
 
 
 def sphere(r: float, res: int = 60) -> o3d.geometry.TriangleMesh:
@@ -90,7 +90,7 @@ def test_cli_and_outputs(tmp_path):
 def test_prepared_ground_truth_is_cached_and_gives_the_same_figures(tmp_path, monkeypatch):
     """The first evaluation prepares the ground truth (surface samples with their triangles' normals) and caches it;
     the second reads the cache and gives the same figures; a changed ground-truth file is prepared anew."""
-    from tools.eval.mesh import load_ground_truth
+    from services.app.metrics.mesh import load_ground_truth
 
     monkeypatch.setenv("SIGMASLAM_DATA", str(tmp_path / "data"))
     gt_path, est_path = tmp_path / "gt.ply", tmp_path / "est.ply"

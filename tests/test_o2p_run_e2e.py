@@ -24,7 +24,7 @@ FULL = os.environ.get("SIGMASLAM_E2E", "") == "full"
 
 @pytest.fixture(scope="module")
 def replica():
-    from tools.synth.api import ensure_default_replica
+    from services.app.synth.api import ensure_default_replica
 
     return ensure_default_replica(progress=False)
 

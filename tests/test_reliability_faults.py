@@ -21,7 +21,7 @@ WINDOW = "4" if FULL else "3"
 
 
 def _replica() -> str:
-    from tools.synth.api import ensure_default_replica
+    from services.app.synth.api import ensure_default_replica
 
     return str(ensure_default_replica())
 

@@ -4,7 +4,7 @@ the middle: IMU-only states, then tracking again, and no crash.
 
 Reduced form (default): 7 s of V1_02's real motion in the test box room at half resolution, simulated IMU.
 ``SIGMASLAM_E2E=full``: 20 s of it with the real IMU, and the bundled 25 s V1_02 replica
-(``tools.synth.api.ensure_default_replica``, rendered if absent) with a causal ATE bound."""
+(``services.app.synth.api.ensure_default_replica``, rendered if absent) with a causal ATE bound."""
 
 from __future__ import annotations
 
@@ -51,7 +51,7 @@ def test_run_end_to_end_with_blank_second(tmp_path):
 @pytest.mark.e2e
 @pytest.mark.skipif(not FULL, reason="long form only (SIGMASLAM_E2E=full)")
 def test_run_default_replica(tmp_path):
-    from tools.synth.api import ensure_default_replica
+    from services.app.synth.api import ensure_default_replica
 
     data = ensure_default_replica(progress=False)
     out = tmp_path / "run"

@@ -284,7 +284,7 @@ def search_max_rate(args, dataset: Path, budgets) -> dict:
 def _dataset(arg: str | None) -> Path:
     if arg:
         return Path(arg).resolve()
-    from tools.synth.api import ensure_default_replica
+    from services.app.synth.api import ensure_default_replica
 
     return ensure_default_replica()
 

@@ -19,7 +19,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "up": ("services.app.up_cmd", "run the router and all configured services, restarting failed ones"),
     "health": ("services.app.health_cmd", "exit 0 when a service's heartbeat (or the router) is seen on the bus"),
     "record": ("services.recorder.service", "record topics to MCAP (with Foxglove mirrors); --recover a cut file"),
-    "synth": ("tools.synth.synth_cmd", "render a synthetic EuRoC replica (images, GT depth, mesh, IMU) of a real sequence"),
+    "synth": ("services.app.synth.synth_cmd", "render a synthetic EuRoC replica (images, GT depth, mesh, IMU) of a real sequence"),
     "convert": ("tools.dataset_convert", "convert a dataset: EuRoC ASL folder <-> sigmaslam MCAP recording"),
     "frontend": ("services.frontend.service", "feature tracker: sensors/frame -> frontend/frame"),
     "backend": ("services.backend.service", "visual-inertial estimator: frontend/frame + sensors/imu -> estimator/state"),

@@ -55,7 +55,7 @@ def _say(msg: str) -> None:
 
 def _mesh_figures(out: Path, dataset: Path) -> dict | None:
     from shared.metrics.ate import run_alignment
-    from tools.eval.mesh import evaluate_mesh_files
+    from services.app.metrics.mesh import evaluate_mesh_files
 
     est = out / "mesh.ply"
     gt = dataset / "mav0" / "scene" / "mesh.ply"
@@ -121,7 +121,7 @@ def summary_lines(out: Path, mesh: dict | None, viewer_url: str, phases: dict[st
 
 def main(args: argparse.Namespace) -> int:
     from services.system_config import load_system_config
-    from tools.synth.api import ensure_default_replica, replica_exists
+    from services.app.synth.api import ensure_default_replica, replica_exists
 
     phases: dict[str, float] = {}
     if args.setup_s is not None:

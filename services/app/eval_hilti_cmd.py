@@ -1,4 +1,4 @@
-"""``sigmaslam eval hilti --est EST (--dataset DIR | --control CSV)``: Hilti 2022 score (tools/eval/hilti.py).
+"""``sigmaslam eval hilti --est EST (--dataset DIR | --control CSV)``: Hilti 2022 score (services/app/metrics/hilti.py).
 
 Control points: ``--control`` a CSV of ``stamp_ns,x,y,z`` rows [ns, m] (a header line starting with '#' is
 skipped), or ``--dataset`` a replica/EuRoC folder whose ground truth gives ``--points`` control points at camera
@@ -27,7 +27,7 @@ def add_arguments(a: argparse.ArgumentParser) -> None:
 
 def dataset_control_points(dataset: Path, n: int) -> tuple[np.ndarray, np.ndarray]:
     from shared.euroc import read_trajectory
-    from tools.eval.hilti import control_points_from_groundtruth
+    from services.app.metrics.hilti import control_points_from_groundtruth
 
     root = dataset / "mav0" if (dataset / "mav0").is_dir() else dataset
     gt_path, cam_csv = root / "state_groundtruth_estimate0" / "data.csv", root / "cam0" / "data.csv"
@@ -52,7 +52,7 @@ def read_control_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 def main(args: argparse.Namespace) -> int:
     from shared.euroc import TrajectoryFileError, read_trajectory
-    from tools.eval.hilti import hilti_score
+    from services.app.metrics.hilti import hilti_score
 
     try:
         if args.dataset:

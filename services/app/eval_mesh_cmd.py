@@ -1,5 +1,5 @@
 """``sigmaslam eval mesh EST.ply GT.ply`` (or ``--est EST.ply --gt GT.ply``): the paper's mesh metrics
-(tools/eval/mesh.py); ``--out DIR`` also writes the error-coloured mesh, a top view and the JSON."""
+(services/app/metrics/mesh.py); ``--out DIR`` also writes the error-coloured mesh, a top view and the JSON."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from tools.eval.mesh import evaluate_mesh_files
+    from services.app.metrics.mesh import evaluate_mesh_files
 
     est, gt = args.est or args.est_pos, args.gt or args.gt_pos
     if not est or not gt:

@@ -1,4 +1,4 @@
-"""Render throughput on this machine: ``python -m tools.synth.bench_render [--scene vicon-a] [--frames 20]``.
+"""Render throughput on this machine: ``python -m tools.bench_render [--scene vicon-a] [--frames 20]``.
 
 Prints the median time of one camera image (752x480, real distortion), of its GT depth, and the stereo
 frame rate (two images + one depth), along V1_02's trajectory.
@@ -20,9 +20,9 @@ def main() -> None:
     from shared.euroc import read_euroc_csv
     from shared.paths import euroc_files
     from shared.trajectory import Trajectory
-    from tools.synth.render import RenderConfig, Renderer
-    from tools.synth.replica import load_calibration
-    from tools.synth.scene import build_scene
+    from services.app.synth.render import RenderConfig, Renderer
+    from services.app.synth.replica import load_calibration
+    from services.app.synth.scene import build_scene
 
     t = time.perf_counter()
     scene = build_scene(a.scene)

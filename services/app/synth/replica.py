@@ -26,15 +26,15 @@ from shared.euroc_writer import write_euroc
 from shared.imu_sim import ImuData, ImuNoise, read_imu_csv, simulate_imu, time_offset
 from shared.paths import euroc_files
 from shared.trajectory import Trajectory
-from tools.synth.render import RenderConfig, Renderer
-from tools.synth.scene import build_scene
+from services.app.synth.render import RenderConfig, Renderer
+from services.app.synth.scene import build_scene
 
 
 @dataclasses.dataclass
 class ReplicaSpec:
     """What to generate. A known ``sequence`` fills groundtruth/imu_data/image_timestamps/calib."""
 
-    scene: str = param("vicon-a", "scene name (tools.synth.scene.SCENES)")
+    scene: str = param("vicon-a", "scene name (services.app.synth.scene.SCENES)")
     sequence: str = param("V1_02", "EuRoC sequence whose real files are used ('' when all paths are given)")
     imu: str = param("real", "'real': the recorded imu0 data (time-aligned); 'sim': simulated from the trajectory")
     imu_noise: bool = param(True, "simulated IMU: add white noise and bias random walks of the imu0 noise model")

@@ -2,7 +2,7 @@
 
 ::
 
-    from tools.synth.api import ensure_replica, ensure_default_replica
+    from services.app.synth.api import ensure_replica, ensure_default_replica
     path = ensure_replica("V1_02", "vicon-a", imu="real", duration_s=10.0)   # -> .../replicas/V1_02-vicon-a-real-s0-d10-seed0
     path = ensure_default_replica()                                          # the bundled 25 s V1_02 replica
 
@@ -18,8 +18,8 @@ import shutil
 from pathlib import Path
 
 from shared.paths import data_dir
-from tools.synth.render import RenderConfig
-from tools.synth.replica import ReplicaSpec, generate
+from services.app.synth.render import RenderConfig
+from services.app.synth.replica import ReplicaSpec, generate
 
 log = logging.getLogger(__name__)
 

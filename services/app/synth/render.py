@@ -1,4 +1,4 @@
-"""Ray-cast renderer of a :class:`tools.synth.scene.Scene` for any rig of distorted cameras.
+"""Ray-cast renderer of a :class:`services.app.synth.scene.Scene` for any rig of distorted cameras.
 
 Each pixel's ray is the camera model's exact inverse (``CameraModel.unproject``, cached per camera),
 so images come out with the real lens distortion. Rays are cast with Open3D's Embree scene from
@@ -20,8 +20,8 @@ import open3d as o3d
 
 from shared.camera import CameraCalib
 from shared.config import param
-from tools.synth.kernels import build_rays, flatten_mips, shade_rays
-from tools.synth.scene import Scene
+from services.app.synth.kernels import build_rays, flatten_mips, shade_rays
+from services.app.synth.scene import Scene
 
 INVALID = 0xFFFFFFFF
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tools.synth.textures import make_atlas
+from services.app.synth.textures import make_atlas
 
 SITES = {"vicon": ("V1_02", "V2_01"), "machinehall": ("MH_04",)}
 # name -> (site, texture style, object count, object size scale, light direction seed offset)

@@ -13,7 +13,7 @@ import argparse
 import sys
 
 from shared.config import from_dict, load_yaml, merge, parse_override
-from tools.synth.scene import SCENES
+from services.app.synth.scene import SCENES
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -36,11 +36,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from tools.synth.render import RenderConfig
-    from tools.synth.replica import ReplicaSpec, generate
+    from services.app.synth.render import RenderConfig
+    from services.app.synth.replica import ReplicaSpec, generate
 
     if args.default:
-        from tools.synth.api import ensure_default_replica
+        from services.app.synth.api import ensure_default_replica
 
         print(ensure_default_replica(progress=not args.no_progress))
         return 0
