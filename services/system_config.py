@@ -18,7 +18,7 @@ from services.backend.config import BackendConfig
 from services.backend.o2p_config import O2PConfig
 from services.depth.config import DepthConfig
 from services.frontend.config import FrontendConfig
-from services.loop.config import LoopConfig
+from services.backend.loop.config import LoopConfig
 from services.mapping.config import MappingConfig
 from services.player.config import PlayerConfig
 from services.recorder.config import RecorderConfig

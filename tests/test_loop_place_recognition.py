@@ -12,9 +12,9 @@ import pytest
 
 from services.backend.cameras import camera_from_calib
 from services.frontend.config import FrontendConfig
-from services.loop.place_recognition import PlaceDatabase
-from services.loop.verification import FeatureSet, verify_pnp
-from services.loop.vocabulary import Vocabulary, hamming, k_majority, l1_score
+from services.backend.loop.place_recognition import PlaceDatabase
+from services.backend.loop.verification import FeatureSet, verify_pnp
+from services.backend.loop.vocabulary import Vocabulary, hamming, k_majority, l1_score
 from shared.geometry import inv_T, so3_exp
 from tools.build_vocabulary import frontend_descriptors, look_pose
 

@@ -1,6 +1,6 @@
 """Build the ORB bag-of-words vocabulary of loop closure from rendered imagery.
 
-    python -m tools.build_vocabulary [--out services/loop/data/orb_vocabulary.npz] [--images-per-scene 60]
+    python -m tools.build_vocabulary [--out services/backend/loop/data/orb_vocabulary.npz] [--images-per-scene 60]
                                      [--seed-offset 100] [--k1 16 --k2 64]
 
 Images are rendered by services/app/synth with the real EuRoC cam0 calibration in every scene style of
@@ -22,7 +22,7 @@ import numpy as np
 
 from services.frontend.config import FrontendConfig
 from services.frontend.detection import detect_spread
-from services.loop.vocabulary import DEFAULT_PATH, train
+from services.backend.loop.vocabulary import DEFAULT_PATH, train
 
 
 def frontend_descriptors(image: np.ndarray, cfg: FrontendConfig, orb) -> tuple[np.ndarray, np.ndarray]:

@@ -2,7 +2,7 @@
 
     python -m tools.eval_loop DATASET [--max-frames N] [--set loop.x=y] [--no-loop] [--out DIR]
 
-Frontend + back end (the services' shells) with :class:`services.loop.backend_loop.LoopClosingBackend` fed in
+Frontend + back end (the services' shells) with :class:`services.backend.loop.backend_loop.LoopClosingBackend` fed in
 the services' order (keyframe descriptors before their frame). Prints the causal ATE of the raw window
 estimate and of the published (pose-graph corrected) poses, the non-causal ATE after the final BA, loop
 counts, and the back end's per-frame time (median, p99; wall and this thread's CPU) with the loop thread running. ``--out`` writes
@@ -20,8 +20,8 @@ import numpy as np
 
 from services.backend.service import BackendShell
 from services.frontend.service import FrontendShell
-from services.loop.backend_loop import LoopClosingBackend
-from services.loop.frontend_hook import keyframe_features_message
+from services.backend.loop.backend_loop import LoopClosingBackend
+from services.frontend.keyframe_features import keyframe_features_message
 from services.system_config import load_system_config
 from shared.euroc import series_from_matrices, read_trajectory, write_tum
 from shared.euroc_reader import EurocDataset

@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from services.app.cli import SUBCOMMANDS
-from services.loop.run_outputs import loop_summary, wait_final, write_final
+from services.app.run_outputs import loop_summary, wait_final, write_final
 from services.app.supervisor import ServiceSpec, Supervisor, validate
 from services.system_config import load_system_config
 from shared import topics
@@ -287,7 +287,7 @@ def main(args: argparse.Namespace) -> int:
     with Node("run", cfg.transport) as node:
         # the supervisor's loop runs beside the collector; it starts the router and the services
         sup_thread = threading.Thread(target=sup.run, name="supervisor", daemon=True)
-        finals = node.subscriber(topics.TRAJECTORY_FINAL)  # non-causal trajectory (services/loop)
+        finals = node.subscriber(topics.TRAJECTORY_FINAL)  # non-causal trajectory (services/backend/loop)
         final = None
         sup_thread.start()
         try:

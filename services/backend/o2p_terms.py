@@ -25,7 +25,7 @@ points of finished submaps (map-to-map).
   them (the keyframe nearest each submap's creation, as in the mapping service; ``anchor_of``, installed by
   the loop-closing back end, gives its state and ``T_KM``) and a :class:`MapToMap` term is queued
   (:meth:`OccupancyTerms.pop_map_to_map`). The loop closer adds it to its pose graph between the two anchor
-  keyframes once both have left the window, and to the final bundle adjustment (services/loop/), so the
+  keyframes once both have left the window, and to the final bundle adjustment (services/backend/loop/), so the
   submap poses are the variables, as in eq. 5. Without a loop closer there is no map-to-map term (counted).
 * **Gates** (:func:`consistency`): before a factor enters a graph, at the current estimate, at least M_min and
   (frame-to-map only) ``min_inside_fraction`` of its points must lie inside the target's observed field, and its whitened squared

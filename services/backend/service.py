@@ -21,7 +21,7 @@ from services.backend.estimator import BackendInputError, WindowedVioEstimator, 
 from services.backend.imu_factors import ImuDataError
 from shared.lookup_camera import LookupCamera
 from services.backend.outputs import keyframes_message, landmarks_message, state_message
-from services.loop.backend_loop import LoopClosingBackend
+from services.backend.loop.backend_loop import LoopClosingBackend
 from services.system_config import load_system_config
 from shared.supervision import restart_count
 from shared import topics
@@ -132,7 +132,7 @@ def main(args: argparse.Namespace) -> int:
     shell.restarted = restart_count() > 0
     if cfg.o2p.enabled:  # before the loop closer, which hooks into the terms (anchors, correction)
         shell.enable_o2p(cfg.o2p)
-    loop = LoopClosingBackend(shell, cfg.loop) if cfg.loop.enabled else None  # loop closure: services/loop
+    loop = LoopClosingBackend(shell, cfg.loop) if cfg.loop.enabled else None  # loop closure: services/backend/loop
     with Node("backend", cfg.transport) as node:
         imu = node.subscriber(topics.IMU)
         features = node.subscriber(topics.FEATURES)

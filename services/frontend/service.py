@@ -16,7 +16,7 @@ import numpy as np
 
 from services.frontend.gyro import GyroIntegrator
 from services.frontend.tracker import FrontendInputError, MultiCameraTracker, TrackerOutput
-from services.loop.frontend_hook import keyframe_features_message
+from services.frontend.keyframe_features import keyframe_features_message
 from services.system_config import load_system_config
 from shared.supervision import restart_count
 from shared import topics
@@ -99,7 +99,7 @@ def main(args: argparse.Namespace) -> int:
         frames = node.subscriber(topics.FRAME)
         states = node.subscriber(topics.STATE, policy="latest", depth=1)
         out = node.publisher(topics.FEATURES)
-        kf_features = node.publisher(topics.KEYFRAME_FEATURES)  # loop closure (services/loop)
+        kf_features = node.publisher(topics.KEYFRAME_FEATURES)  # loop closure (services/backend/loop)
         timer = node.timer("track", budget_ms=fc.budget_ms)
         log.info("frontend: %d cameras %s", len(cameras), shell.names)
 

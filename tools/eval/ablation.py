@@ -167,8 +167,8 @@ def run_row(row: str, dataset: Path, overrides: list[str], seconds: float, depth
     """One row over ``dataset``; raises on configuration or component errors (the caller records them)."""
     from services.backend.service import BackendShell
     from services.frontend.service import FrontendShell
-    from services.loop.backend_loop import LoopClosingBackend
-    from services.loop.frontend_hook import keyframe_features_message
+    from services.backend.loop.backend_loop import LoopClosingBackend
+    from services.frontend.keyframe_features import keyframe_features_message
     from services.mapping.export import field_message
     from shared.occupancy.o2p_points import SubmapPointPool
     from services.mapping.submaps import SubmapMapper

@@ -7,7 +7,7 @@ in visual-inertial odometry, only yaw and position drift) through an attitude fa
 so that a loop or map-to-map term cannot tilt the trajectory (a tilt of a few tenths of a degree moves poses
 metres away by cm); accepted loops add relative-pose factors from PnP (robust, Cauchy); map-to-map
 occupancy-to-point terms (eq. 5-7, services/backend/o2p_terms.py) tie the keyframes anchoring two submaps. The graph
-is solved by Levenberg-Marquardt (in the loop closer's own thread, see services/loop/loop_closer.py, so the
+is solved by Levenberg-Marquardt (in the loop closer's own thread, see services/backend/loop/loop_closer.py, so the
 estimator never waits for it).
 """
 

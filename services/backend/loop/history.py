@@ -17,7 +17,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, L, V, X
 
-from services.loop.pose_graph import relative_covariance
+from services.backend.loop.pose_graph import relative_covariance
 
 
 @dataclass

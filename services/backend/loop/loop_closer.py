@@ -29,13 +29,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.loop.config import LoopConfig
-from services.loop.covisibility import Covisibility
-from services.loop.history import KeyframeRecord
-from services.loop.place_recognition import PlaceDatabase
-from services.loop.pose_graph import LoopConstraint, PoseGraph
-from services.loop.verification import FeatureSet, verify_pnp
-from services.loop.vocabulary import DEFAULT_PATH, Vocabulary, l1_score
+from services.backend.loop.config import LoopConfig
+from services.backend.loop.covisibility import Covisibility
+from services.backend.loop.history import KeyframeRecord
+from services.backend.loop.place_recognition import PlaceDatabase
+from services.backend.loop.pose_graph import LoopConstraint, PoseGraph
+from services.backend.loop.verification import FeatureSet, verify_pnp
+from services.backend.loop.vocabulary import DEFAULT_PATH, Vocabulary, l1_score
 from shared.geometry import inv_T
 
 log = logging.getLogger("sigmaslam.loop")

@@ -12,7 +12,7 @@ class LoopConfig:
     """Loop closure (bag of binary words + PnP), pose graph, relocalisation, final BA (runs in the back end)."""
 
     enabled: bool = param(True, "detect loops, keep the pose graph and correct the published poses")
-    vocabulary: str = param("", "ORB vocabulary .npz (empty: the shipped services/loop/data/orb_vocabulary.npz)")
+    vocabulary: str = param("", "ORB vocabulary .npz (empty: the shipped services/backend/loop/data/orb_vocabulary.npz)")
     # --- place recognition ---
     min_age_s: float = param(10.0, "loop candidates are at least this much older than the query keyframe", "s")
     min_score: float = param(0.05, "least raw L1 bag-of-words score of a candidate")

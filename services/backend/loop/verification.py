@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from shared.geometry import inv_T, skew, so3_exp
-from services.loop.vocabulary import hamming
+from services.backend.loop.vocabulary import hamming
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.loop.vocabulary import l1_score
+from services.backend.loop.vocabulary import l1_score
 
 
 @dataclass(frozen=True)

@@ -20,11 +20,11 @@ import time
 import numpy as np
 from gtsam.symbol_shorthand import X
 
-from services.loop.config import LoopConfig
-from services.loop.final_ba import bundle_adjust, follow_keyframes
-from services.loop.history import attach
-from services.loop.loop_closer import LoopCloser, ThreadedLoopCloser
-from services.loop.verification import FeatureSet
+from services.backend.loop.config import LoopConfig
+from services.backend.loop.final_ba import bundle_adjust, follow_keyframes
+from services.backend.loop.history import attach
+from services.backend.loop.loop_closer import LoopCloser, ThreadedLoopCloser
+from services.backend.loop.verification import FeatureSet
 from shared.geometry import inv_T
 from shared.messages import EstimatorState, FinalTrajectory, Header, KeyframeFeatures, Keyframes, Landmarks
 

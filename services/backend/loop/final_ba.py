@@ -17,7 +17,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, L, V, X
 
-from services.loop.history import KeyframeRecord
+from services.backend.loop.history import KeyframeRecord
 from shared.geometry import inv_T
 
 
