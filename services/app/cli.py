@@ -15,7 +15,7 @@ import sys
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "config": ("services.app.config_cmd", "print the resolved config or the documented defaults"),
     "router": ("services.app.router", "run the Zenoh router that services connect to"),
-    "bench": ("services.app.bench_cmd", "benchmarks: transport latency and throughput"),
+    "bench": ("tools.bench_cmd", "benchmarks: transport latency and throughput"),
     "up": ("services.app.up_cmd", "run the router and all configured services, restarting failed ones"),
     "health": ("services.app.health_cmd", "exit 0 when a service's heartbeat (or the router) is seen on the bus"),
     "record": ("services.recorder.service", "record topics to MCAP (with Foxglove mirrors); --recover a cut file"),
