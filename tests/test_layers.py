@@ -24,7 +24,7 @@ import ast
 import re
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").exists())  # wherever tests/ nests it
 PACKAGES = ("shared", "transport", "services", "tools")
 LAYERS = ("shared", "transport", "config schema", "process package", "application", "tools")
 APP = "app"
