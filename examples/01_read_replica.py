@@ -32,10 +32,10 @@ from shared.messages import ImuSample, MultiCameraFrame
 
 
 def replica_path(args: argparse.Namespace) -> Path:
-    """The folder to read: given, or a replica from tools.synth.api (rendered on first use, then cached)."""
+    """The folder to read: given, or a replica from services.app.synth.api (rendered on first use, then cached)."""
     if args.replica:
         return Path(args.replica)
-    from tools.synth.api import ensure_default_replica, ensure_replica
+    from services.app.synth.api import ensure_default_replica, ensure_replica
 
     if args.seconds:
         return ensure_replica("V1_02", "vicon-a", imu="real", duration_s=args.seconds)
@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"IMU: {len(t_imu)} samples at {imu_hz:.0f} Hz; |acc| over the first 0.5 s {acc_norm:.2f} m/s^2")
 
     # 5. Ground truth: the body pose T_WS at 200 Hz in the dataset's world frame (not the estimator's W: an
-    #    evaluation aligns the two first, tools/eval/ate.py).
+    #    evaluation aligns the two first, shared/metrics/ate.py).
     gt = read_trajectory(ds.groundtruth_path) if ds.groundtruth_path is not None else None
     if gt is not None:
         inside = (gt.stamps_ns >= f[0]) & (gt.stamps_ns <= f[-1])

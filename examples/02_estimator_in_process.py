@@ -26,10 +26,10 @@ import numpy as np
 
 
 def replica_path(args: argparse.Namespace) -> Path:
-    """The folder to run on: given, or a replica from tools.synth.api (rendered on first use, then cached)."""
+    """The folder to run on: given, or a replica from services.app.synth.api (rendered on first use, then cached)."""
     if args.replica:
         return Path(args.replica)
-    from tools.synth.api import ensure_default_replica, ensure_replica
+    from services.app.synth.api import ensure_default_replica, ensure_replica
 
     if args.seconds:
         return ensure_replica("V1_02", "vicon-a", imu="real", duration_s=args.seconds)

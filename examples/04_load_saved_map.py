@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from services.mapping.io import load_map, write_ply
-from services.mapping.query import FREE, OCCUPIED, interpolate, state
+from shared.occupancy.query import FREE, OCCUPIED, interpolate, state
 
 
 def describe_submap(sm, sensor) -> dict:

@@ -2,6 +2,9 @@
 
 Components add their section here as they land. ``sigmaslam config --defaults`` prints every field
 with its default, unit and docstring.
+
+Every process loads it, so it sits below the process packages (tests/test_layers.py): like the ``config.py``
+modules it composes, it imports only config modules, ``shared`` and ``transport``.
 """
 
 from __future__ import annotations
@@ -10,15 +13,15 @@ import dataclasses
 from pathlib import Path
 
 from shared.config import from_dict, load_yaml, merge, param, parse_override
+from services.app.config import SupervisorConfig
 from services.backend.config import BackendConfig
 from services.backend.o2p_config import O2PConfig
 from services.depth.config import DepthConfig
 from services.frontend.config import FrontendConfig
-from services.loop.config import LoopConfig
+from services.backend.loop.config import LoopConfig
 from services.mapping.config import MappingConfig
 from services.player.config import PlayerConfig
 from services.recorder.config import RecorderConfig
-from services.supervisor import SupervisorConfig
 from services.viewer.config import ViewerConfig
 from shared.rig import RigConfig
 from transport.config import TransportConfig

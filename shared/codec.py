@@ -29,6 +29,7 @@ import numpy as np
 
 MAGIC = b"SGMS"
 VERSION = 1
+NATIVE_ENCODING = "sigmaslam-codec-v1"  # these bytes as an MCAP message/schema encoding (recorder writes, player reads)
 _PREFIX = struct.Struct("<4sBBHI")
 ALIGN = 64
 # dtypes allowed on the wire (a decoder never builds object arrays)

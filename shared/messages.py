@@ -160,7 +160,7 @@ class OccupancyField(Message):
     """Near-surface occupancy of one submap (its voxel blocks that hold a surface), in the submap frame M_j
     (header.frame_id = 'M<j>'), for occupancy-to-point factors (eq. 6-7). Voxel (i, j, k) of block b has its
     centre at ``((block_ijk[b] * B + (i, j, k)) + 0.5) * voxel_size_m``; rebuild the queries with
-    ``services.mapping.export.field_of_message``."""
+    ``shared.occupancy.message.field_of_message``."""
 
     submap_id: int = scalar_field("submap id")
     T_WM: object = array_field("submap pose in world", "float64", (4, 4))

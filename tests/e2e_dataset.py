@@ -2,7 +2,7 @@
 stretch of it), the real rig at reduced resolution, the test box room (tests/frontend_scene.py) sized
 around the path, IMU simulated from the smoothed trajectory with the imu0 noise model (or the real IMU).
 
-Not the production replica (tools/synth): only fast enough to build inside a test.
+Not the production replica (services/app/synth): only fast enough to build inside a test.
 """
 
 from __future__ import annotations

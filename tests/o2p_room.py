@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.mapping.blocks import BlockStore
+from shared.occupancy.blocks import BlockStore
 from services.mapping.config import SensorModelConfig
 from services.mapping.integrate import integrate
 from services.mapping.sensor_model import prepare_depth

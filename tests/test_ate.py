@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from tools.eval.ate import align_posyaw, associate, compute_ate, umeyama
+from shared.metrics.ate import align_posyaw, associate, compute_ate, umeyama
 
 
 def _trajectory(n=400, seed=0):

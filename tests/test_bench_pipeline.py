@@ -58,7 +58,7 @@ def test_map_latency_is_first_submap_after_the_depth_frame():
 
 
 def test_service_name_from_cmdline():
-    assert service_name(["/x/python", "-m", "services.cli", "depth", "/run/config.yaml"]) == "depth"
+    assert service_name(["/x/python", "-m", "services.app.cli", "depth", "/run/config.yaml"]) == "depth"
     assert service_name(["/x/python", "foo.py"]) is None
 
 
@@ -130,7 +130,7 @@ def test_bench_pipeline_end_to_end(tmp_path):
     from helpers_zenoh import REPO, child_env
 
     if FULL:
-        from tools.synth.api import ensure_default_replica
+        from services.app.synth.api import ensure_default_replica
 
         data, seconds = ensure_default_replica(progress=False), 25.0
     else:
@@ -138,7 +138,7 @@ def test_bench_pipeline_end_to_end(tmp_path):
 
         data, seconds = e2e_dataset.make_dataset(tmp_path / "data", "V1_02", start_s=0.0, seconds=4.0), 4.0
     out = tmp_path / "bench"
-    proc = subprocess.run([sys.executable, "-m", "services.cli", "bench", "pipeline", str(data), "--out", str(out),
+    proc = subprocess.run([sys.executable, "-m", "services.app.cli", "bench", "pipeline", str(data), "--out", str(out),
                            "--seconds", str(seconds), "--timeout-s", "600"], cwd=REPO, env=child_env(),
                           capture_output=True, text=True, timeout=900)
     log = proc.stdout + proc.stderr

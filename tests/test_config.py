@@ -11,7 +11,7 @@ from typing import Literal, Optional
 
 import pytest
 
-from services.supervisor import ServiceSpec
+from services.app.supervisor import ServiceSpec
 from services.system_config import SystemConfig, load_system_config
 from shared.config import (ConfigError, allowed_values, describe, from_dict, load_yaml, override, param,
                            parse_override, to_dict)
@@ -116,7 +116,7 @@ def test_describe_documents_every_field_with_unit():
 
 
 def test_cli_rejects_unknown_key_with_exit_code_2():
-    proc = subprocess.run([sys.executable, "-m", "services.cli", "config", "--set", "transport.bogus=1"],
+    proc = subprocess.run([sys.executable, "-m", "services.app.cli", "config", "--set", "transport.bogus=1"],
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     assert "unknown key(s) ['bogus']" in proc.stderr
@@ -205,7 +205,7 @@ def test_set_with_a_bad_enumeration_is_refused(override_text, fragment):
 
 
 def test_cli_refuses_a_bad_enumeration_with_exit_code_2():
-    proc = subprocess.run([sys.executable, "-m", "services.cli", "config", "--set", "mapping.pose_source=gt"],
+    proc = subprocess.run([sys.executable, "-m", "services.app.cli", "config", "--set", "mapping.pose_source=gt"],
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and proc.stdout == ""
     assert "mapping.pose_source: 'gt' is not one of the allowed values ['estimator', 'frame']" in proc.stderr

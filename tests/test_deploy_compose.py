@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from services.cli import SUBCOMMANDS
+from services.app.cli import SUBCOMMANDS
 from services.system_config import load_system_config
 from tests.helpers_zenoh import REPO
 
@@ -62,7 +62,7 @@ def _commands(model: dict) -> list[tuple[str, list[str]]]:
 
 
 def _parse(argv: list[str]) -> argparse.Namespace:
-    """Parse ``sigmaslam ...`` argv with the subcommand's own parser (as services.cli does)."""
+    """Parse ``sigmaslam ...`` argv with the subcommand's own parser (as services.app.cli does)."""
     assert argv[0] == "sigmaslam", f"not a sigmaslam command: {argv}"
     assert argv[1] in SUBCOMMANDS, f"{argv[1]!r} is not a sigmaslam subcommand ({', '.join(SUBCOMMANDS)})"
     p = argparse.ArgumentParser(prog=f"sigmaslam {argv[1]}", exit_on_error=False)

@@ -22,7 +22,7 @@ from tools.netns_lab import NetnsLab, unavailable_reason
 REASON = unavailable_reason()
 pytestmark = pytest.mark.skipif(REASON is not None, reason=f"multi-host test skipped: {REASON}")
 
-SIGMASLAM = [sys.executable, "-m", "services.cli"]
+SIGMASLAM = [sys.executable, "-m", "services.app.cli"]
 
 # A process built on the project's Node, standing in for the robot's estimator and the GPU host's
 # depth service: publishes typed EstimatorState at 30 Hz and fused DepthFrames at 10 Hz until stopped.

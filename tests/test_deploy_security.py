@@ -69,7 +69,7 @@ class Deployment:
 
 
 def _start_router(configs: Path, port: int) -> subprocess.Popen:
-    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "router", "--listen", f"tls/localhost:{port}",
+    proc = subprocess.Popen([sys.executable, "-m", "services.app.cli", "router", "--listen", f"tls/localhost:{port}",
                              "--set", f"transport.zenoh_json5={configs / 'router.json5'}"],
                             cwd=REPO, env=child_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     line = proc.stdout.readline()
@@ -196,7 +196,7 @@ def test_service_publishes_only_its_own_keys(deployment: Deployment) -> None:
 
 
 def _health(deployment: Deployment, service: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "services.cli", "health", service, "--timeout", "3",
+    return subprocess.run([sys.executable, "-m", "services.app.cli", "health", service, "--timeout", "3",
                            "--set", f"transport.connect=[{deployment.endpoint}]",
                            "--set", f"transport.zenoh_json5={deployment.configs / 'operator.json5'}"],
                           cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=60)

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from services import cli
+from services.app import cli
 from tools.depth import make_dataset
 from tools.depth.evaluate import METHODS
 

@@ -64,7 +64,7 @@ def test_depth_service_end_to_end(tmp_path, frame_data):
                "depth": {"method": "sgbm", "rate_hz": 4.0, "pose_wait_s": 0.3}}
         cfg_path = tmp_path / "system.yaml"
         cfg_path.write_text(yaml.safe_dump(cfg))
-        proc = subprocess.Popen([sys.executable, "-m", "services.cli", "depth", str(cfg_path)], cwd=REPO,
+        proc = subprocess.Popen([sys.executable, "-m", "services.app.cli", "depth", str(cfg_path)], cwd=REPO,
                                 env=child_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         lines: list[str] = []
         threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, "")), daemon=True).start()

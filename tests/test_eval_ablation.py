@@ -10,13 +10,13 @@ import math
 
 import pytest
 
-from services.cli import main
+from services.app.cli import main
 from tools.eval.ablation_table import table_markdown
 
 
 @pytest.fixture(scope="module")
 def replica():
-    from tools.synth.api import ensure_default_replica
+    from services.app.synth.api import ensure_default_replica
 
     return ensure_default_replica(progress=False)
 

@@ -14,7 +14,7 @@ from shared.geometry import R_to_quat_wxyz, so3_exp
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "services.cli", "eval", "ate", *args], cwd=REPO, env=child_env(),
+    return subprocess.run([sys.executable, "-m", "services.app.cli", "eval", "ate", *args], cwd=REPO, env=child_env(),
                           capture_output=True, text=True, timeout=60)
 
 

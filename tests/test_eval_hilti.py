@@ -1,4 +1,4 @@
-"""Hilti 2022 scoring (tools/eval/hilti.py, sigmaslam eval hilti) against hand-computed cases."""
+"""Hilti 2022 scoring (services/app/metrics/hilti.py, sigmaslam eval hilti) against hand-computed cases."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from shared.geometry import so3_exp
-from tools.eval.hilti import control_points_from_groundtruth, hilti_score, nearest, points_for_error
+from services.app.metrics.hilti import control_points_from_groundtruth, hilti_score, nearest, points_for_error
 
 
 def test_points_per_error_band():
@@ -97,7 +97,7 @@ def test_control_points_from_groundtruth_interpolate_at_frame_times():
 def test_eval_hilti_command(tmp_path, capsys):
     import argparse
 
-    from services.eval_hilti_cmd import add_arguments, main
+    from services.app.eval_hilti_cmd import add_arguments, main
 
     cs, cp = _track()
     ctrl = tmp_path / "control.csv"

@@ -10,7 +10,7 @@ import open3d as o3d
 import pytest
 
 from tests.helpers_zenoh import REPO, child_env
-from tools.eval.mesh import error_colors, evaluate_mesh_files, evaluate_points, load_points
+from services.app.metrics.mesh import error_colors, evaluate_mesh_files, evaluate_points, load_points
 
 
 def sphere(r: float, res: int = 60) -> o3d.geometry.TriangleMesh:
@@ -44,7 +44,7 @@ def test_run_frame_estimate_needs_the_trajectory_alignment(tmp_path):
     trajectory's alignment: with it the accuracy is that of the mesh, without it ICP cannot reach it."""
     from scipy.spatial.transform import Rotation
 
-    from tools.eval.ate import compute_ate
+    from shared.metrics.ate import compute_ate
 
     box = o3d.geometry.TriangleMesh.create_box(2.0, 1.0, 0.5)
     o3d.io.write_triangle_mesh(str(tmp_path / "gt.ply"), box)
@@ -78,11 +78,11 @@ def test_cli_and_outputs(tmp_path):
     assert res.accuracy_m == pytest.approx(0.01, abs=0.004)
     assert (tmp_path / "ev" / "error_mesh.ply").is_file() and (tmp_path / "ev" / "error_top.png").is_file()
     assert len(load_points(gt_path, 0.005)) > 10 * len(load_points(gt_path))  # surface sampling of the GT mesh
-    p = subprocess.run([sys.executable, "-m", "services.cli", "eval", "mesh", str(est_path), str(gt_path)], cwd=REPO,
+    p = subprocess.run([sys.executable, "-m", "services.app.cli", "eval", "mesh", str(est_path), str(gt_path)], cwd=REPO,
                        env=child_env(), capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr
     assert p.stdout.startswith("accuracy 0.01")
-    p = subprocess.run([sys.executable, "-m", "services.cli", "eval", "mesh", "--est", str(tmp_path / "nope.ply"),
+    p = subprocess.run([sys.executable, "-m", "services.app.cli", "eval", "mesh", "--est", str(tmp_path / "nope.ply"),
                         "--gt", str(gt_path)], cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=120)
     assert p.returncode == 1 and "no such file" in p.stderr
 
@@ -90,7 +90,7 @@ def test_cli_and_outputs(tmp_path):
 def test_prepared_ground_truth_is_cached_and_gives_the_same_figures(tmp_path, monkeypatch):
     """The first evaluation prepares the ground truth (surface samples with their triangles' normals) and caches it;
     the second reads the cache and gives the same figures; a changed ground-truth file is prepared anew."""
-    from tools.eval.mesh import load_ground_truth
+    from services.app.metrics.mesh import load_ground_truth
 
     monkeypatch.setenv("SIGMASLAM_DATA", str(tmp_path / "data"))
     gt_path, est_path = tmp_path / "gt.ply", tmp_path / "est.ply"

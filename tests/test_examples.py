@@ -25,7 +25,7 @@ def load(stem: str):
 
 @pytest.fixture(scope="module")
 def short_replica() -> Path:
-    from tools.synth.api import ensure_replica
+    from services.app.synth.api import ensure_replica
 
     return ensure_replica("V1_02", "vicon-a", imu="real", duration_s=SHORT_S, progress=False)
 

@@ -19,7 +19,7 @@ with Node("tracker", cfg) as node:
 
 
 def health(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "services.cli", "health", *args], cwd=REPO, env=child_env(),
+    return subprocess.run([sys.executable, "-m", "services.app.cli", "health", *args], cwd=REPO, env=child_env(),
                           capture_output=True, text=True, timeout=60)
 
 

@@ -13,10 +13,10 @@ import numpy as np
 import vio_sim as sim
 from services.backend.config import BackendConfig
 from services.backend.estimator import BackendCamera, WindowedVioEstimator
-from services.loop.config import LoopConfig
-from services.loop.history import attach
-from services.loop.loop_closer import LoopCloser, ThreadedLoopCloser
-from services.loop.verification import FeatureSet
+from services.backend.loop.config import LoopConfig
+from services.backend.loop.history import attach
+from services.backend.loop.loop_closer import LoopCloser, ThreadedLoopCloser
+from services.backend.loop.verification import FeatureSet
 from shared.geometry import inv_T
 
 IMU_NOISE = dict(gyro_nd=1.7e-4, acc_nd=2e-3, gyro_rw=1.9e-5, acc_rw=3e-3)

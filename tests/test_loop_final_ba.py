@@ -6,9 +6,9 @@ import numpy as np
 import vio_sim as sim
 from services.backend.config import BackendConfig
 from services.backend.estimator import BackendCamera, WindowedVioEstimator
-from services.loop.final_ba import bundle_adjust, follow_keyframes
-from services.loop.history import attach
-from tools.eval.ate import compute_ate
+from services.backend.loop.final_ba import bundle_adjust, follow_keyframes
+from services.backend.loop.history import attach
+from shared.metrics.ate import compute_ate
 
 IMU_NOISE = dict(gyro_nd=1.7e-4, acc_nd=2e-3, gyro_rw=1.9e-5, acc_rw=3e-3)
 

@@ -6,8 +6,8 @@ import numpy as np
 import frontend_scene as fs
 from services.frontend.config import FrontendConfig
 from services.frontend.tracker import MultiCameraTracker
-from services.loop.frontend_hook import keyframe_features_message
-from services.loop.run_outputs import loop_summary, write_final
+from services.frontend.keyframe_features import keyframe_features_message
+from services.app.run_outputs import loop_summary, write_final
 from shared.codec import decode, encode
 from shared.euroc import read_tum
 from shared.messages import FinalTrajectory, Header

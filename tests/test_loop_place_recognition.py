@@ -1,4 +1,4 @@
-"""Place recognition and PnP verification on rendered images (tools/synth), no transport.
+"""Place recognition and PnP verification on rendered images (services/app/synth), no transport.
 
 A rig of two EuRoC cameras flies a circle in a scene (seed 7: neither an evaluation replica, seed 0, nor a
 vocabulary training scene, seeds 100-103) and comes back to its start slightly offset. The shipped
@@ -12,9 +12,9 @@ import pytest
 
 from services.backend.cameras import camera_from_calib
 from services.frontend.config import FrontendConfig
-from services.loop.place_recognition import PlaceDatabase
-from services.loop.verification import FeatureSet, verify_pnp
-from services.loop.vocabulary import Vocabulary, hamming, k_majority, l1_score
+from services.backend.loop.place_recognition import PlaceDatabase
+from services.backend.loop.verification import FeatureSet, verify_pnp
+from services.backend.loop.vocabulary import Vocabulary, hamming, k_majority, l1_score
 from shared.geometry import inv_T, so3_exp
 from tools.build_vocabulary import frontend_descriptors, look_pose
 
@@ -24,9 +24,9 @@ N_CIRCLE = 24
 @pytest.fixture(scope="module")
 def world():
     from shared.paths import euroc_files
-    from tools.synth.render import Renderer
-    from tools.synth.replica import load_calibration
-    from tools.synth.scene import build_scene, site_positions
+    from services.app.synth.render import Renderer
+    from services.app.synth.replica import load_calibration
+    from services.app.synth.scene import build_scene, site_positions
 
     cams = load_calibration(euroc_files("V1_02")["calib"])[0][:2]
     renderer = Renderer(build_scene("vicon-b", seed=7), cams)

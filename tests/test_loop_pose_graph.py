@@ -5,8 +5,8 @@ import gtsam
 import numpy as np
 import pytest
 
-from services.loop.covisibility import Covisibility
-from services.loop.pose_graph import LoopConstraint, PoseGraph, relative_covariance
+from services.backend.loop.covisibility import Covisibility
+from services.backend.loop.pose_graph import LoopConstraint, PoseGraph, relative_covariance
 from shared.geometry import inv_T, so3_exp
 from shared.trajectory import procedural
 
@@ -106,7 +106,7 @@ def test_covisibility_queries():
 
 
 def test_corrected_state_moves_pose_velocity_and_covariance_consistently():
-    from services.loop.backend_loop import corrected_state
+    from services.backend.loop.backend_loop import corrected_state
     from shared.messages import EstimatorState, Header
 
     rng = np.random.default_rng(4)

@@ -27,7 +27,7 @@ def test_run_writes_the_final_trajectory_and_both_ates(tmp_path):
     data = e2e_dataset.make_dataset(tmp_path / "data", "V1_02", start_s=0.0, seconds=seconds, real_imu=FULL,
                                     blank_s=(4.0, 5.0))
     out = tmp_path / "run"
-    proc = subprocess.run([sys.executable, "-m", "services.cli", "run", str(data), "--out", str(out),
+    proc = subprocess.run([sys.executable, "-m", "services.app.cli", "run", str(data), "--out", str(out),
                            "--timeout-s", "600", "--settle-s", "5", "--set", "loop.min_age_s=3.0"], cwd=REPO,
                           env=child_env(), capture_output=True, text=True, timeout=900)
     log = proc.stdout + proc.stderr

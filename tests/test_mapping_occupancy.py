@@ -7,10 +7,10 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from services.mapping.blocks import BlockStore, pack_keys, unpack_keys
+from shared.occupancy.blocks import BlockStore, pack_keys, unpack_keys
 from services.mapping.config import SensorModelConfig
 from services.mapping.integrate import integrate
-from services.mapping.query import FREE, OCCUPIED, UNKNOWN, BlockField, interpolate, near_surface_field, state
+from shared.occupancy.query import FREE, OCCUPIED, UNKNOWN, BlockField, interpolate, near_surface_field, state
 from services.mapping.sensor_model import log_odds, prepare_depth, surface_thickness
 from tools.raycast_depth import DepthRenderer, intrinsics, look_at, room_scene
 

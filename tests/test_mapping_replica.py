@@ -20,7 +20,7 @@ from tools.bench_mapping import replica_frames
 
 @pytest.mark.e2e
 def test_replica_gt_depth_mesh_accuracy(tmp_path):
-    from tools.synth.api import ensure_default_replica, ensure_replica
+    from services.app.synth.api import ensure_default_replica, ensure_replica
 
     full = os.environ.get("SIGMASLAM_E2E") == "full"
     folder = ensure_default_replica(progress=False) if full else ensure_replica("V1_02", duration_s=1.5, progress=False)

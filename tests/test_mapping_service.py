@@ -54,7 +54,7 @@ def test_mapping_service_end_to_end(tmp_path):
                "mapping": {"depth_topic": "depth/fused", "mesh_period_s": 0.2, "pose_wait_s": 0.5, "output_dir": str(out)}}
         cfg_path = tmp_path / "system.yaml"
         cfg_path.write_text(yaml.safe_dump(cfg))
-        proc = subprocess.Popen([sys.executable, "-m", "services.cli", "mapping", str(cfg_path)], cwd=REPO, env=child_env(),
+        proc = subprocess.Popen([sys.executable, "-m", "services.app.cli", "mapping", str(cfg_path)], cwd=REPO, env=child_env(),
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         lines: list[str] = []
         threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, "")), daemon=True).start()
@@ -141,8 +141,8 @@ def test_mapping_service_end_to_end(tmp_path):
     assert dist.mean() < 0.01, dist.mean()
     assert len(load_map(out / "map.npz").submaps) == len(report["submaps"])
     # the near-surface field of every submap went out at exit (at least), with the final pose
-    from services.mapping.export import field_of_message
-    from services.mapping.query import interpolate
+    from shared.occupancy.message import field_of_message
+    from shared.occupancy.query import interpolate
 
     last = {f.submap_id: f for f in fields}
     assert sorted(last) == [s["id"] for s in report["submaps"]]

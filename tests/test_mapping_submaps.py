@@ -10,7 +10,7 @@ import pytest
 from services.mapping.config import SensorModelConfig, SubmapConfig
 from services.mapping.io import MapFileError, load_map, save_map, write_ply
 from services.mapping.poses import PoseBuffer
-from services.mapping.query import interpolate
+from shared.occupancy.query import interpolate
 from services.mapping.submaps import SubmapMapper
 from shared.geometry import inv_T, make_T, so3_exp
 from tools.raycast_depth import DepthRenderer, intrinsics, look_at
@@ -194,7 +194,8 @@ def test_bad_frames_raise_clear_errors():
 
 
 def test_field_message_round_trip_answers_the_same_queries(mapped):
-    from services.mapping.export import field_message, field_of_message
+    from services.mapping.export import field_message
+    from shared.occupancy.message import field_of_message
     from shared.codec import decode, encode
     from shared.messages import OccupancyField
 

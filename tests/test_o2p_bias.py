@@ -8,10 +8,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.mapping.blocks import BlockStore
+from shared.occupancy.blocks import BlockStore
 from services.mapping.config import SensorModelConfig
 from services.mapping.integrate import integrate
-from services.mapping.query import near_surface_field
+from shared.occupancy.query import near_surface_field
 from services.mapping.sensor_model import prepare_depth
 from shared.geometry import inv_T
 from tests.o2p_room import H, K, W, view

@@ -9,8 +9,8 @@ import pytest
 from gtsam.symbol_shorthand import X
 
 from services.backend.o2p_factor import OccupancyToPoint, trilinear_derivatives
-from services.mapping.blocks import BlockStore
-from services.mapping.query import BlockField, interpolate, near_surface_field
+from shared.occupancy.blocks import BlockStore
+from shared.occupancy.query import BlockField, interpolate, near_surface_field
 from shared.geometry import inv_T, make_T, so3_exp
 from tests.o2p_room import H, K, W, mapped_room, view
 

@@ -13,9 +13,10 @@ from scipy.stats import chi2
 from services.backend.o2p_config import O2PConfig
 from services.backend.o2p_factor import OccupancyToPoint
 from services.backend.o2p_terms import OccupancyTerms, consistency
-from services.mapping.export import field_message, field_of_message
+from services.mapping.export import field_message
+from shared.occupancy.message import field_of_message
 from services.mapping.mesh import ChunkMesher
-from services.mapping.o2p_points import select_depth_points
+from shared.occupancy.o2p_points import select_depth_points
 from services.mapping.submaps import Submap
 from shared.geometry import make_T, so3_exp
 from tests.o2p_room import H, K, W, mapped_room, view

@@ -10,11 +10,11 @@ import gtsam
 import numpy as np
 
 from services.backend.o2p_config import O2PConfig
-from services.loop.config import LoopConfig
-from services.loop.final_ba import bundle_adjust
-from services.loop.history import KeyframeRecord
-from services.loop.loop_closer import LoopCloser, ThreadedLoopCloser
-from services.loop.pose_graph import PoseGraph
+from services.backend.loop.config import LoopConfig
+from services.backend.loop.final_ba import bundle_adjust
+from services.backend.loop.history import KeyframeRecord
+from services.backend.loop.loop_closer import LoopCloser, ThreadedLoopCloser
+from services.backend.loop.pose_graph import PoseGraph
 from tests.test_o2p_terms import S, err, map_to_map_term, room  # noqa: F401,F811 (room: the fixture)
 
 # odometry between the two anchors, loose: the term has to do the pulling (3 deg, 10 cm); the anchor's error
@@ -115,7 +115,7 @@ def test_submap_anchor_uses_the_keyframe_pose_as_published():
     """The mapping's T_WM of a submap lives in the frame of the keyframe poses it last received, so the back end
     takes T_KM against the pose the last Keyframes message carried, not against a newer correction."""
     from services.backend.service import BackendShell
-    from services.loop.backend_loop import LoopClosingBackend
+    from services.backend.loop.backend_loop import LoopClosingBackend
     from services.system_config import load_system_config
     from shared.geometry import make_T, so3_exp
     from shared.messages import Header, Keyframes

@@ -10,8 +10,8 @@ from gtsam.symbol_shorthand import X
 
 from services.backend.o2p_config import O2PConfig
 from services.backend.o2p_terms import OccupancyTerms
-from services.mapping.o2p_points import SubmapPointPool, select_depth_points
-from services.mapping.blocks import BlockStore
+from shared.occupancy.o2p_points import SubmapPointPool, select_depth_points
+from shared.occupancy.blocks import BlockStore
 from services.mapping.export import field_message
 from services.mapping.mesh import ChunkMesher
 from services.mapping.submaps import Submap

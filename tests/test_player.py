@@ -59,7 +59,7 @@ def _config(tmp_path, tcfg, **player) -> str:
 
 
 def _start_player(cfg: str, dataset, *extra: str) -> tuple[subprocess.Popen, list[str]]:
-    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "player", str(dataset), cfg, "--wait-for", "tester",
+    proc = subprocess.Popen([sys.executable, "-m", "services.app.cli", "player", str(dataset), cfg, "--wait-for", "tester",
                              *extra], cwd=REPO, env=child_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True)
     lines: list[str] = []
@@ -171,7 +171,7 @@ def test_convert_round_trip_and_mcap_playback(tmp_path, dataset):
     got = [(type(m).__name__, m.header.stamp_ns) for m in src.messages()]
     assert got == [(type(m).__name__, m.header.stamp_ns) for m in EurocDataset(dataset).messages()]
     # CLI: EuRoC -> MCAP -> EuRoC
-    res = subprocess.run([sys.executable, "-m", "services.cli", "convert", str(mcap), str(tmp_path / "cli")],
+    res = subprocess.run([sys.executable, "-m", "services.app.cli", "convert", str(mcap), str(tmp_path / "cli")],
                          cwd=REPO, env=child_env(), capture_output=True, text=True)
     assert res.returncode == 0 and "frames 10" in res.stdout, res.stderr
 
@@ -204,10 +204,10 @@ def test_error_paths(tmp_path, dataset):
     msgs = list(ds.messages())
     assert ds.stats["unreadable_images"] == 1 and ds.stats["backwards_stamps"] == 1
     assert sum(type(m).__name__ == "MultiCameraFrame" for m in msgs) == N_FRAMES - 1
-    res = subprocess.run([sys.executable, "-m", "services.cli", "player", str(tmp_path / "nothing")], cwd=REPO,
+    res = subprocess.run([sys.executable, "-m", "services.app.cli", "player", str(tmp_path / "nothing")], cwd=REPO,
                          env=child_env(), capture_output=True, text=True, timeout=60)
     assert res.returncode == 2 and "not found" in res.stdout + res.stderr
-    res = subprocess.run([sys.executable, "-m", "services.cli", "convert", str(tmp_path / "nothing"), str(tmp_path / "o.mcap")],
+    res = subprocess.run([sys.executable, "-m", "services.app.cli", "convert", str(tmp_path / "nothing"), str(tmp_path / "o.mcap")],
                          cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=60)
     assert res.returncode == 1 and "not found" in res.stderr
 
@@ -291,7 +291,7 @@ def test_realtime_player_does_not_play_a_minute_of_trailing_imu(tmp_path, datase
 
 
 def test_run_finds_ground_truth_where_downloads_keep_it(tmp_path, dataset):
-    from services.run_cmd import find_ground_truth
+    from services.app.run_cmd import find_ground_truth
 
     d = _copy(dataset, tmp_path / "asl")
     asl = d / "mav0" / "state_groundtruth_estimate0" / "data.csv"
@@ -309,7 +309,7 @@ def test_run_ate_is_computed_over_the_ground_truths_span_only():
     import tempfile
     from pathlib import Path
 
-    from services.run_cmd import evaluate
+    from services.app.run_cmd import evaluate
     from shared.euroc import PoseSeries, write_tum
 
     t = T0 + np.arange(60, dtype=np.int64) * 50_000_000  # 3 s of poses at 20 Hz
@@ -333,7 +333,7 @@ def test_run_takes_the_config_after_the_options():
     unless positionals and options are parsed intermixed)."""
     import argparse
 
-    from services import run_cmd
+    from services.app import run_cmd
 
     top = argparse.ArgumentParser(prog="sigmaslam")
     run = top.add_subparsers(dest="command").add_parser("run")
@@ -356,7 +356,7 @@ def test_run_progress_line_counts_states_and_sequence_time():
     """`sigmaslam run` prints a progress line every PROGRESS_EVERY_S: what it has received so far."""
     from types import SimpleNamespace
 
-    from services.run_cmd import _Collector, progress_line
+    from services.app.run_cmd import _Collector, progress_line
 
     col = _Collector()
     assert "no state yet" in progress_line(col, 12.0)

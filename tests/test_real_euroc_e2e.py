@@ -44,7 +44,7 @@ from helpers_zenoh import REPO, child_env
 from shared.euroc import read_euroc_csv, read_tum
 from shared.geometry import quat_wxyz_to_R
 from shared.paths import shared_dir
-from tools.eval.ate import associate
+from shared.metrics.ate import associate
 
 MICRO = shared_dir() / "data" / "real" / "euroc_V1_01_micro"
 SERVICES = "supervisor.services=[{name: frontend, argv: [frontend]}, {name: backend, argv: [backend]}, " \
@@ -60,7 +60,7 @@ LIMIT_M = 0.02
 def test_run_on_real_euroc_frames(tmp_path):
     out = tmp_path / "v101"
     t0 = time.monotonic()
-    proc = subprocess.run([sys.executable, "-m", "services.cli", "run", str(MICRO), "--out", str(out),
+    proc = subprocess.run([sys.executable, "-m", "services.app.cli", "run", str(MICRO), "--out", str(out),
                            str(REPO / "configs" / "demo.yaml"), "--set", SERVICES, "--timeout-s", "300"],
                           cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=600)
     wall = time.monotonic() - t0

@@ -26,7 +26,7 @@ from mcap.reader import make_reader
 from helpers_zenoh import REPO, child_env, router, wait_for
 from services.recorder.mcap_reader import read_metadata, read_recording
 from services.recorder.recovery import recover
-from services.cli import main as cli_main
+from services.app.cli import main as cli_main
 from shared import messages as m, topics
 from shared.config import to_dict
 from transport.pubsub import Publisher
@@ -93,7 +93,7 @@ def write_config(tmp_path, tcfg, **recorder) -> str:
 
 def start_recorder(cfg_path: str, out) -> tuple[subprocess.Popen, list[str]]:
     """Start `sigmaslam record`; returns once it prints "recording ..." (its subscriber is declared)."""
-    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "record", cfg_path, "--out", str(out)],
+    proc = subprocess.Popen([sys.executable, "-m", "services.app.cli", "record", cfg_path, "--out", str(out)],
                             cwd=REPO, env=child_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines: list[str] = []
     threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, "")), daemon=True).start()
@@ -203,7 +203,7 @@ def test_record_sigterm_as_soon_as_the_file_exists_leaves_a_complete_file(tmp_pa
     out = tmp_path / "early.mcap"
     with router() as tcfg:
         cfg_path = write_config(tmp_path, tcfg)
-        proc = subprocess.Popen([sys.executable, "-m", "services.cli", "record", cfg_path, "--out", str(out)],
+        proc = subprocess.Popen([sys.executable, "-m", "services.app.cli", "record", cfg_path, "--out", str(out)],
                                 cwd=REPO, env=child_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         try:
             assert wait_for(lambda: out.exists() or proc.poll() is not None, 30.0, interval=0.001)

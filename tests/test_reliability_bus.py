@@ -102,6 +102,6 @@ def test_garbage_and_bad_content_on_every_topic(tmp_path):
 
 
 def _replica() -> str:
-    from tools.synth.api import ensure_default_replica
+    from services.app.synth.api import ensure_default_replica
 
     return str(ensure_default_replica())

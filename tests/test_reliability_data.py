@@ -197,7 +197,7 @@ def test_bad_config_values_are_clear_errors(override, fragment):
 def test_a_service_given_a_bad_config_exits_2_with_the_key_named(tmp_path):
     bad = tmp_path / "bad.yaml"
     bad.write_text("mapping:\n  checkpoint_period_s: soon\n")
-    proc = subprocess.run([sys.executable, "-m", "services.cli", "mapping", str(bad)], cwd=REPO, env=child_env(),
+    proc = subprocess.run([sys.executable, "-m", "services.app.cli", "mapping", str(bad)], cwd=REPO, env=child_env(),
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2, proc.stderr
     assert "mapping.checkpoint_period_s" in proc.stderr and "expected a number" in proc.stderr

@@ -21,7 +21,7 @@ WINDOW = "4" if FULL else "3"
 
 
 def _replica() -> str:
-    from tools.synth.api import ensure_default_replica
+    from services.app.synth.api import ensure_default_replica
 
     return str(ensure_default_replica())
 
@@ -81,7 +81,7 @@ def test_depth_overload_does_not_slow_the_estimator(tmp_path):
 def test_sigkill_viewer_and_recorder(tmp_path):
     """The viewer serves its page again after a restart; the recorder's cut file is kept beside the new one and
     rebuilds with --recover."""
-    from services.cli import main as cli_main
+    from services.app.cli import main as cli_main
     from services.recorder.mcap_reader import read_recording
 
     out = tmp_path / "vr"

@@ -4,7 +4,7 @@ the middle: IMU-only states, then tracking again, and no crash.
 
 Reduced form (default): 7 s of V1_02's real motion in the test box room at half resolution, simulated IMU.
 ``SIGMASLAM_E2E=full``: 20 s of it with the real IMU, and the bundled 25 s V1_02 replica
-(``tools.synth.api.ensure_default_replica``, rendered if absent) with a causal ATE bound."""
+(``services.app.synth.api.ensure_default_replica``, rendered if absent) with a causal ATE bound."""
 
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ def test_run_end_to_end_with_blank_second(tmp_path):
     data = e2e_dataset.make_dataset(tmp_path / "data", "V1_02", start_s=0.0, seconds=seconds, real_imu=FULL,
                                     blank_s=(4.0, 5.0))
     out = tmp_path / "run"
-    proc = subprocess.run([sys.executable, "-m", "services.cli", "run", str(data), "--out", str(out),
+    proc = subprocess.run([sys.executable, "-m", "services.app.cli", "run", str(data), "--out", str(out),
                            "--timeout-s", "600", "--settle-s", "5"], cwd=REPO, env=child_env(),
                           capture_output=True, text=True, timeout=900)
     log = proc.stdout + proc.stderr
@@ -51,11 +51,11 @@ def test_run_end_to_end_with_blank_second(tmp_path):
 @pytest.mark.e2e
 @pytest.mark.skipif(not FULL, reason="long form only (SIGMASLAM_E2E=full)")
 def test_run_default_replica(tmp_path):
-    from tools.synth.api import ensure_default_replica
+    from services.app.synth.api import ensure_default_replica
 
     data = ensure_default_replica(progress=False)
     out = tmp_path / "run"
-    proc = subprocess.run([sys.executable, "-m", "services.cli", "run", str(data), "--out", str(out),
+    proc = subprocess.run([sys.executable, "-m", "services.app.cli", "run", str(data), "--out", str(out),
                            "--timeout-s", "1500"], cwd=REPO, env=child_env(), capture_output=True, text=True,
                           timeout=1800)
     assert proc.returncode == 0, (proc.stdout + proc.stderr)[-3000:]

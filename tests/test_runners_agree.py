@@ -1,5 +1,5 @@
 """The same process nodes give the same trajectory whether run as processes over Zenoh (``sigmaslam run``, lockstep
-player) or in one process by the in-process runner (services/inprocess.py): the two runners drive one
+player) or in one process by the in-process runner (services/app/inprocess.py): the two runners drive one
 implementation, and this test is what keeps the in-process tools (offline VIO, loop evaluation) honest about the
 services. Frontend and back end with loop closure handled synchronously (loop.synchronous: no thread timing), on
 4 s of V1_02's motion in the test room (tests/e2e_dataset.py)."""
@@ -14,7 +14,7 @@ import pytest
 
 import e2e_dataset
 from helpers_zenoh import REPO, child_env
-from services.inprocess import run_in_process
+from services.app.inprocess import run_in_process
 from services.system_config import load_system_config
 from shared.euroc import read_tum
 
@@ -25,7 +25,7 @@ SETTINGS = ["loop.synchronous=true", "o2p.enabled=false"]
 def test_zenoh_and_in_process_runners_give_the_same_trajectory(tmp_path):
     data = e2e_dataset.make_dataset(tmp_path / "data", "V1_02", start_s=2.0, seconds=4.0)
     out = tmp_path / "run"
-    argv = [sys.executable, "-m", "services.cli", "run", str(data), "--out", str(out), "--timeout-s", "300"]
+    argv = [sys.executable, "-m", "services.app.cli", "run", str(data), "--out", str(out), "--timeout-s", "300"]
     for s in SETTINGS:
         argv += ["--set", s]
     proc = subprocess.run(argv, cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=600)

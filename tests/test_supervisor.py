@@ -15,7 +15,7 @@ import yaml
 
 from helpers_zenoh import REPO, child_env, free_port, service_config, wait_for
 from services.recorder.mcap_reader import read_metadata
-from services.supervisor import Child, RestartTracker, ServiceSpec, Supervisor, SupervisorConfig, describe_exit, validate
+from services.app.supervisor import Child, RestartTracker, ServiceSpec, Supervisor, SupervisorConfig, describe_exit, validate
 from services.system_config import load_system_config
 from shared.config import ConfigError, to_dict
 
@@ -76,7 +76,7 @@ class Up:
                               "shutdown_timeout_s": 5.0, "run_dir": str(tmp_path / "runs")}}
         path = tmp_path / "system.yaml"
         path.write_text(yaml.safe_dump(cfg))
-        self.proc = subprocess.Popen([sys.executable, "-m", "services.cli", "up", str(path)], cwd=REPO, env=child_env(),
+        self.proc = subprocess.Popen([sys.executable, "-m", "services.app.cli", "up", str(path)], cwd=REPO, env=child_env(),
                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         self.lines: list[str] = []
         threading.Thread(target=lambda: self.lines.extend(iter(self.proc.stdout.readline, "")), daemon=True).start()
@@ -109,8 +109,8 @@ def test_up_restarts_a_killed_child_and_stops_everything_on_sigterm(tmp_path):
         first = up.pids("rec")[0]
         child = psutil.Process(first)
         assert child.ppid() == up.proc.pid and child.pid != up.proc.pid
-        cmd = child.cmdline()  # python -m services.cli record <run>/config.yaml --out rec.mcap
-        assert cmd[1:4] == ["-m", "services.cli", "record"] and cmd[4].endswith("config.yaml") and cmd[5:] == ["--out", str(out)]
+        cmd = child.cmdline()  # python -m services.app.cli record <run>/config.yaml --out rec.mcap
+        assert cmd[1:4] == ["-m", "services.app.cli", "record"] and cmd[4].endswith("config.yaml") and cmd[5:] == ["--out", str(out)]
         assert wait_for(lambda: out.exists(), 20.0), up.text()  # the recorder got going
         child.send_signal(signal.SIGKILL)
         assert wait_for(lambda: len(up.pids("rec")) == 2, 20.0), up.text()

@@ -16,9 +16,9 @@ from shared.euroc_reader import EurocDataset
 from shared.imu_sim import G_W, read_imu_csv, time_offset
 from shared.paths import euroc_files, has_sequence
 from shared.trajectory import Trajectory, procedural
-from tools.synth.render import RenderConfig, Renderer
-from tools.synth.replica import ReplicaSpec, generate, load_calibration, plan
-from tools.synth.scene import build_scene, read_ply
+from services.app.synth.render import RenderConfig, Renderer
+from services.app.synth.replica import ReplicaSpec, generate, load_calibration, plan
+from services.app.synth.scene import build_scene, read_ply
 
 REPO = __import__("pathlib").Path(__file__).resolve().parents[1]
 
@@ -71,7 +71,7 @@ def test_scene_clearance_variants_and_ply(tmp_path, scene, site, sequence):
     """Every ground-truth position of the site keeps >= 0.5 m from all geometry; variants differ; PLY is exact."""
     import open3d as o3d
 
-    from tools.synth.scene import site_positions
+    from services.app.synth.scene import site_positions
 
     a = build_scene(scene, seed=0, textures=False)
     pts = site_positions(site)
@@ -213,7 +213,7 @@ def test_error_paths(tmp_path):
     cv2.imwrite(str(tmp_path / "eight.png"), np.zeros((4, 4), np.uint8))
     with pytest.raises(ValueError, match="16-bit"):
         read_depth_png(tmp_path / "eight.png", 0.0002)
-    res = subprocess.run([sys.executable, "-m", "services.cli", "synth", "--out", str(tmp_path / "y"),
+    res = subprocess.run([sys.executable, "-m", "services.app.cli", "synth", "--out", str(tmp_path / "y"),
                           "--groundtruth", str(tmp_path / "missing.csv")], cwd=REPO, capture_output=True, text=True)
     assert res.returncode == 1 and "missing.csv" in res.stderr
 
@@ -222,7 +222,7 @@ def test_ensure_replica_generates_once_under_concurrency(tmp_path):
     import threading
     import time
 
-    from tools.synth.api import ensure_replica
+    from services.app.synth.api import ensure_replica
 
     paths, errors = [], []
 

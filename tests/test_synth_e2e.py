@@ -14,9 +14,9 @@ from shared.depth_io import DepthFolder
 from shared.euroc import read_euroc_csv
 from shared.imu_sim import read_imu_csv, time_offset
 from shared.trajectory import Trajectory
-from tools.synth.api import DEFAULT, replica_name
-from tools.synth.replica import ReplicaSpec
-from tools.synth.scene import read_ply
+from services.app.synth.api import DEFAULT, replica_name
+from services.app.synth.replica import ReplicaSpec
+from services.app.synth.scene import read_ply
 
 FULL = os.environ.get("SIGMASLAM_E2E", "") == "full"
 
@@ -24,7 +24,7 @@ FULL = os.environ.get("SIGMASLAM_E2E", "") == "full"
 @pytest.mark.e2e
 def test_replica_depth_on_mesh_and_imu_alignment(tmp_path):
     from shared.paths import data_dir
-    from tools.synth.api import ensure_default_replica, ensure_replica
+    from services.app.synth.api import ensure_default_replica, ensure_replica
 
     cached = data_dir() / "replicas" / replica_name(ReplicaSpec(**DEFAULT))
     if FULL:

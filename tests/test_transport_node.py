@@ -102,7 +102,7 @@ def test_node_in_process_api():
 
 def test_router_command_serves_peers_and_stops_on_sigterm():
     port = free_port()
-    cmd = [sys.executable, "-m", "services.cli", "router", "--listen", f"tcp/127.0.0.1:{port}"]
+    cmd = [sys.executable, "-m", "services.app.cli", "router", "--listen", f"tcp/127.0.0.1:{port}"]
     proc = subprocess.Popen(cmd, cwd=REPO, env=child_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert "listening on tcp/127.0.0.1:%d" % port in proc.stdout.readline()
@@ -127,7 +127,7 @@ def test_router_command_serves_peers_and_stops_on_sigterm():
 
 def test_bench_transport_short_run_writes_json(tmp_path):
     out = tmp_path / "bench.json"
-    cmd = [sys.executable, "-m", "services.cli", "bench", "transport", "--duration", "1", "--samples", "100",
+    cmd = [sys.executable, "-m", "services.app.cli", "bench", "transport", "--duration", "1", "--samples", "100",
            "--json", str(out)]
     res = subprocess.run(cmd, cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=60)
     assert res.returncode == 0, res.stderr

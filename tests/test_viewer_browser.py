@@ -94,7 +94,7 @@ def stack(tmp_path):
             control = Subscriber(session, f"{ns}/{topics.CONTROL.key}", m.Control, "all", 64)
             stats = Subscriber(session, f"{ns}/stats/viewer", m.ServiceStats, "latest", 1)
             bad_pub = Publisher(session, f"{ns}/{topics.SUBMAP.key}", m.SubmapMesh, tcfg, prepare_shm=False)
-            viewer = Proc(["-m", "services.cli", "viewer", str(path)])
+            viewer = Proc(["-m", "services.app.cli", "viewer", str(path)])
             procs = [viewer]
             try:
                 assert wait_for(lambda: viewer.has("viewer: http"), 30), "\n".join(viewer.lines)

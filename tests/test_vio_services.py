@@ -22,7 +22,7 @@ from shared import topics
 from shared.camera import CameraCalib, CameraModel, camera_to_sensor_yaml
 from shared.config import to_dict
 from shared.messages import FeatureFrame, Header, ImuSample, MultiCameraFrame
-from tools.eval.ate import compute_ate
+from shared.metrics.ate import compute_ate
 from transport.node import Node
 from transport.queues import Empty
 
@@ -37,7 +37,7 @@ def _write_config(tmp_path, tcfg, calibs, **sections) -> str:
 
 
 def _start(subcommand: str, config: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "services.cli", subcommand, config], cwd=REPO, env=child_env(),
+    return subprocess.Popen([sys.executable, "-m", "services.app.cli", subcommand, config], cwd=REPO, env=child_env(),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 

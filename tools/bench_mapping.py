@@ -112,7 +112,7 @@ def main(args: argparse.Namespace) -> int:
         d = Path(args.out)
         write_ply(d / "mesh.ply", v, f)
         if args.eval and args.replica:
-            from tools.eval.mesh import evaluate_mesh_files
+            from services.app.metrics.mesh import evaluate_mesh_files
 
             gt_mesh = Path(args.replica) / "mav0" / "scene" / "mesh.ply"
             if gt_mesh.is_file():

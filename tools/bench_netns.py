@@ -145,7 +145,7 @@ def _wait_line(proc: subprocess.Popen, needle: str, timeout: float = 20.0) -> No
 
 
 def _router_argv(listen: str, connect: str = "") -> list[str]:
-    argv = [sys.executable, "-m", "services.cli", "router", "--listen", listen]
+    argv = [sys.executable, "-m", "services.app.cli", "router", "--listen", listen]
     return argv + (["--set", f"transport.router_connect=[{connect}]"] if connect else [])
 
 

@@ -1,6 +1,6 @@
 """``sigmaslam bench pipeline [DATASET]``: the whole pipeline at sensor rate, measured per stage and end to end.
 
-One ``sigmaslam run`` (services/run_cmd.py: router, player, frontend, backend, depth, mapping as processes) with
+One ``sigmaslam run`` (services/app/run_cmd.py: router, player, frontend, backend, depth, mapping as processes) with
 the player at ``--rate`` times sensor rate (1 = real time), while this process
 
 - has every service log the compute time of each item per stage ($SIGMASLAM_STAGE_LOG, transport/stats.py):
@@ -92,7 +92,7 @@ def run_once(dataset: Path, out: Path, rate: float, seconds: float, services: st
              sets: list[str], timeout_s: float) -> dict:
     """One measured pipeline run into ``out`` (``rate`` <= 0: lockstep); returns the raw measurements (see
     :func:`summarise`)."""
-    from services import run_cmd
+    from services.app import run_cmd
     from services.system_config import load_system_config
     from transport.stats import STAGE_LOG_ENV
 
@@ -284,7 +284,7 @@ def search_max_rate(args, dataset: Path, budgets) -> dict:
 def _dataset(arg: str | None) -> Path:
     if arg:
         return Path(arg).resolve()
-    from tools.synth.api import ensure_default_replica
+    from services.app.synth.api import ensure_default_replica
 
     return ensure_default_replica()
 

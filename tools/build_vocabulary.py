@@ -1,10 +1,10 @@
 """Build the ORB bag-of-words vocabulary of loop closure from rendered imagery.
 
-    python -m tools.build_vocabulary [--out services/loop/data/orb_vocabulary.npz] [--images-per-scene 60]
+    python -m tools.build_vocabulary [--out services/backend/loop/data/orb_vocabulary.npz] [--images-per-scene 60]
                                      [--seed-offset 100] [--k1 16 --k2 64]
 
-Images are rendered by tools/synth with the real EuRoC cam0 calibration in every scene style of
-``tools.synth.scene.SCENES`` built with seeds ``seed-offset + i`` (the evaluation replicas use seed 0, so
+Images are rendered by services/app/synth with the real EuRoC cam0 calibration in every scene style of
+``services.app.synth.scene.SCENES`` built with seeds ``seed-offset + i`` (the evaluation replicas use seed 0, so
 the training scenes have other layouts, textures and light), from random positions of the site's
 ground-truth region looking in random horizontal directions. Features are those of the frontend (FAST
 corners spread over a grid, ORB descriptors at them). The command, scenes, seeds and counts are stored
@@ -22,7 +22,7 @@ import numpy as np
 
 from services.frontend.config import FrontendConfig
 from services.frontend.detection import detect_spread
-from services.loop.vocabulary import DEFAULT_PATH, train
+from services.backend.loop.vocabulary import DEFAULT_PATH, train
 
 
 def frontend_descriptors(image: np.ndarray, cfg: FrontendConfig, orb) -> tuple[np.ndarray, np.ndarray]:
@@ -50,9 +50,9 @@ def look_pose(p_W: np.ndarray, yaw: float, pitch: float) -> np.ndarray:
 
 def render_descriptors(scene_name: str, seed: int, n_images: int, rng: np.random.Generator) -> list[np.ndarray]:
     from shared.paths import euroc_files
-    from tools.synth.render import Renderer
-    from tools.synth.replica import load_calibration
-    from tools.synth.scene import SCENES, build_scene, site_positions
+    from services.app.synth.render import Renderer
+    from services.app.synth.replica import load_calibration
+    from services.app.synth.scene import SCENES, build_scene, site_positions
 
     cams = load_calibration(euroc_files("V1_02")["calib"])[0][:1]
     scene = build_scene(scene_name, seed)
@@ -75,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--k1", type=int, default=16)
     ap.add_argument("--k2", type=int, default=64)
     a = ap.parse_args(argv)
-    from tools.synth.scene import SCENES
+    from services.app.synth.scene import SCENES
 
     rng = np.random.default_rng(a.seed_offset)
     t0 = time.perf_counter()
@@ -88,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name} seed {seed}: {len(d)} images, {scenes[-1]['descriptors']} descriptors "
               f"({time.perf_counter() - t0:.0f} s)", flush=True)
     prov = {"command": "python -m tools.build_vocabulary " + " ".join(argv if argv is not None else sys.argv[1:]),
-            "data": "tools/synth renders, EuRoC cam0 calibration, random poses in the site region",
+            "data": "services/app/synth renders, EuRoC cam0 calibration, random poses in the site region",
             "scenes": scenes, "k1": a.k1, "k2": a.k2, "cluster_seed": a.seed_offset,
             "features": "frontend FAST grid + ORB (31 px patch)", "built": time.strftime("%Y-%m-%d")}
     voc = train(sets, a.k1, a.k2, a.seed_offset, prov)

@@ -2,8 +2,8 @@
 
     python -m tools.eval_loop DATASET [--max-frames N] [--set loop.x=y] [--no-loop] [--out DIR]
 
-Frontend + back end with :class:`services.loop.backend_loop.LoopClosingBackend`: the services' own nodes on the
-in-process runner (services/inprocess.py), in the order of a lockstep run (keyframe descriptors before their
+Frontend + back end with :class:`services.backend.loop.backend_loop.LoopClosingBackend`: the services' own nodes on the
+in-process runner (services/app/inprocess.py), in the order of a lockstep run (keyframe descriptors before their
 frame). Prints the causal ATE of the raw window estimate and of the published (pose-graph corrected) poses, the
 non-causal ATE after the final BA, loop counts, and the back end's per-frame time (median, p99; wall and this
 thread's CPU) with the loop thread running. ``--out`` writes trajectory_causal.txt and trajectory_final.txt (TUM)
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.inprocess import run_in_process
+from services.app.inprocess import run_in_process
 from services.system_config import load_system_config
 from shared.euroc import series_from_matrices, read_trajectory, write_tum
 
@@ -45,7 +45,7 @@ def run(dataset: str, overrides: list[str], max_frames: int = 0, loop: bool = Tr
             trajs["final"] = series_from_matrices(run.final.stamps_ns, run.final.T_WS)
             res["final_keyframes"] = run.final.keyframes
     if run.groundtruth_path is not None:
-        from tools.eval.ate import compute_ate
+        from shared.metrics.ate import compute_ate
 
         gt = read_trajectory(run.groundtruth_path)
         for k, tr in trajs.items():

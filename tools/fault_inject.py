@@ -3,7 +3,7 @@
     python -m tools.fault_inject DATASET --out DIR [--kill depth,mapping,backend] [--rate 0.5] [--set k=v ...]
 
 Runs player (``--rate`` x sensor time), frontend, backend, depth (SGBM unless ``--set depth.method=network``)
-and mapping (``--out DIR``, checkpoints every 2 s) under :class:`services.supervisor.Supervisor` with restart
+and mapping (``--out DIR``, checkpoints every 2 s) under :class:`services.app.supervisor.Supervisor` with restart
 'on-failure', on a private router and namespace. This process listens to estimator/state, sensors/frame,
 heartbeats and stats. Once the estimator tracks, it measures a baseline window, then for each service in
 ``--kill``: SIGKILL its process, measure the estimator/state rate and latency while it is down, wait for a
@@ -26,8 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from services.cli import SUBCOMMANDS
-from services.supervisor import ServiceSpec, Supervisor, validate
+from services.app.cli import SUBCOMMANDS
+from services.app.supervisor import ServiceSpec, Supervisor, validate
 from services.system_config import load_system_config
 from shared import topics
 from shared.config import override, to_yaml

@@ -8,7 +8,7 @@ gets as depth and sigma, all at ground-truth poses on a replica:
 
 The depth comes from :class:`services.depth.pipeline.DepthPipeline` (networks when their weights are
 present, else SGBM, in which case only the heuristic variants are meaningful). Each variant is
-meshed and evaluated against the replica's scene mesh (tools/eval/mesh.py).
+meshed and evaluated against the replica's scene mesh (services/app/metrics/mesh.py).
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ def main(args: argparse.Namespace) -> int:
     from services.depth.pipeline import DepthPipeline
     from shared.camera import load_rig
     from tools.bench_mapping import replica_frames
-    from tools.eval.mesh import evaluate_mesh_files
+    from services.app.metrics.mesh import evaluate_mesh_files
 
     folder, out = Path(args.replica), Path(args.out)
     variants = [v for v in args.variants.split(",") if v]

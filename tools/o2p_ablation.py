@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import sys
 
-from services.cli import main
+from services.app.cli import main
 
 if __name__ == "__main__":
     sys.exit(main(["eval", "ablation", *sys.argv[1:]]))

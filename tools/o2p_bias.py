@@ -6,7 +6,7 @@ On a replica (data/replicas/*-d25-seed0), submaps are built at the ground-truth 
 service builds them (:class:`services.mapping.submaps.SubmapMapper`, sigma from the depth frame), in the
 rectified left camera of the stereo network. For each frame after ``--warmup`` (before it is integrated, so a
 frame never meets its own depth) the back end's frame-to-map points are selected
-(:func:`services.mapping.o2p_points.select_depth_points`, the lowest-sigma pixels of the stereo frame), o(k) is
+(:func:`shared.occupancy.o2p_points.select_depth_points`, the lowest-sigma pixels of the stereo frame), o(k) is
 the oldest submap with >= M_min of them inside its near-surface field (covisibility by landmarks is left out),
 and the factor (:class:`services.backend.o2p_factor.OccupancyToPoint`) is evaluated at the ground-truth poses.
 
@@ -37,7 +37,7 @@ import gtsam
 import numpy as np
 
 from services.backend.o2p_factor import OccupancyToPoint
-from services.mapping.query import BlockField, near_surface_field
+from shared.occupancy.query import BlockField, near_surface_field
 from shared.geometry import inv_T, transform_points
 
 
@@ -129,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
 
     from services.depth.pipeline import DepthPipeline
-    from services.mapping.o2p_points import SubmapPointPool, select_depth_points
+    from shared.occupancy.o2p_points import SubmapPointPool, select_depth_points
     from services.mapping.submaps import SubmapMapper
     from services.system_config import load_system_config
     from shared.config import override

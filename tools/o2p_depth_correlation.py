@@ -5,7 +5,7 @@
 Eq. 7 weights the N points of an occupancy-to-point factor as independent. For frames of a replica (ground
 truth ray-cast in the rectified left camera at the ground-truth pose, tools/depth/evaluate.py), the stereo
 network's depth and learned sigma, and the ``--points`` lowest-sigma pixels the back end would take
-(:func:`services.mapping.o2p_points.select_depth_points`), this measures the normalised errors
+(:func:`shared.occupancy.o2p_points.select_depth_points`), this measures the normalised errors
 ``z_i = (d_i - d_gt_i) / sigma_i`` and their mean pairwise correlation (biases shared by a frame's points
 count as correlation, as they should: they do not average out)
 
@@ -34,7 +34,7 @@ def main() -> None:
     a = p.parse_args()
 
     from services.depth.pipeline import DepthPipeline
-    from services.mapping.o2p_points import select_depth_points
+    from shared.occupancy.o2p_points import select_depth_points
     from services.system_config import load_system_config
     from shared.config import override
     from shared.rig import load_rig_config

@@ -11,7 +11,7 @@
   changed submaps every ``mapping.mesh_period_s``, so this includes that period). A lower bound when the
   mapper runs behind its input.
 - :class:`ProcessSampler`: CPU share and resident memory of each child process of this one (the services the
-  supervisor started), named by their ``services.cli <subcommand>`` argument.
+  supervisor started), named by their ``services.app.cli <subcommand>`` argument.
 - :func:`summary` / :func:`stage_summary`: median, p90, p99 of a sample.
 """
 
@@ -101,9 +101,9 @@ def map_latencies(published: dict[int, int], depth_stamps_ns: np.ndarray, depth_
 
 
 def service_name(cmdline: list[str]) -> str | None:
-    """'frontend' for ``python -m services.cli frontend CONFIG ...``; None for other processes."""
+    """'frontend' for ``python -m services.app.cli frontend CONFIG ...``; None for other processes."""
     for i, arg in enumerate(cmdline[:-1]):
-        if arg == "services.cli":
+        if arg == "services.app.cli":
             return cmdline[i + 1]
     return None
 

@@ -99,7 +99,7 @@ class WindowedVioEstimator:
         self.last_error = ""
         self._marginals: gtsam.Marginals | None = None
         self._first_frame_pending = False
-        # loop-closure hook (services/loop/history.py): called as f(self, old, new) before keyframe `old` is
+        # loop-closure hook (services/backend/loop/history.py): called as f(self, old, new) before keyframe `old` is
         # marginalised, while the window's marginals still cover it
         self.on_marginalise = None
         # extra-factor hook (occupancy-to-point, services/backend/o2p_terms.py): f(self) -> factors added to

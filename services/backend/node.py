@@ -22,8 +22,8 @@ from services.backend.backlog import shed_backlog
 from services.backend.estimator import BackendInputError, WindowedVioEstimator, camera_from_calib
 from services.backend.imu_factors import ImuDataError
 from services.backend.outputs import keyframes_message, landmarks_message, state_message
-from services.frontend.undistort import LookupCamera
-from services.loop.backend_loop import LoopClosingBackend
+from shared.lookup_camera import LookupCamera
+from services.backend.loop.backend_loop import LoopClosingBackend
 from shared import topics
 from shared.dataflow import Emit, Input, ProcessNode
 from shared.messages import (DepthFrame, EstimatorState, FeatureFrame, Header, ImuSample, KeyframeFeatures, Keyframes,

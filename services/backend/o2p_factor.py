@@ -45,16 +45,16 @@ import dataclasses
 import gtsam
 import numpy as np
 
-from services.mapping.query import BlockField
+from shared.occupancy.query import BlockField
 
-# the 8 corners of a trilinear cell, (dx, dy, dz), x fastest (same order as services.mapping.query)
+# the 8 corners of a trilinear cell, (dx, dy, dz), x fastest (same order as shared.occupancy.query)
 _CORNERS = np.array([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], np.int64)
 
 
 def trilinear_derivatives(field: BlockField, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Trilinear L (N,), gradient (N, 3) [1/m], mixed second derivatives (N, 3) = (L_xy, L_xz, L_yz) [1/m^2]
     and the validity mask (all 8 voxels observed) at points ``q`` (N, 3) [m] of the field frame. Same
-    interpolation as :func:`services.mapping.query.interpolate`; invalid rows hold zeros."""
+    interpolation as :func:`shared.occupancy.query.interpolate`; invalid rows hold zeros."""
     q = np.asarray(q, np.float64).reshape(-1, 3)
     vs = field.voxel_size
     g = q / vs - 0.5

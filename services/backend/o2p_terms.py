@@ -25,7 +25,7 @@ points of finished submaps (map-to-map).
   them (the keyframe nearest each submap's creation, as in the mapping service; ``anchor_of``, installed by
   the loop-closing back end, gives its state and ``T_KM``) and a :class:`MapToMap` term is queued
   (:meth:`OccupancyTerms.pop_map_to_map`). The loop closer adds it to its pose graph between the two anchor
-  keyframes once both have left the window, and to the final bundle adjustment (services/loop/), so the
+  keyframes once both have left the window, and to the final bundle adjustment (services/backend/loop/), so the
   submap poses are the variables, as in eq. 5. Without a loop closer there is no map-to-map term (counted).
 * **Gates** (:func:`consistency`): before a factor enters a graph, at the current estimate, at least M_min and
   (frame-to-map only) ``min_inside_fraction`` of its points must lie inside the target's observed field, and its whitened squared
@@ -54,9 +54,9 @@ from scipy.stats import chi2
 from services.backend.o2p_config import O2PConfig
 from services.backend.mono_init import metric_hold
 from services.backend.o2p_factor import OccupancyToPoint, trilinear_derivatives
-from services.mapping.export import field_of_message
-from services.mapping.o2p_points import select_depth_points  # noqa: F401 (also used by callers)
-from services.mapping.query import BlockField
+from shared.occupancy.message import field_of_message
+from shared.occupancy.o2p_points import select_depth_points  # noqa: F401 (also used by callers)
+from shared.occupancy.query import BlockField
 from shared.geometry import inv_T, transform_points
 
 log = logging.getLogger("sigmaslam.backend.o2p")

@@ -15,7 +15,7 @@ import numpy as np
 
 from services.frontend.gyro import GyroIntegrator
 from services.frontend.tracker import FrontendInputError, MultiCameraTracker, TrackerOutput
-from services.loop.frontend_hook import keyframe_features_message
+from services.frontend.keyframe_features import keyframe_features_message
 from shared import topics
 from shared.dataflow import Emit, Input, ProcessNode
 from shared.messages import EstimatorState, FeatureFrame, Header, ImuSample, MultiCameraFrame

@@ -9,7 +9,7 @@ import argparse
 import logging
 
 from services.frontend.node import FrontendNode
-from services.supervisor import restart_count
+from shared.supervision import restart_count
 from services.system_config import load_system_config
 from shared.camera import CalibrationError
 from shared.rig import load_rig_config

@@ -22,7 +22,7 @@ import numpy as np
 from services.frontend import klt
 from services.frontend.config import FrontendConfig
 from services.frontend.detection import detect_spread
-from services.frontend.undistort import LookupCamera
+from shared.lookup_camera import LookupCamera
 from services.frontend.epipolar import cross_camera_check, overlapping_pairs, ransac_inliers
 from shared.camera import CameraCalib
 from shared.geometry import inv_T

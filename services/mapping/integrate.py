@@ -20,7 +20,7 @@ import warnings
 import numba as nb
 import numpy as np
 
-from services.mapping.blocks import BlockStore, pack_keys
+from shared.occupancy.blocks import BlockStore, pack_keys
 from services.mapping.config import SensorModelConfig
 
 # the TBB layer numba finds here is too old; it falls back to another threading layer (harmless)

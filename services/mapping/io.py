@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.mapping.blocks import BlockStore
+from shared.occupancy.blocks import BlockStore
 from services.mapping.config import SensorModelConfig, SubmapConfig
 from services.mapping.submaps import SubmapMapper
 from shared.config import from_dict, to_dict

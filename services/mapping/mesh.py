@@ -11,8 +11,8 @@ from __future__ import annotations
 import numpy as np
 from skimage.measure import marching_cubes
 
-from services.mapping.blocks import BlockStore, pack_keys, unpack_keys
-from services.mapping.query import BlockField
+from shared.occupancy.blocks import BlockStore, pack_keys, unpack_keys
+from shared.occupancy.query import BlockField
 
 _OFFSETS = np.array([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)], np.int64)
 

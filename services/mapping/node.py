@@ -30,10 +30,10 @@ import numpy as np
 
 from services.mapping.config import MappingConfig
 from services.mapping.io import MapFileError, load_map, remove_stale_temps, save_map, write_ply
-from services.mapping.o2p_points import SubmapPointPool
+from shared.occupancy.o2p_points import SubmapPointPool
 from services.mapping.poses import PoseBuffer
 from services.mapping.submaps import SubmapMapper
-from services.supervisor import restart_count
+from shared.supervision import restart_count
 from shared import messages, topics
 from shared.codec import Header
 from shared.dataflow import Emit, Input, ProcessNode
@@ -54,7 +54,7 @@ class MappingLoop:
         self.to_publish: set[int] = set()
         self.fields_to_publish: set[int] = set()
         self.reset_pending = False
-        # map-to-map points (services/mapping/o2p_points.py), published once per closed submap
+        # map-to-map points (shared/occupancy/o2p_points.py), published once per closed submap
         self.points = SubmapPointPool(cfg.o2p_points) if cfg.o2p_points > 0 else None
         self.points_to_publish: set[int] = set()
         self.unflushed = True  # the map changed since it was last completely published and written

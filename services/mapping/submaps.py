@@ -14,11 +14,11 @@ import dataclasses
 
 import numpy as np
 
-from services.mapping.blocks import BlockStore
+from shared.occupancy.blocks import BlockStore
 from services.mapping.config import SensorModelConfig, SubmapConfig
 from services.mapping.integrate import IntegrationResult, integrate
 from services.mapping.mesh import ChunkMesher
-from services.mapping.query import UNKNOWN, BlockField, interpolate, state
+from shared.occupancy.query import UNKNOWN, BlockField, interpolate, state
 from services.mapping.sensor_model import prepare_depth
 from shared.geometry import inv_T
 

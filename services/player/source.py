@@ -57,7 +57,7 @@ class McapSource(Source):
     def messages(self, imu_margin_ns: int | None = None):
         from mcap.reader import make_reader
 
-        from services.recorder.mcap_writer import NATIVE_ENCODING
+        from shared.codec import NATIVE_ENCODING
 
         last = {ImuSample: -1, MultiCameraFrame: -1}
         seq = {ImuSample: 0, MultiCameraFrame: 0}

@@ -24,11 +24,10 @@ from mcap.writer import CompressionType, Writer
 
 from services.recorder import foxglove
 from shared import codec
-from shared.codec import Message
+from shared.codec import NATIVE_ENCODING, Message
 
 log = logging.getLogger(__name__)
 
-NATIVE_ENCODING = "sigmaslam-codec-v1"
 CONFIG_METADATA = "sigmaslam.config"
 PROFILE = "sigmaslam"
 COMPRESSIONS = {"lz4": CompressionType.LZ4, "zstd": CompressionType.ZSTD, "none": CompressionType.NONE}

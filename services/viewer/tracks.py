@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from shared.euroc import PoseSeries
-from tools.eval.ate import align_posyaw, associate, umeyama
+from shared.metrics.ate import align_posyaw, associate, umeyama
 
 CHUNK = 256
 

@@ -126,7 +126,7 @@ def maps(a) -> int:
     from services.mapping.config import SensorModelConfig, SubmapConfig
     from services.mapping.io import write_ply
     from services.mapping.submaps import SubmapMapper
-    from tools.eval.mesh import evaluate_mesh_files
+    from services.app.metrics.mesh import evaluate_mesh_files
 
     d = Path(a.dir)
     z = dict(np.load(d / "frames.npz"))

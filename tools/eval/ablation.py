@@ -25,7 +25,7 @@ per replica and shared by the rows; MVS (fused, mono) runs per row.
 
 Per row: causal ATE (published states) and non-causal ATE (final bundle adjustment) [m] after SE(3)
 alignment, mesh accuracy and completeness at 0.2 m and 0.05 m against the replica's scene mesh
-(tools/eval/mesh.py) of the map as built (submaps at the causal keyframe poses), and accuracy and completeness
+(services/app/metrics/mesh.py) of the map as built (submaps at the causal keyframe poses), and accuracy and completeness
 of the final map (submaps moved onto the final bundle adjustment's trajectory, as the mapping service writes it
 with ``mapping.follow_final``), the back end's per-frame wall time (median, p99; without the loop closer's work,
 which ``loop.synchronous`` runs inside the frame's call but the back-end service runs in its own thread: reported
@@ -63,7 +63,7 @@ row_log.propagate = False
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("replicas", nargs="*", default=list(DEFAULT_REPLICAS),
                    help="replica folders, or EuRoC sequence names (V1_02, V2_01, MH_04, ...) whose real-IMU replica "
-                        "of --duration seconds is generated once and cached (tools/synth/api.py); default: "
+                        "of --duration seconds is generated once and cached (services/app/synth/api.py); default: "
                         + " ".join(DEFAULT_REPLICAS))
     p.add_argument("--duration", type=float, default=25.0,
                    help="replica length for sequence names (0: whole sequence) [s]")
@@ -88,7 +88,7 @@ def resolve_replica(name: str, duration_s: float) -> tuple[str, Path]:
     if "/" in name or path.exists():
         raise ValueError(f"{name}: not a replica folder (no mav0/ inside)")
     from tools.eval.suite import scene_for
-    from tools.synth.api import ensure_replica
+    from services.app.synth.api import ensure_replica
 
     return name, ensure_replica(name, scene_for(name), imu="real", duration_s=duration_s, progress=False)
 
@@ -123,7 +123,7 @@ _GT_POINTS: dict = {}
 
 
 def _gt_points(path: Path) -> np.ndarray:
-    from tools.eval.mesh import load_points
+    from services.app.metrics.mesh import load_points
 
     if path not in _GT_POINTS:
         _GT_POINTS[path] = load_points(path, 0.02)
@@ -167,10 +167,10 @@ def run_row(row: str, dataset: Path, overrides: list[str], seconds: float, depth
     """One row over ``dataset``; raises on configuration or component errors (the caller records them)."""
     from services.backend.service import BackendShell
     from services.frontend.service import FrontendShell
-    from services.loop.backend_loop import LoopClosingBackend
-    from services.loop.frontend_hook import keyframe_features_message
+    from services.backend.loop.backend_loop import LoopClosingBackend
+    from services.frontend.keyframe_features import keyframe_features_message
     from services.mapping.export import field_message
-    from services.mapping.o2p_points import SubmapPointPool
+    from shared.occupancy.o2p_points import SubmapPointPool
     from services.mapping.submaps import SubmapMapper
     from services.system_config import load_system_config
     from shared.config import ConfigError, override
@@ -315,7 +315,7 @@ def _evaluate(dataset: Path, stamps, T_pub, final, mapper, out_dir: Path | None)
     """ATE of the causal and final trajectories, mesh metrics of the mapper's world mesh."""
     from shared.euroc import read_trajectory, series_from_matrices, write_tum
     from shared.euroc_reader import EurocDataset
-    from tools.eval.ate import compute_ate
+    from shared.metrics.ate import compute_ate
 
     res: dict = {}
     trajs = {"causal": (np.array(stamps, np.int64), np.array(T_pub).reshape(-1, 4, 4))}
@@ -341,7 +341,7 @@ def _evaluate(dataset: Path, stamps, T_pub, final, mapper, out_dir: Path | None)
             align[key] = ate.alignment
     scene = sorted(Path(dataset).glob("mav0/scene/*.ply"))
     if mapper is not None and scene:
-        from tools.eval.mesh import evaluate_points
+        from services.app.metrics.mesh import evaluate_points
 
         t0 = time.perf_counter()
         mapper.remesh(None)

@@ -1,14 +1,14 @@
 """``sigmaslam eval suite``: the paper's tables (I: ATE, II: mesh, V: timing; plus the Hilti score) on replicas.
 
 For each sequence (default V1_02, V2_01, MH_04, real IMU; scene vicon-a / machinehall-a) the replica is generated
-once (cached, tools/synth/api.py; ``--duration S`` for a short one), the pipeline runs on it through the pipeline
+once (cached, services/app/synth/api.py; ``--duration S`` for a short one), the pipeline runs on it through the pipeline
 bench's runner (tools/bench_pipeline.run_once: ``sigmaslam run`` with frontend, backend, depth, mapping; lockstep
 by default so that a loaded machine does not change accuracy, ``--rate R`` for R x sensor rate; final bundle
 adjustment on), and the outputs are evaluated:
 
 - ATE RMSE after SE(3) alignment of the causal (trajectory_causal.txt) and non-causal (trajectory_final.txt)
-  trajectories (tools/eval/ate.py), Hilti score on control points from the ground truth (tools/eval/hilti.py);
-- mesh accuracy / completeness of DIR/mesh.ply against the replica's mav0/scene/mesh.ply (tools/eval/mesh.py),
+  trajectories (shared/metrics/ate.py), Hilti score on control points from the ground truth (services/app/metrics/hilti.py);
+- mesh accuracy / completeness of DIR/mesh.ply against the replica's mav0/scene/mesh.ply (services/app/metrics/mesh.py),
   with its error image;
 - per-item compute times of every stage (mean +- sigma, pooled over the sequences).
 
@@ -59,11 +59,11 @@ def _aligned(res, est_p: np.ndarray, est_stamps: np.ndarray) -> np.ndarray:
 
 def evaluate_sequence(seq: str, replica: Path, run_dir: Path, out: Path, hilti_points: int) -> dict:
     """ATE, Hilti score, mesh metrics and the trajectory figure of one finished run."""
-    from services.eval_hilti_cmd import dataset_control_points
+    from services.app.eval_hilti_cmd import dataset_control_points
     from shared.euroc import read_trajectory
-    from tools.eval.ate import compute_ate
-    from tools.eval.hilti import hilti_score
-    from tools.eval.mesh import evaluate_mesh_files
+    from shared.metrics.ate import compute_ate
+    from services.app.metrics.hilti import hilti_score
+    from services.app.metrics.mesh import evaluate_mesh_files
     from tools.eval.suite_plots import trajectory_figure
 
     row: dict = {"replica": str(replica)}
@@ -168,7 +168,7 @@ def write_report(out: Path, rows: dict[str, dict], timing: dict, args) -> Path:
 
 def main(args: argparse.Namespace) -> int:
     from tools.bench_pipeline import run_once
-    from tools.synth.api import ensure_replica
+    from services.app.synth.api import ensure_replica
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -4,7 +4,7 @@
 
 Prints per-stage medians (wall and the CPU time of the running thread: on a shared machine the CPU time is the
 steadier measure) and the causal ATE (SE(3)) when the folder has ground truth; ``--out`` writes the causal
-trajectory (TUM). The services' own nodes on the in-process runner (services/inprocess.py), in the order of a
+trajectory (TUM). The services' own nodes on the in-process runner (services/app/inprocess.py), in the order of a
 lockstep run; loop closure and occupancy terms off.
 """
 
@@ -21,7 +21,7 @@ from shared.euroc import series_from_matrices, read_trajectory, write_tum
 
 def run(dataset: str, config: str | None, overrides: list[str], max_frames: int = 0, verbose: bool = False):
     """Frontend and back end (no loop closure, no occupancy terms) on the in-process runner."""
-    from services.inprocess import run_in_process
+    from services.app.inprocess import run_in_process
 
     cfg = load_system_config(config, ["loop.enabled=false", "o2p.enabled=false", *overrides])
     run = run_in_process(dataset, cfg, max_frames)
@@ -42,7 +42,7 @@ def run(dataset: str, config: str | None, overrides: list[str], max_frames: int 
            "cpu_backend_median_ms": 1e3 * float(np.median(t_be[:, 1])),
            "status": {k: sum(s.status == k for s in states) for k in ("tracking", "imu_only")}}
     if run.groundtruth_path is not None and len(stamps) >= 3:
-        from tools.eval.ate import compute_ate
+        from shared.metrics.ate import compute_ate
 
         gt = read_trajectory(run.groundtruth_path)
         res["ate_rmse_m"] = compute_ate(gt.stamps_ns, gt.p_WS, stamps, traj.p_WS, mode="se3").rmse_m

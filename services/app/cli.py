@@ -1,0 +1,65 @@
+"""The ``sigmaslam`` command. Each subcommand lives in its own module, imported only when used.
+
+A subcommand module provides ``add_arguments(parser)`` and ``main(args) -> int``. To add one, add a
+line to :data:`SUBCOMMANDS`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+# name -> (module, one-line help)
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "config": ("services.app.config_cmd", "print the resolved config or the documented defaults"),
+    "router": ("services.app.router", "run the Zenoh router that services connect to"),
+    "bench": ("tools.bench_cmd", "benchmarks: transport latency and throughput"),
+    "up": ("services.app.up_cmd", "run the router and all configured services, restarting failed ones"),
+    "health": ("services.app.health_cmd", "exit 0 when a service's heartbeat (or the router) is seen on the bus"),
+    "record": ("services.recorder.service", "record topics to MCAP (with Foxglove mirrors); --recover a cut file"),
+    "synth": ("services.app.synth.synth_cmd", "render a synthetic EuRoC replica (images, GT depth, mesh, IMU) of a real sequence"),
+    "convert": ("tools.dataset_convert", "convert a dataset: EuRoC ASL folder <-> sigmaslam MCAP recording"),
+    "frontend": ("services.frontend.service", "feature tracker: sensors/frame -> frontend/frame"),
+    "backend": ("services.backend.service", "visual-inertial estimator: frontend/frame + sensors/imu -> estimator/state"),
+    "player": ("services.player.service", "replay an EuRoC ASL folder onto the sensor topics (--lockstep, --realtime)"),
+    "demo": ("services.app.demo_cmd", "the README's main job: the whole pipeline on the bundled replica, with its figures"),
+    "run": ("services.app.run_cmd", "run the pipeline on a dataset; write the trajectory, stats and ATE to --out DIR"),
+    "viewer": ("services.viewer.service", "web viewer (viser): submap meshes, trajectories, live images, stats"),
+    "depth": ("services.depth.service", "stereo + MVS depth with learned sigma, fused: sensors/frame -> depth/stereo, depth/fused"),
+    "mapping": ("services.mapping.service", "occupancy submapping: depth + estimator poses -> map/submap meshes"),
+    "eval": ("services.app.eval_cmd", "evaluation: mesh accuracy/completeness"),
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    parser = argparse.ArgumentParser(prog="sigmaslam", description="Uncertainty-aware visual-inertial SLAM over Zenoh")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    chosen = next((a for a in argv if not a.startswith("-")), None)
+    for name, (module, help_text) in SUBCOMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        p.set_defaults(_module=module)
+        if name == chosen:
+            importlib.import_module(module).add_arguments(p)
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    if not args.command:
+        parser.print_help()
+        return 2
+    from shared.config import ConfigError
+
+    try:
+        return int(importlib.import_module(args._module).main(args) or 0)
+    except ConfigError as exc:
+        print(f"sigmaslam {args.command}: config error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,48 @@
+"""The application's config section: what ``sigmaslam up`` starts and how it restarts and stops it
+(:class:`SupervisorConfig`, one :class:`ServiceSpec` per process). A schema module like every ``config.py``:
+:mod:`services.system_config` composes it, the supervisor (:mod:`services.app.supervisor`) runs it."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Literal
+
+from shared.config import param
+
+@dataclasses.dataclass(frozen=True)
+class ServiceSpec:
+    """One service process of the deployment."""
+
+    name: str = param("", "name used in logs and status lines")
+    argv: tuple[str, ...] = param((), "the 'sigmaslam ...' arguments, subcommand first, e.g. ['record', '--out', 'run.mcap']")
+    enabled: bool = param(True, "start this service")
+    restart: Literal["on-failure", "always", "never"] = param("on-failure", "when to restart: 'on-failure' (exit code != 0 or a signal), 'always' or 'never'")
+    max_restarts: int = param(3, "restarts allowed within window_s before the supervisor gives up on the service")
+    window_s: float = param(60.0, "sliding window over which restarts are counted", "s")
+    backoff_s: float = param(0.5, "delay before the first restart in the window; doubles with each further one", "s")
+    backoff_max_s: float = param(10.0, "longest delay before a restart", "s")
+    nice: int = param(0, "OS scheduling niceness added to the process (0..19); e.g. 10 for depth and mapping so "
+                      "that, on a loaded CPU, the estimator's processes get the cores first")
+    stop_timeout_s: float = param(0.0, "after SIGTERM, SIGKILL this service if still alive after this long "
+                                  "(0: the supervisor's shutdown_timeout_s); the mapping meshes and writes its map "
+                                  "when stopped, so it gets longer", "s")
+
+
+@dataclasses.dataclass(frozen=True)
+class SupervisorConfig:
+    """What ``sigmaslam up`` starts and how it restarts and stops it."""
+
+    services: tuple[ServiceSpec, ...] = param((), "service processes to run (each its own OS process)")
+    start_router: bool = param(True, "start 'sigmaslam router' before the services (and stop it last)")
+    router_startup_s: float = param(0.5, "wait after starting the router before starting the services", "s")
+    shutdown_timeout_s: float = param(5.0, "after SIGTERM, children still alive after this long are SIGKILLed", "s")
+    run_dir: str = param("runs", "parent folder of each run's folder (resolved config, outputs)")
+    poll_period_s: float = param(0.05, "how often the supervisor checks its children", "s")
+
+    def stop_limit_s(self, spec: ServiceSpec) -> float:
+        """How long ``spec``'s process may take to stop after SIGTERM before it is SIGKILLed."""
+        return spec.stop_timeout_s if spec.stop_timeout_s > 0 else self.shutdown_timeout_s
+
+    def longest_stop_s(self) -> float:
+        """The longest any service may take to stop after SIGTERM."""
+        return max([self.shutdown_timeout_s, *(self.stop_limit_s(s) for s in self.services)])

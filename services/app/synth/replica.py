@@ -1,0 +1,229 @@
+"""Generate a synthetic EuRoC replica: real trajectory, real calibration, real image stamps, rendered images.
+
+Steps: read the ground truth (EuRoC CSV or TUM) and, for ``imu='real'``, the recorded imu0 data;
+estimate the clock offset between the two (:func:`shared.imu_sim.time_offset`) and shift the ground
+truth onto the IMU/camera clock; fit a smooth :class:`shared.trajectory.Trajectory`; render every
+camera at the real image stamps from it; write imu0 (real samples, or simulated from the trajectory
+with the imu0 noise model) and ``state_groundtruth_estimate0`` (17 columns, sampled from the same
+trajectory at the IMU stamps) so that images, IMU and ground truth agree. Output: the EuRoC ASL
+layout plus ``mav0/depth0`` (see :mod:`shared.depth_io`), ``mav0/scene/mesh.ply`` and ``replica.yaml``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import lzma
+import time
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import yaml
+
+from shared.camera import CameraCalib, camera_from_sensor_yaml, load_rig, read_sensor_yaml_file
+from shared.config import param, to_dict
+from shared.depth_io import choose_scale, write_depth_png, write_depth_sensor_yaml
+from shared.euroc import PoseSeries, read_trajectory
+from shared.euroc_writer import write_euroc
+from shared.imu_sim import ImuData, ImuNoise, read_imu_csv, simulate_imu, time_offset
+from shared.paths import euroc_files
+from shared.trajectory import Trajectory
+from services.app.synth.render import RenderConfig, Renderer
+from services.app.synth.scene import build_scene
+
+
+@dataclasses.dataclass(frozen=True)
+class ReplicaSpec:
+    """What to generate. A known ``sequence`` fills groundtruth/imu_data/image_timestamps/calib."""
+
+    scene: str = param("vicon-a", "scene name (services.app.synth.scene.SCENES)")
+    sequence: str = param("V1_02", "EuRoC sequence whose real files are used ('' when all paths are given)")
+    imu: Literal["real", "sim"] = param("real", "'real': the recorded imu0 data (time-aligned); 'sim': simulated from the trajectory")
+    imu_noise: bool = param(True, "simulated IMU: add white noise and bias random walks of the imu0 noise model")
+    start_s: float = param(0.0, "skip this much from the first usable image", "s")
+    duration_s: float = param(0.0, "length of the replica (0 = to the end)", "s")
+    seed: int = param(0, "seed of scene, noise, exposure and simulated IMU")
+    groundtruth: str = param("", "ground-truth file (EuRoC CSV or TUM); '' = the sequence's")
+    imu_data: str = param("", "imu0 data.csv(.xz); '' = the sequence's")
+    image_timestamps: str = param("", "image timestamps [ns], one per line; '' = the sequence's")
+    calib: str = param("", "calibration: folder with camN_sensor.yaml + imu0_sensor.yaml, an EuRoC folder or a rig YAML")
+    depth_cameras: tuple[int, ...] = param((0,), "cameras whose ground-truth depth is written (mav0/depth<i>)")
+    knot_spacing_s: float = param(0.05, "knot spacing of the smooth trajectory fitted to the ground truth", "s")
+    render: RenderConfig = param(RenderConfig(), "photometric settings")
+
+
+def resolve_files(spec: ReplicaSpec) -> dict[str, Path]:
+    known = euroc_files(spec.sequence) if spec.sequence else {}
+    out = {}
+    for key, given in (("groundtruth", spec.groundtruth), ("imu", spec.imu_data),
+                       ("image_timestamps", spec.image_timestamps), ("calib", spec.calib)):
+        if not given and key not in known:
+            raise ValueError(f"replica: no {key} file: name a known --sequence or give it explicitly")
+        out[key] = Path(given) if given else known[key]
+        if not out[key].exists():
+            raise FileNotFoundError(f"{out[key]}: {key} not found")
+    return out
+
+
+def load_calibration(path: Path) -> tuple[list[CameraCalib], list[dict], dict]:
+    """Cameras, their sensor.yaml dicts and the imu0 sensor.yaml dict (EuRoC defaults if absent)."""
+    files = sorted(path.glob("cam*_sensor.yaml"), key=lambda p: int(p.name[3:].split("_")[0])) if path.is_dir() else []
+    if files:
+        yamls = [read_sensor_yaml_file(f) for f in files]
+        cams = [camera_from_sensor_yaml(y, f.name.split("_")[0], str(f)) for y, f in zip(yamls, files)]
+        imu_file = path / "imu0_sensor.yaml"
+    else:
+        from shared.camera import camera_to_sensor_yaml
+
+        cams = load_rig(path)
+        yamls = [camera_to_sensor_yaml(c) for c in cams]
+        root = path / "mav0" if (path / "mav0").is_dir() else path
+        imu_file = root / "imu0" / "sensor.yaml"
+    imu_yaml = read_sensor_yaml_file(imu_file) if imu_file.is_file() else {
+        "sensor_type": "imu", "rate_hz": 200, "gyroscope_noise_density": ImuNoise.gyro_noise_density,
+        "gyroscope_random_walk": ImuNoise.gyro_random_walk, "accelerometer_noise_density": ImuNoise.accel_noise_density,
+        "accelerometer_random_walk": ImuNoise.accel_random_walk,
+        "T_BS": {"cols": 4, "rows": 4, "data": np.eye(4).ravel().tolist()}}
+    return cams, yamls, imu_yaml
+
+
+def _groundtruth_biases(path: Path, stamps_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Gyro/accel biases of a 17-column EuRoC ground truth interpolated at stamps (zeros otherwise)."""
+    zeros = np.zeros((len(stamps_ns), 3))
+    if not path.name.endswith((".csv", ".csv.xz")):
+        return zeros, zeros
+    with (lzma.open(path, "rt") if path.suffix == ".xz" else open(path)) as f:
+        a = np.loadtxt(f, delimiter=",", comments="#")
+    if a.ndim != 2 or a.shape[1] != 17:
+        return zeros, zeros
+    t = (a[:, 0] - a[0, 0]) * 1e-9
+    s = (stamps_ns - int(a[0, 0])) * 1e-9
+    interp = lambda c: np.stack([np.interp(s, t, a[:, k]) for k in c], 1)  # noqa: E731
+    return interp(range(11, 14)), interp(range(14, 17))
+
+
+def write_groundtruth17(path: Path, stamps_ns, p, q, v, bg, ba) -> None:
+    """EuRoC state_groundtruth_estimate0/data.csv: t, p, q_wxyz, v, b_w, b_a."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cols = np.column_stack([p, q, v, bg, ba])
+    with open(path, "w") as f:
+        f.write("#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], q_RS_y [], q_RS_z [], "
+                "v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], v_RS_R_z [m s^-1], b_w_RS_S_x [rad s^-1], "
+                "b_w_RS_S_y [rad s^-1], b_w_RS_S_z [rad s^-1], b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], "
+                "b_a_RS_S_z [m s^-2]\n")
+        for t, row in zip(stamps_ns, cols):
+            f.write(f"{int(t)}," + ",".join(f"{x:.9f}" for x in row) + "\n")
+
+
+def plan(spec: ReplicaSpec) -> dict:
+    """Everything but the rendering: trajectory (on the IMU clock), frame stamps, IMU, clock offset."""
+    files = resolve_files(spec)
+    if spec.imu not in ("real", "sim"):
+        raise ValueError(f"replica: imu must be 'real' or 'sim', got {spec.imu!r}")
+    gt = read_trajectory(files["groundtruth"])
+    offset_ns, corr = 0, float("nan")
+    real = read_imu_csv(files["imu"]) if files["imu"].exists() else None
+    if spec.imu == "real":
+        offset_ns, _, c = time_offset(Trajectory(gt), real)
+        corr = float(c.max())
+        gt = PoseSeries(gt.stamps_ns - offset_ns, gt.p_WS, gt.q_WS_wxyz, gt.v_WS)
+    traj = Trajectory(gt, knot_spacing_s=spec.knot_spacing_s)
+    frames = np.loadtxt(files["image_timestamps"], dtype=np.int64, comments="#", ndmin=1)
+    if np.any(np.diff(frames) <= 0):
+        raise ValueError(f"{files['image_timestamps']}: image timestamps not strictly increasing")
+    lo, hi = traj.t0_ns + 500_000_000, traj.t_end_ns - 100_000_000
+    if real is not None:
+        lo, hi = max(lo, int(real.stamps_ns[0]) + 500_000_000), min(hi, int(real.stamps_ns[-1]) - 100_000_000)
+    frames = frames[(frames >= lo) & (frames <= hi)]
+    if not len(frames):
+        raise ValueError("replica: no image stamp inside the ground truth (and IMU) time span")
+    t_first = frames[0] + int(spec.start_s * 1e9)
+    t_last = t_first + int(spec.duration_s * 1e9) if spec.duration_s > 0 else frames[-1]
+    frames = frames[(frames >= t_first) & (frames <= t_last)]
+    if not len(frames):
+        raise ValueError(f"replica: no frames in [{spec.start_s}, {spec.start_s + spec.duration_s}] s")
+    imu_lo, imu_hi = max(frames[0] - 500_000_000, traj.t0_ns), min(frames[-1] + 50_000_000, traj.t_end_ns)
+    if real is not None:
+        keep = (real.stamps_ns >= imu_lo) & (real.stamps_ns <= imu_hi)
+        imu_stamps = real.stamps_ns[keep]
+    else:
+        imu_stamps = np.arange(imu_lo, imu_hi, 5_000_000, dtype=np.int64)
+    return {"files": files, "traj": traj, "frames": frames, "imu_stamps": imu_stamps, "real": real,
+            "offset_ns": offset_ns, "offset_corr": corr}
+
+
+def imu_noise_from_yaml(d: dict) -> ImuNoise:
+    return ImuNoise(float(d.get("gyroscope_noise_density", ImuNoise.gyro_noise_density)),
+                    float(d.get("gyroscope_random_walk", ImuNoise.gyro_random_walk)),
+                    float(d.get("accelerometer_noise_density", ImuNoise.accel_noise_density)),
+                    float(d.get("accelerometer_random_walk", ImuNoise.accel_random_walk)))
+
+
+def generate(spec: ReplicaSpec, out: str | Path, progress: bool = True) -> Path:
+    """Write the replica into ``out`` (created; must not hold a replica already). Returns ``out``."""
+    from tqdm import tqdm
+
+    out = Path(out)
+    if (out / "mav0").exists():
+        raise FileExistsError(f"{out}: already holds a dataset (mav0/)")
+    t_start = time.monotonic()
+    p = plan(spec)
+    traj, frames, imu_stamps = p["traj"], p["frames"], p["imu_stamps"]
+    cams, cam_yamls, imu_yaml = load_calibration(p["files"]["calib"])
+    for i in spec.depth_cameras:
+        if not 0 <= i < len(cams):
+            raise ValueError(f"replica: depth camera {i} not in the rig ({len(cams)} cameras)")
+    scene = build_scene(spec.scene, spec.seed, extra_positions=traj.position(imu_stamps))
+    renderer = Renderer(scene, cams, spec.render)
+    if spec.imu == "real":
+        keep = np.isin(p["real"].stamps_ns, imu_stamps)
+        imu = ImuData(imu_stamps, p["real"].omega_S[keep], p["real"].acc_S[keep])
+        bg, ba = _groundtruth_biases(p["files"]["groundtruth"], imu_stamps + p["offset_ns"])
+    else:
+        imu = simulate_imu(traj, imu_stamps, imu_noise_from_yaml(imu_yaml) if spec.imu_noise else None, seed=spec.seed)
+        bg, ba = imu.gyro_bias, imu.accel_bias
+    scale = choose_scale(scene.max_range_m)
+    mav0 = out / "mav0"
+    for i in spec.depth_cameras:
+        write_depth_sensor_yaml(mav0 / f"depth{i}", cams[i].name, scale)
+    depth_csv = {i: open(mav0 / f"depth{i}" / "data.csv", "w") for i in spec.depth_cameras}
+    rng = np.random.default_rng([spec.seed, 11])
+    stats = {"depth_pixels_out_of_range": 0, "depth_pixels_no_hit": 0}
+    nblur = spec.render.motion_blur_samples
+    blur_dt = np.linspace(-0.5, 0.5, nblur) * spec.render.exposure_time_s * 1e9 if nblur > 1 else None
+
+    def frames_iter():
+        for stamp in tqdm(frames, desc=f"render {spec.scene}", unit="frame", disable=not progress):
+            stamp = int(stamp)
+            blur = None
+            if blur_dt is not None:
+                ts = np.clip(stamp + blur_dt.astype(np.int64), traj.t0_ns, traj.t_end_ns)
+                blur = list(traj.pose(ts))
+            imgs, depths = renderer.render_rig(traj.pose(stamp), (stamp - int(frames[0])) * 1e-9, rng,
+                                               tuple(spec.depth_cameras), blur)
+            for i, d in depths.items():
+                stats["depth_pixels_no_hit"] += int(np.isnan(d).sum())
+                stats["depth_pixels_out_of_range"] += write_depth_png(mav0 / f"depth{i}" / "data" / f"{stamp}.png", d, scale)
+                depth_csv[i].write(f"{stamp},{stamp}.png\n")
+            yield stamp, imgs
+
+    try:
+        for f in depth_csv.values():
+            f.write("#timestamp [ns],filename\n")
+        write_euroc(out, {c.name: y for c, y in zip(cams, cam_yamls)}, frames_iter(),
+                    np.column_stack([imu.stamps_ns, imu.omega_S, imu.acc_S]), imu_yaml, imu_stamps_ns=imu.stamps_ns)
+    finally:
+        for f in depth_csv.values():
+            f.close()
+    q = traj.quaternion_wxyz(imu_stamps)
+    write_groundtruth17(mav0 / "state_groundtruth_estimate0" / "data.csv", imu_stamps, traj.position(imu_stamps), q,
+                        traj.velocity(imu_stamps), bg, ba)
+    (mav0 / "scene").mkdir(exist_ok=True)
+    scene.save_ply(mav0 / "scene" / "mesh.ply")
+    info = {"spec": to_dict(spec), "files": {k: str(v) for k, v in p["files"].items()},
+            "frames": int(len(frames)), "imu_samples": int(len(imu_stamps)),
+            "groundtruth_clock_offset_ns": int(p["offset_ns"]), "offset_correlation": p["offset_corr"],
+            "scene": {"name": scene.name, "seed": scene.seed, "triangles": int(len(scene.triangles)),
+                      "room_min": scene.room_min.tolist(), "room_max": scene.room_max.tolist()},
+            "depth_scale_m": scale, "stats": stats, "generation_s": round(time.monotonic() - t_start, 1)}
+    (out / "replica.yaml").write_text(yaml.safe_dump(info, sort_keys=False))
+    return out

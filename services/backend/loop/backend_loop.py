@@ -1,0 +1,210 @@
+"""Loop closure inside the back end process: wraps a ``BackendShell`` (no transport in here).
+
+* installs the estimator's marginalisation hook (keyframe history) and a :class:`ThreadedLoopCloser`; the
+  estimator's per-frame path only enqueues, so ``estimator/state`` is never delayed by verification or
+  pose-graph solves;
+* corrects the published state and keyframe poses by the pose graph's latest correction ``T_W'W`` (when
+  ``loop.correct_state``); after a solve the keyframes message also carries every corrected pose-graph node;
+* with occupancy-to-point factors on (the shell's ``o2p``), binds each closed submap to the keyframe anchoring
+  it (:meth:`LoopClosingBackend.anchor_of`) and passes the map-to-map terms to the pose graph;
+* keeps the uncorrected causal poses, and at the end of the stream (:meth:`LoopClosingBackend.finish`) runs
+  the final bundle adjustment over all keyframes with IMU, loop and map-to-map factors, giving the non-causal
+  trajectory.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+from gtsam.symbol_shorthand import X
+
+from services.backend.loop.config import LoopConfig
+from services.backend.loop.final_ba import bundle_adjust, follow_keyframes
+from services.backend.loop.history import attach
+from services.backend.loop.loop_closer import LoopCloser, ThreadedLoopCloser
+from services.backend.loop.verification import FeatureSet
+from shared.geometry import inv_T
+from shared.messages import EstimatorState, FinalTrajectory, Header, KeyframeFeatures, Keyframes, Landmarks
+
+log = logging.getLogger("sigmaslam.loop")
+
+
+def corrected_state(msg: EstimatorState, T: np.ndarray) -> EstimatorState:
+    """``msg`` moved by the rigid correction T (= T_W'W): pose, velocity and the covariance's p/v blocks."""
+    R = T[:3, :3]
+    J = np.eye(15)
+    J[3:6, 3:6] = J[6:9, 6:9] = R
+    return EstimatorState(header=msg.header, T_WS=T @ msg.T_WS, v_W=R @ msg.v_W, gyro_bias=msg.gyro_bias,
+                          acc_bias=msg.acc_bias, covariance=J @ msg.covariance @ J.T, status=msg.status)
+
+
+class LoopClosingBackend:
+    def __init__(self, shell, cfg: LoopConfig) -> None:
+        self.shell, self.cfg = shell, cfg
+        est = shell.estimator
+        self.history = attach(est)
+        self.runner = ThreadedLoopCloser(LoopCloser(cfg, est.cameras), cfg.synchronous)
+        self.history.listeners.append(self.runner.submit_record)
+        self._stamps: list[int] = []
+        self._T_raw: list[np.ndarray] = []
+        self._generation = 0
+        self.dropped_features = 0
+        self._end_ns: int | None = None
+        self._finished = False
+        self._last_process = time.monotonic()
+        self._T_last = np.eye(4)  # the correction applied to the last state
+        self._published: dict[int, np.ndarray] = {}  # keyframe state -> its pose in the last Keyframes message
+        self._attach_o2p()
+
+    def _attach_o2p(self) -> None:
+        """Hooks into the shell's occupancy-to-point terms: enable them (BackendShell.enable_o2p) first."""
+        o2p = self.shell.o2p
+        if o2p is not None and o2p.anchor_of is None:
+            o2p.anchor_of = self.anchor_of
+            if self.cfg.correct_state:  # depth and submaps arrive in the corrected frame the states are published in:
+                o2p.correction = self.published_correction  # the correction published, not a newer one
+
+    def anchor_of(self, stamp_ns: int, T_WM: np.ndarray) -> tuple[int, np.ndarray] | None:
+        """The keyframe a submap created at ``stamp_ns`` with pose ``T_WM`` (as the mapping has it now) follows:
+        the keyframe nearest its creation within ``o2p.anchor_tolerance_ms`` (state index) and ``T_KM``, taken
+        against that keyframe's pose as it was last published (the frame the mapping's T_WM lives in): the pose of
+        the last ``Keyframes`` message that carried it, not a newer correction the mapping has not seen yet."""
+        tol = self.shell.o2p.cfg.anchor_tolerance_ms * 1e6
+        est = self.shell.estimator
+        best: tuple[float, int, np.ndarray] | None = None
+        for n in est.keyframes:  # still in the window
+            if est.values.exists(X(n)) and abs(est.stamps[n] - stamp_ns) <= tol:
+                if best is None or abs(est.stamps[n] - stamp_ns) < best[0]:
+                    best = (abs(est.stamps[n] - stamp_ns), n, est.values.atPose3(X(n)).matrix())
+        for r in reversed(self.history.records):  # marginalised, time order
+            if r.stamp_ns < stamp_ns - tol:
+                break
+            if abs(r.stamp_ns - stamp_ns) <= tol and (best is None or abs(r.stamp_ns - stamp_ns) < best[0]):
+                best = (abs(r.stamp_ns - stamp_ns), r.state, r.T_WS)
+        if best is None:
+            return None
+        _, n, T_WK = best
+        if self.cfg.correct_state:  # as published; never published (yet): moved by the last state's correction
+            T_WK = self._published.get(n, self._T_last @ T_WK)
+        return n, inv_T(T_WK) @ np.asarray(T_WM, float)
+
+    def published_correction(self) -> np.ndarray:
+        """T_W'W applied to the last published state."""
+        return self._T_last.copy()
+
+    def note_published(self, kfs: Keyframes) -> None:
+        """Remember the keyframe poses a ``Keyframes`` message carries (:meth:`anchor_of` reads them)."""
+        for n, T in zip(np.asarray(kfs.ids), np.asarray(kfs.T_WS)):
+            self._published[int(n)] = T
+
+    @property
+    def counts(self) -> dict[str, int]:
+        return dict(self.runner.closer.counts)
+
+    def add_keyframe_features(self, msg: KeyframeFeatures) -> None:
+        n = len(msg.landmark_ids)
+        if n == 0 or np.asarray(msg.descriptors).shape != (n, 32):
+            self.dropped_features += 1
+            return
+        self.runner.submit_features(int(msg.header.stamp_ns), FeatureSet(
+            np.asarray(msg.landmark_ids, np.int64), np.asarray(msg.camera_index, np.int64),
+            np.asarray(msg.uv, float), np.asarray(msg.descriptors, np.uint8)))
+
+    def process(self, frame):
+        """As ``BackendShell.process``, with corrected poses."""
+        self._last_process = time.monotonic()
+        if self.shell.o2p is not None:  # map-to-map terms of submaps closed since the last frame
+            for term in self.shell.o2p.pop_map_to_map():
+                self.runner.submit_map_to_map(term)
+            for lp in self.runner.take_verified():  # a revisit: the keyframe co-observes the old landmarks
+                if lp.observations:
+                    self.shell.o2p.note_loop(lp.query_stamp_ns, lp.observations[2])
+        msgs = self.shell.process(frame)
+        if msgs is None or msgs[0].status in ("initialising", "reset"):
+            return msgs
+        state, kfs = msgs
+        self._stamps.append(int(state.header.stamp_ns))
+        self._T_raw.append(np.array(state.T_WS))
+        self.runner.submit_status(int(state.header.stamp_ns), state.status)
+        if not self.cfg.correct_state:
+            return msgs
+        T, gen, (g_ids, g_stamps, g_T) = self.runner.snapshot()  # state and keyframes from the same solve
+        self._T_last = T
+        state = corrected_state(state, T)
+        if kfs is not None:
+            ids, stamps, poses = kfs.ids, kfs.stamps_ns, np.einsum("ij,njk->nik", T, kfs.T_WS)
+            if gen != self._generation:  # the correction moved the past keyframes: send them all once
+                self._generation = gen
+                keep = ~np.isin(g_ids, ids)
+                ids, stamps = np.r_[g_ids[keep], ids], np.r_[g_stamps[keep], stamps]
+                poses = np.concatenate([g_T[keep], poses])
+            kfs = Keyframes(header=kfs.header, ids=np.asarray(ids, np.int64), stamps_ns=np.asarray(stamps, np.int64),
+                            T_WS=np.ascontiguousarray(poses, np.float64))
+            self.note_published(kfs)
+        return state, kfs
+
+    def take_landmarks(self) -> Landmarks | None:
+        """As ``BackendShell.take_landmarks``, moved by the correction applied to the last state."""
+        msg = self.shell.take_landmarks()
+        if msg is None or not self.cfg.correct_state:
+            return msg
+        T = self._T_last
+        return Landmarks(header=msg.header, ids=msg.ids, p_W=msg.p_W @ T[:3, :3].T + T[:3, 3],
+                         num_observations=msg.num_observations, last_seen_ns=msg.last_seen_ns)
+
+    def finish(self, seq: int = 0) -> FinalTrajectory | None:
+        """Final bundle adjustment over every keyframe (None when too little was tracked)."""
+        self.runner.drain()
+        est = self.shell.estimator
+        window = self.history.capture_window(est)
+        records = self.history.records + window
+        closer = self.runner.closer
+        late_loops, late_obs = closer.pending_for_final(window)
+        c = closer.counts
+        if len(records) < 2 or len(self._stamps) < 2:
+            return None
+        stamps = np.array(self._stamps, np.int64)
+        T_raw = np.array(self._T_raw)
+        if self.cfg.final_ba:
+            res = bundle_adjust(records, est.cameras, est.cfg.sigma_px, est.cfg.cauchy_k, closer.loops + late_loops,
+                                self.cfg.final_ba_iterations, loop_observations=closer.loop_observations + late_obs,
+                                map_to_map=closer.map_to_map_for_final())
+            T_final = follow_keyframes(stamps, T_raw, res.stamps_ns, res.T_WS)
+            n_kf = len(res.stamps_ns)
+            log.info("final BA: %d keyframes, %d landmarks, %d observations, %d map-to-map, error %.1f -> %.1f", n_kf,
+                     res.landmarks, res.observations, res.map_to_map, res.initial_error, res.final_error)
+        else:  # the pose graph alone
+            g_ids, g_stamps, g_T = closer.corrected_keyframes()
+            T_final = follow_keyframes(stamps, T_raw, g_stamps, g_T) if len(g_ids) else T_raw
+            n_kf = len(g_ids)
+        return FinalTrajectory(header=Header(stamp_ns=int(stamps[-1]), seq=seq, frame_id="W"), stamps_ns=stamps,
+                               T_WS=np.ascontiguousarray(T_final, np.float64), keyframes=int(n_kf),
+                               loops_proposed=int(c["proposed"]), loops_verified=int(c["verified"]),
+                               loops_accepted=int(c["accepted"]), relocalisations=int(c["relocalised"]))
+
+    def poll_end(self, stream_ends, idle_s: float = 2.0) -> FinalTrajectory | None:
+        """Call while no frame is waiting, with the StreamEnd messages received since the last call: returns the
+        final trajectory once, when the player's stream has ended and its last frame is processed (or no frame
+        came for ``idle_s`` after the end)."""
+        for e in stream_ends:
+            if e.source == "player":
+                self._end_ns = int(e.header.stamp_ns)
+        if self._finished or self._end_ns is None:
+            return None
+        last = self._stamps[-1] if self._stamps else -1
+        if last < self._end_ns and time.monotonic() - self._last_process < idle_s:
+            return None
+        self._finished = True
+        t0 = time.perf_counter()
+        try:
+            out = self.finish()
+        except (RuntimeError, ValueError) as exc:
+            log.warning("final trajectory not computed: %s", exc)
+            return None
+        log.info("final trajectory in %.1f s; loops %s", time.perf_counter() - t0, self.counts)
+        return out
+
+    def close(self) -> None:
+        self.runner.close()

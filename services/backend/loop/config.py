@@ -1,0 +1,49 @@
+"""Configuration of loop closure, the pose graph, relocalisation and the final bundle adjustment."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from shared.config import param
+
+
+@dataclasses.dataclass(frozen=True)
+class LoopConfig:
+    """Loop closure (bag of binary words + PnP), pose graph, relocalisation, final BA (runs in the back end)."""
+
+    enabled: bool = param(True, "detect loops, keep the pose graph and correct the published poses")
+    vocabulary: str = param("", "ORB vocabulary .npz (empty: the shipped services/backend/loop/data/orb_vocabulary.npz)")
+    # --- place recognition ---
+    min_age_s: float = param(10.0, "loop candidates are at least this much older than the query keyframe", "s")
+    min_score: float = param(0.05, "least raw L1 bag-of-words score of a candidate")
+    min_normalised: float = param(0.6, "least score relative to the query's score with its predecessor keyframe")
+    max_candidates: int = param(2, "candidates verified per query keyframe")
+    # --- geometric verification ---
+    max_hamming: int = param(50, "largest Hamming distance of a descriptor match", "bits")
+    ransac_px: float = param(3.0, "PnP RANSAC and refinement inlier threshold", "px")
+    min_inliers: int = param(25, "PnP inliers needed to accept a loop")
+    min_inlier_ratio: float = param(0.35, "share of descriptor matches that must be PnP inliers")
+    sigma_px: float = param(1.0, "feature noise used for the loop constraint's covariance", "px")
+    cov_inflation: float = param(4.0, "loop covariance = this x the inverse reprojection information "
+                                 "(the old landmarks are uncertain too)")
+    loop_cauchy_k: float = param(3.0, "Cauchy scale of loop factors, in sigmas")
+    attitude_sigma_deg: float = param(0.2, "each pose-graph node keeps the window's roll and pitch (observable from "
+                                      "gravity) within this: loops and map-to-map terms move yaw and position "
+                                      "(0: a 6-DoF pose graph, the tilt free)", "deg")
+    max_translation_jump_m: float = param(0.0, "reject a loop moving the keyframe further than this from its "
+                                          "odometry pose (0: no limit)", "m")
+    min_solve_interval_s: float = param(1.0, "pose-graph solves at most this often (sensor time); loops found in "
+                                        "between wait for the next solve", "s")
+    pose_graph_iterations: int = param(20, "Levenberg-Marquardt iterations per pose-graph solve")
+    # --- output and relocalisation ---
+    correct_state: bool = param(True, "apply the pose-graph correction to estimator/state and estimator/keyframes")
+    relocalise_after_s: float = param(1.0, "after this long without tracking, the next keyframes are matched "
+                                      "against the map built before the loss, whatever their age", "s")
+    synchronous: bool = param(False, "handle loop-closure events in the back end's own thread as they come, not in "
+                              "the loop thread: reproducible runs over recorded data (evaluation), at the cost of "
+                              "frames that wait for verification and pose-graph solves")
+    queue_depth: int = param(200, "keyframe events waiting for the loop thread at most (oldest dropped, counted)")
+    # --- final bundle adjustment ---
+    final_ba: bool = param(True, "at the end of the stream, bundle-adjust all keyframes and publish "
+                           "estimator/trajectory_final")
+    final_ba_iterations: int = param(30, "Levenberg-Marquardt iterations of the final bundle adjustment")

@@ -1,0 +1,120 @@
+"""Non-causal output: one bundle adjustment over every keyframe of a run, with IMU and loop factors.
+
+The graph holds every keyframe's (pose, velocity, bias) linked by the IMU factors the window used, every
+recorded observation as a Cauchy-robust reprojection factor (the window's noise model), landmarks seen at
+least twice (initial positions: their last window estimate), the accepted loop constraints (relative poses,
+and the loop keyframe's PnP inliers as observations of the old landmarks), and a gauge prior on the first
+keyframe, and the map-to-map occupancy-to-point terms (eq. 5-7) between keyframes anchoring submaps. Frames
+between keyframes follow their keyframe:
+``T_final(t) = T_final(kf) T_causal(kf)^-1 T_causal(t)`` with kf the latest keyframe at or before t.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import B, L, V, X
+
+from services.backend.loop.history import KeyframeRecord
+from shared.geometry import inv_T
+
+
+@dataclass(frozen=True)
+class FinalBaResult:
+    stamps_ns: np.ndarray  # (K,) keyframe stamps
+    T_WS: np.ndarray  # (K,4,4) optimised keyframe poses
+    landmarks: int
+    observations: int
+    initial_error: float
+    final_error: float
+    map_to_map: int = 0  # map-to-map terms in the graph
+
+
+def bundle_adjust(records: list[KeyframeRecord], cameras, sigma_px: float = 1.0, cauchy_k: float = 2.0,
+                  loops: list[tuple[int, int, np.ndarray, np.ndarray]] = (), max_iterations: int = 30,
+                  prior_sigma_rot: float = 1e-3, prior_sigma_pos: float = 1e-3,
+                  loop_observations: list[tuple[int, int, np.ndarray, int]] = (), map_to_map=()) -> FinalBaResult:
+    """``records`` of all keyframes (time order, no duplicates); ``cameras``: the estimator's BackendCamera
+    list; ``loops``: (old state, new state, T_old_new, covariance 6x6); ``loop_observations``: (state, camera,
+    normalised xy, landmark id) observations of old landmarks by loop keyframes (PnP inliers); ``map_to_map``:
+    services.backend.o2p_terms.MapToMap terms (those whose anchors are among the keyframes join)."""
+    recs = sorted({r.state: r for r in records}.values(), key=lambda r: r.state)
+    if len(recs) < 2:
+        raise ValueError("the final bundle adjustment needs at least two keyframes")
+    states = {r.state for r in recs}
+    g, vals = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    for r in recs:
+        vals.insert(X(r.state), gtsam.Pose3(r.T_WS))
+        vals.insert(V(r.state), np.asarray(r.v_W, float))
+        vals.insert(B(r.state), r.bias)
+        if r.imu_to_next is not None and r.next_state in states:
+            g.add(r.imu_to_next)
+    r0 = recs[0]
+    g.add(gtsam.PriorFactorPose3(X(r0.state), gtsam.Pose3(r0.T_WS), gtsam.noiseModel.Diagonal.Sigmas(
+        np.array([prior_sigma_rot] * 3 + [prior_sigma_pos] * 3))))
+    g.add(gtsam.PriorFactorVector(V(r0.state), np.asarray(r0.v_W, float), gtsam.noiseModel.Isotropic.Sigma(3, 0.1)))
+    g.add(gtsam.PriorFactorConstantBias(B(r0.state), r0.bias, gtsam.noiseModel.Diagonal.Sigmas(
+        np.array([0.1] * 3 + [0.01] * 3))))
+    # landmarks: all observations across keyframes; the newest position estimate as the initial value
+    obs: dict[int, list[tuple[int, int, np.ndarray]]] = {}
+    p_init: dict[int, np.ndarray] = {}
+    for r in recs:
+        for lm, lst in r.obs.items():
+            obs.setdefault(lm, []).extend((r.state, c, xy) for c, xy in lst)
+        p_init.update(r.landmarks)
+    cal = gtsam.Cal3_S2(1.0, 1.0, 0.0, 0.0, 0.0)
+    noise = [gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(cauchy_k),
+                                            gtsam.noiseModel.Isotropic.Sigma(2, sigma_px / c.focal_px)) for c in cameras]
+    body = [gtsam.Pose3(c.T_SC) for c in cameras]
+    n_lm = n_obs = 0
+    for s, c, xy, lm in loop_observations:
+        if s in states and lm in obs and all(s != s2 for s2, _, _ in obs[lm]):
+            obs[lm].append((s, c, np.asarray(xy, float)))
+    for lm, lst in obs.items():
+        if lm not in p_init or len({s for s, _, _ in lst}) < 2:
+            continue
+        vals.insert(L(lm), np.asarray(p_init[lm], float))
+        n_lm += 1
+        for s, c, xy in lst:
+            g.add(gtsam.GenericProjectionFactorCal3_S2(np.asarray(xy, float), noise[c], X(s), L(lm), cal, False,
+                                                       False, body[c]))
+            n_obs += 1
+    for old, new, T_rel, cov in loops:
+        if old in states and new in states:
+            model = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(3.0),
+                                                   gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, float)))
+            g.add(gtsam.BetweenFactorPose3(X(old), X(new), gtsam.Pose3(T_rel), model))
+    n_m2m = 0
+    T_of = {r.state: r.T_WS for r in recs}
+    for t in map_to_map:
+        if t.state_m in states and t.state_o in states:
+            f = t.build(X(t.state_m), X(t.state_o), T_of[t.state_m], T_of[t.state_o])
+            if f is not None:
+                g.add(f)
+                n_m2m += 1
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(max_iterations)
+    params.setRelativeErrorTol(1e-5)
+    e0 = g.error(vals)
+    out = gtsam.LevenbergMarquardtOptimizer(g, vals, params).optimize()
+    return FinalBaResult(np.array([r.stamp_ns for r in recs], np.int64),
+                         np.array([out.atPose3(X(r.state)).matrix() for r in recs]), n_lm, n_obs, e0, g.error(out),
+                          n_m2m)
+
+
+def follow_keyframes(stamps_ns: np.ndarray, T_causal: np.ndarray, kf_stamps_ns: np.ndarray,
+                     kf_T_final: np.ndarray) -> np.ndarray:
+    """Non-causal poses (N,4,4) of all frames: each frame moves rigidly with the latest keyframe at or before it
+    (frames before the first keyframe with the first). Keyframe stamps must be among the frame stamps."""
+    stamps_ns = np.asarray(stamps_ns, np.int64)
+    idx = {int(s): i for i, s in enumerate(stamps_ns)}
+    kf_stamps_ns = np.asarray(kf_stamps_ns, np.int64)
+    have = np.array([int(s) in idx for s in kf_stamps_ns], bool)
+    if not have.any():
+        raise ValueError("no keyframe stamp is among the frame stamps")
+    kf_stamps_ns, kf_T_final = kf_stamps_ns[have], np.asarray(kf_T_final)[have]
+    corr = np.array([T @ inv_T(T_causal[idx[int(s)]]) for s, T in zip(kf_stamps_ns, kf_T_final)])
+    j = np.clip(np.searchsorted(kf_stamps_ns, stamps_ns, side="right") - 1, 0, len(kf_stamps_ns) - 1)
+    return np.einsum("nij,njk->nik", corr[j], T_causal)

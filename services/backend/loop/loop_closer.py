@@ -1,0 +1,375 @@
+"""Loop closing for the windowed estimator: keyframe features in, loop constraints and a pose correction out.
+
+Inputs (in time order): the features of each new keyframe (:meth:`LoopCloser.add_keyframe_features`, from
+the frontend), the records of keyframes leaving the window (:meth:`LoopCloser.add_record`, from the
+estimator's marginalisation hook) and the tracking status (:meth:`LoopCloser.note_status`).
+
+* A new keyframe's bag is scored against the *marginalised* keyframes (they carry 3D landmarks) older than
+  ``min_age_s``; the best candidates are verified by PnP against the old keyframe's landmarks. Counts:
+  proposed (candidates), verified (PnP accepted), accepted (loop factor added).
+* A verified loop waits until the query keyframe leaves the window itself, then enters the pose graph as a
+  relative-pose factor between the two nodes; the graph is solved and the correction ``T_W'W`` (window
+  frame to corrected frame at the newest node) is updated.
+* Map-to-map occupancy-to-point terms (:meth:`LoopCloser.add_map_to_map`, from the back end's o2p terms)
+  wait until the keyframes anchoring both submaps are pose-graph nodes, then join the graph like loops.
+* Relocalisation: after ``relocalise_after_s`` without tracking, the next keyframes are queried against the
+  keyframes from before the loss regardless of age, so the trajectory after the gap is tied back to the map.
+
+:class:`ThreadedLoopCloser` runs all of this in a thread of its own: the caller only enqueues.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import queue
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.backend.loop.config import LoopConfig
+from services.backend.loop.covisibility import Covisibility
+from services.backend.loop.history import KeyframeRecord
+from services.backend.loop.place_recognition import PlaceDatabase
+from services.backend.loop.pose_graph import LoopConstraint, PoseGraph
+from services.backend.loop.verification import FeatureSet, verify_pnp
+from services.backend.loop.vocabulary import DEFAULT_PATH, Vocabulary, l1_score
+from shared.geometry import inv_T
+
+log = logging.getLogger("sigmaslam.loop")
+
+
+@dataclass(frozen=True)
+class VerifiedLoop:
+    old_state: int
+    query_stamp_ns: int
+    T_WS_query: np.ndarray  # query body pose in the old keyframe's (window-at-the-time) frame
+    covariance: np.ndarray
+    inliers: int
+    relocalisation: bool
+    observations: tuple = ()  # (camera (I,), normalised xy (I,2), old landmark ids (I,)) of the PnP inliers
+
+
+class LoopCloser:
+    def __init__(self, cfg: LoopConfig, cameras, vocabulary: Vocabulary | None = None) -> None:
+        self.cfg = cfg
+        self.voc = vocabulary or Vocabulary.load(cfg.vocabulary or DEFAULT_PATH)
+        self.db = PlaceDatabase(self.voc.size)
+        self.graph = PoseGraph(loop_cauchy_k=cfg.loop_cauchy_k, attitude_sigma_rad=np.deg2rad(cfg.attitude_sigma_deg))
+        self.covisibility = Covisibility()
+        self._undistort = [c.undistort for c in cameras]
+        self._T_SC = np.array([c.T_SC for c in cameras])
+        self._focal = np.array([c.focal_px for c in cameras], float)
+        self._features: dict[int, tuple[FeatureSet, np.ndarray]] = {}  # stamp -> (features, bag), not yet marginalised
+        self._old: dict[int, tuple[FeatureSet, np.ndarray, KeyframeRecord]] = {}  # state -> (features, p_W, record)
+        self._prev_record: KeyframeRecord | None = None
+        self._prev_bag: np.ndarray | None = None
+        self._pending: list[VerifiedLoop] = []
+        self.loops: list[tuple[int, int, np.ndarray, np.ndarray]] = []  # (old state, new state, T_old_new, cov)
+        self.loop_observations: list[tuple[int, int, np.ndarray, int]] = []  # (state, camera, xy, old landmark)
+        self.counts = collections.Counter()
+        self._lost_since: int | None = None
+        self._reloc_before: int | None = None  # relocalisation mode: candidates older than this stamp
+        self.solve_ms: list[float] = []
+        self.node_stamps: dict[int, int] = {}
+        self._dirty = False
+        self._last_solve_ns = -(1 << 62)
+        self._m2m_pending: list = []  # map-to-map terms waiting for their anchor keyframes to become nodes
+        self.max_pending_map_to_map = 100
+
+    # ------------------------------------------------------------------ status
+    def note_status(self, stamp_ns: int, status: str) -> None:
+        if status == "tracking":
+            if self._lost_since is not None and stamp_ns - self._lost_since >= self.cfg.relocalise_after_s * 1e9:
+                self._reloc_before = self._lost_since
+                self.counts["losses"] += 1
+            self._lost_since = None
+        elif status in ("imu_only", "lost") and self._lost_since is None:
+            self._lost_since = int(stamp_ns)
+
+    @property
+    def relocalising(self) -> bool:
+        return self._reloc_before is not None
+
+    # ------------------------------------------------------------------ keyframe features
+    def add_keyframe_features(self, stamp_ns: int, fs: FeatureSet) -> list[VerifiedLoop]:
+        cfg = self.cfg
+        bag = self.voc.bag(fs.descriptors)
+        self._features[int(stamp_ns)] = (fs, bag)
+        ref = float(l1_score(bag, self._prev_bag)) if self._prev_bag is not None else None
+        self._prev_bag = bag
+        reloc = self._reloc_before is not None
+        min_age = 0.0 if reloc else cfg.min_age_s
+        cands = self.db.query(bag, stamp_ns, min_age, cfg.min_score, 0.0 if reloc else cfg.min_normalised,
+                              ref, max_candidates=cfg.max_candidates if not reloc else 3 * cfg.max_candidates)
+        if reloc:
+            cands = [c for c in cands if c.stamp_ns < self._reloc_before]
+        out = []
+        for c in cands:
+            self.counts["proposed"] += 1
+            old_fs, old_p, _ = self._old[c.key]
+            res = verify_pnp(fs, old_fs, old_p, self._undistort, self._T_SC, self._focal, cfg.sigma_px,
+                             cfg.max_hamming, cfg.ransac_px, cfg.min_inliers, cfg.min_inlier_ratio, cfg.cov_inflation)
+            if not res.accepted:
+                self.counts["rejected_pnp"] += 1
+                continue
+            self.counts["verified"] += 1
+            cams = np.asarray(fs.camera_index, np.int64)[res.query_index]
+            xy = np.zeros((len(cams), 2))
+            for cam in np.unique(cams):
+                xy[cams == cam] = self._undistort[cam](np.asarray(fs.uv, float)[res.query_index][cams == cam])
+            obs = (cams, xy, np.asarray(old_fs.landmark_ids, np.int64)[res.old_index])
+            loop = VerifiedLoop(c.key, int(stamp_ns), res.T_WS, res.covariance, res.inliers, reloc, obs)
+            self._pending.append(loop)
+            out.append(loop)
+            log.info("loop verified: keyframe at %d ns sees state %d (%d inliers%s)", stamp_ns, c.key, res.inliers,
+                     ", relocalisation" if reloc else "")
+            break  # one verified loop per query keyframe is enough
+        if out and reloc:
+            self._reloc_before = None
+            self.counts["relocalised"] += 1
+        # drop features of keyframes the estimator never made keyframes (bounded memory)
+        while len(self._features) > 200:
+            self._features.pop(next(iter(self._features)))
+        return out
+
+    # ------------------------------------------------------------------ marginalised keyframes
+    def add_record(self, rec: KeyframeRecord) -> bool:
+        """A keyframe left the window: pose-graph node, database entry, pending loops. True when solved."""
+        prev = self._prev_record
+        self.node_stamps[rec.state] = rec.stamp_ns
+        if prev is None:
+            self.graph.add_node(rec.state, rec.T_WS)
+        else:
+            linked = prev.next_state == rec.state and prev.rel_cov_to_next is not None
+            cov = prev.rel_cov_to_next if linked else np.diag([1e-2] * 3 + [1.0] * 3)
+            T_rel = inv_T(prev.T_WS) @ prev.T_WS_next if linked and prev.T_WS_next is not None else None
+            self.counts["unlinked_nodes"] += int(not linked)
+            self.graph.add_node(rec.state, rec.T_WS, cov, T_rel)
+        self._prev_record = rec
+        self.covisibility.add_keyframe(rec.state, np.fromiter(rec.obs.keys(), np.int64, len(rec.obs)))
+        feats = self._features.pop(rec.stamp_ns, None)
+        for s in [s for s in self._features if s < rec.stamp_ns]:
+            self._features.pop(s)
+        if feats is not None:
+            fs, bag = feats
+            p_W = np.array([rec.landmarks.get(int(i), (np.nan,) * 3) for i in fs.landmark_ids], float).reshape(-1, 3)
+            if np.isfinite(p_W[:, 0]).sum() >= self.cfg.min_inliers:
+                self._old[rec.state] = (fs, p_W, rec)
+                self.db.add(rec.state, rec.stamp_ns, bag)
+        self._add_ready_map_to_map()
+        solved = self._solve_if_due(rec.stamp_ns)
+        keep = []
+        for lp in self._pending:
+            if lp.query_stamp_ns == rec.stamp_ns:
+                solved |= self._accept(lp, rec)
+            elif lp.query_stamp_ns > rec.stamp_ns:
+                keep.append(lp)
+            else:
+                self.counts["loops_without_keyframe"] += 1
+        self._pending = keep
+        return solved
+
+    def add_map_to_map(self, term) -> bool:
+        """A map-to-map term (services.backend.o2p_terms.MapToMap); joins the graph once both anchor keyframes
+        are nodes. True when the graph was solved."""
+        self._m2m_pending.append(term)
+        while len(self._m2m_pending) > self.max_pending_map_to_map:
+            self._m2m_pending.pop(0)
+            self.counts["map_to_map_dropped"] += 1
+        self._add_ready_map_to_map()
+        return self._solve_if_due(self.node_stamps[self.graph.keys[-1]]) if self.graph.keys else False
+
+    def _add_ready_map_to_map(self) -> None:
+        keep = []
+        for t in self._m2m_pending:
+            if t.state_m not in self.graph.odom or t.state_o not in self.graph.odom:
+                keep.append(t)
+            elif self.graph.add_map_to_map(t):
+                self.counts["map_to_map_accepted"] += 1
+                self._dirty = True
+            else:  # map_to_map_too_few_inside (no overlap at the graph's estimate) or map_to_map_chi2
+                self.counts[f"map_to_map_{self.graph.last_map_to_map_reason}"] += 1
+        self._m2m_pending = keep
+
+    def map_to_map_for_final(self) -> list:
+        """Map-to-map terms of the pose graph and those still waiting (anchors in the window at the end)."""
+        return list(self.graph.map_to_map) + list(self._m2m_pending)
+
+    def _accept(self, lp: VerifiedLoop, rec: KeyframeRecord) -> bool:
+        old = self._old[lp.old_state][2]
+        T_old_new = inv_T(old.T_WS) @ lp.T_WS_query
+        if self.cfg.max_translation_jump_m > 0:
+            predicted = self.graph.estimate[old.state] @ T_old_new
+            if np.linalg.norm(predicted[:3, 3] - self.graph.estimate[rec.state][:3, 3]) > self.cfg.max_translation_jump_m:
+                self.counts["rejected_jump"] += 1
+                return False
+        self.graph.add_loop(LoopConstraint(old.state, rec.state, T_old_new, lp.covariance))
+        self.loops.append((old.state, rec.state, T_old_new, lp.covariance))
+        if lp.observations:  # the query keyframe observes the old landmarks: used by the final BA
+            cams, xy, lms = lp.observations
+            self.loop_observations += [(rec.state, int(c), p, int(lm)) for c, p, lm in zip(cams, xy, lms)]
+        self.counts["accepted"] += 1
+        self._dirty = True
+        return self._solve_if_due(rec.stamp_ns)
+
+    def _solve_if_due(self, stamp_ns: int) -> bool:
+        """Solve the pose graph when loops were added and the last solve is ``min_solve_interval_s`` old (gtsam
+        holds Python's GIL while it solves, so solves are rationed to keep the estimator's thread running)."""
+        if not self._dirty or stamp_ns - self._last_solve_ns < self.cfg.min_solve_interval_s * 1e9:
+            return False
+        t0 = time.perf_counter()
+        self.graph.optimise(self.cfg.pose_graph_iterations)
+        self.solve_ms.append(1e3 * (time.perf_counter() - t0))
+        self._dirty = False
+        self._last_solve_ns = int(stamp_ns)
+        return True
+
+    def pending_for_final(self, window: list[KeyframeRecord]) -> tuple[list, list]:
+        """Loops (and their landmark observations) still waiting for a query keyframe that is in ``window`` (the
+        keyframes left in the estimator at the end of a run), for the final BA."""
+        by_stamp = {r.stamp_ns: r for r in window}
+        loops, obs = [], []
+        for lp in self._pending:
+            rec = by_stamp.get(lp.query_stamp_ns)
+            if rec is None or lp.old_state not in self._old:
+                continue
+            old = self._old[lp.old_state][2]
+            loops.append((old.state, rec.state, inv_T(old.T_WS) @ lp.T_WS_query, lp.covariance))
+            if lp.observations:
+                obs += [(rec.state, int(c), p, int(lm)) for c, p, lm in zip(*lp.observations)]
+        return loops, obs
+
+    def correction(self) -> np.ndarray:
+        return self.graph.correction()
+
+    def corrected_keyframes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(states, stamps, corrected T_WS) of every pose-graph node."""
+        keys = list(self.graph.keys)
+        return (np.array(keys, np.int64), np.array([self.node_stamps[k] for k in keys], np.int64),
+                np.array([self.graph.estimate[k] for k in keys]).reshape(-1, 4, 4))
+
+
+class ThreadedLoopCloser:
+    """Runs a :class:`LoopCloser` in its own thread; ``submit_*`` only enqueue (oldest dropped when full).
+
+    With ``synchronous`` (``loop.synchronous``) there is no thread: every event is handled in the caller's
+    thread as it is submitted, so a run over recorded data gives the same trajectory every time (evaluation);
+    the live back end keeps the thread, so that ``estimator/state`` never waits for a pose-graph solve."""
+
+    def __init__(self, closer: LoopCloser, synchronous: bool = False) -> None:
+        self.closer = closer
+        self.synchronous = synchronous
+        self._q: queue.Queue = queue.Queue()
+        self._lock = threading.Lock()
+        self._correction = np.eye(4)
+        self._keyframes = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 4, 4)))
+        self.generation = 0  # increases after every pose-graph solve
+        self._solves = 0
+        self.dropped = 0
+        self.errors = 0
+        self.busy_s = 0.0  # time spent handling events (with ``synchronous``: inside the caller's calls)
+        self._verified: list[VerifiedLoop] = []
+        self._thread = None
+        if not synchronous:
+            self._thread = threading.Thread(target=self._run, name="loop-closer", daemon=True)
+            self._thread.start()
+
+    def _put(self, item) -> None:
+        if self.synchronous:
+            self._handle(item)
+            return
+        if self._q.qsize() >= self.closer.cfg.queue_depth:
+            try:
+                self._q.get_nowait()
+                self.dropped += 1
+            except queue.Empty:
+                pass
+        self._q.put(item)
+
+    def submit_features(self, stamp_ns: int, fs: FeatureSet) -> None:
+        self._put(("features", int(stamp_ns), fs))
+
+    def submit_record(self, rec: KeyframeRecord) -> None:
+        self._put(("record", rec))
+
+    def submit_map_to_map(self, term) -> None:
+        self._put(("m2m", term))
+
+    def submit_status(self, stamp_ns: int, status: str) -> None:
+        self._put(("status", int(stamp_ns), status))
+
+    def correction(self) -> np.ndarray:
+        with self._lock:
+            return self._correction.copy()
+
+    def corrected_keyframes(self) -> tuple[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """(generation, (states, stamps, T_WS)) of the pose-graph nodes as of the latest correction."""
+        with self._lock:
+            return self.generation, self._keyframes
+
+    def take_verified(self) -> list[VerifiedLoop]:
+        """Loops verified since the last call (the back end's o2p terms learn the old landmarks a keyframe sees)."""
+        with self._lock:
+            out, self._verified = self._verified, []
+        return out
+
+    def snapshot(self) -> tuple[np.ndarray, int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """(correction, generation, corrected keyframes) of one and the same solve (the loop thread may finish
+        another between two separate calls)."""
+        with self._lock:
+            return self._correction.copy(), self.generation, self._keyframes
+
+    def drain(self, timeout_s: float = 30.0) -> bool:
+        """Wait until everything submitted so far is processed."""
+        if self.synchronous:  # nothing waits
+            return True
+        done = threading.Event()
+        self._q.put(("mark", done))
+        return done.wait(timeout_s)
+
+    def close(self) -> None:
+        if self._thread is not None:
+            self._q.put(("stop",))
+            self._thread.join(timeout=10)
+
+    def _run(self) -> None:
+        while True:
+            item = self._q.get()
+            if item[0] == "stop":
+                return
+            if item[0] == "mark":
+                item[1].set()
+                continue
+            self._handle(item)
+
+    def _handle(self, item) -> None:
+        """One event: features, status, a keyframe record or a map-to-map term; publishes the correction."""
+        c, kind = self.closer, item[0]
+        t0 = time.perf_counter()
+        try:
+            if kind == "features":
+                found = c.add_keyframe_features(item[1], item[2])
+                if found:
+                    with self._lock:
+                        self._verified.extend(found)
+            elif kind == "status":
+                c.note_status(item[1], item[2])
+            else:
+                (c.add_record if kind == "record" else c.add_map_to_map)(item[1])
+                corr = c.correction()
+                solved = len(c.solve_ms) != self._solves
+                snap = c.corrected_keyframes() if solved else None
+                with self._lock:
+                    self._correction = corr
+                    if solved:  # past keyframes moved: a new generation of corrected nodes
+                        self._solves = len(c.solve_ms)
+                        self._keyframes = snap
+                        self.generation += 1
+        except Exception:  # noqa: BLE001 - a bad keyframe must not kill loop closing; counted and logged
+            self.errors += 1
+            log.exception("loop closer: %s event failed", kind)
+        finally:
+            self.busy_s += time.perf_counter() - t0

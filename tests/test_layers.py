@@ -1,0 +1,169 @@
+"""Layers that hold (issue 20.2): every import between the project's packages goes downwards.
+
+    shared  <-  transport  <-  config schemas  <-  process packages  <-  application  <-  tools
+
+- ``shared/``: code two or more processes use (messages, codec, geometry, cameras, the occupancy field, ATE).
+- ``transport/``: Zenoh session, publishers/subscribers, queues, the service shell.
+- config schemas: :mod:`services.system_config` and the config modules it composes (``services/*/config.py``,
+  ``*_config.py``). Every process loads the system config, so it sits below the processes; a schema imports
+  only shared, transport and other schemas.
+- process packages: ``services/<process>/`` (one per OS process, each with its ``service.py``). A process
+  package never imports another process package, nor the application (config modules included: it reads
+  other sections through :mod:`services.system_config`).
+- application: ``services/app/`` (the CLI, commands, supervisor, what only commands use).
+- ``tools/``: developer scripts; nothing in the product imports them.
+
+Every ``import`` counts, also those inside functions (lazy) or under ``TYPE_CHECKING``, and so does a string
+that names one of the project's modules (``importlib.import_module(name)``, ``python -m name``, the CLI's
+command registries). The only exceptions are in :data:`DEV_COMMANDS`.
+"""
+
+from __future__ import annotations
+
+import ast
+import re
+from pathlib import Path
+
+ROOT = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").exists())  # wherever tests/ nests it
+PACKAGES = ("shared", "transport", "services", "tools")
+LAYERS = ("shared", "transport", "config schema", "process package", "application", "tools")
+APP = "app"
+
+# Developer commands that the product CLI names as strings and imports only when that command is chosen;
+# they live in tools/ and no product code imports them. (file, module named) pairs; keep this list tiny.
+DEV_COMMANDS = {
+    ("services/app/cli.py", "tools.bench_cmd"),  # sigmaslam bench ...: benchmarks
+    ("services/app/cli.py", "tools.dataset_convert"),  # sigmaslam convert: EuRoC <-> MCAP conversion
+    ("services/app/eval_cmd.py", "tools.depth.evaluate"),  # sigmaslam eval depth: depth network evaluation
+    ("services/app/eval_cmd.py", "tools.eval.ablation"),  # sigmaslam eval ablation: the paper's Table IV
+    ("services/app/eval_cmd.py", "tools.eval.suite"),  # sigmaslam eval suite: the paper's tables I, II, V
+}
+
+_MODULE_NAME = re.compile(r"^(%s)(\.\w+)+$" % "|".join(PACKAGES))
+
+
+def module_of(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def all_modules() -> dict[str, Path]:
+    return {module_of(p): p for pkg in PACKAGES for p in sorted((ROOT / pkg).rglob("*.py"))}
+
+
+def layer(module: str) -> int | None:
+    """Index in :data:`LAYERS` of a project module (None: not one of the project's packages)."""
+    parts = module.split(".")
+    if parts[0] not in PACKAGES:
+        return None
+    if parts[0] != "services":
+        return {"shared": 0, "transport": 1, "tools": 5}[parts[0]]
+    if len(parts) == 1:
+        return None  # the bare namespace 'services' holds nothing
+    if module == "services.system_config" or (len(parts) > 2 and (parts[-1] == "config" or parts[-1].endswith("_config"))):
+        return 2
+    return 4 if parts[1] == APP else 3
+
+
+def package(module: str) -> str | None:
+    """The services/ package a module belongs to ('backend', 'app', ...; None outside one)."""
+    parts = module.split(".")
+    return parts[1] if parts[0] == "services" and len(parts) > 2 else None
+
+
+def imports_of(source: str, module: str, is_package: bool, modules: set[str]) -> list[tuple[int, str, str, bool]]:
+    """(line, project module, statement, named as a string) for every reference to a project module."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            found += [(node.lineno, a.name, ast.unparse(node), False) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = module.split(".")[: len(module.split(".")) - node.level + (1 if is_package else 0)]
+                target = ".".join(base + ([node.module] if node.module else []))
+            else:
+                target = node.module or ""
+            for a in node.names:  # 'from pkg import mod' imports pkg.mod
+                sub = f"{target}.{a.name}"
+                found.append((node.lineno, sub if sub in modules else target, ast.unparse(node), False))
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str) and _MODULE_NAME.match(node.value):
+            if node.value in modules:
+                found.append((node.lineno, node.value, repr(node.value), True))
+    return [f for f in found if layer(f[1]) is not None]
+
+
+def violations(rel_path: str, source: str, modules: set[str]) -> list[str]:
+    """What the layering rule forbids in one file, one message per reference: 'file:line: statement: why'."""
+    module = module_of(ROOT / rel_path)
+    src_layer, src_pkg = layer(module), package(module)
+    is_process = src_layer is not None and src_pkg is not None and src_pkg != APP
+    out = []
+    for line, target, text, by_name in imports_of(source, module, rel_path.endswith("__init__.py"), modules):
+        dst_layer, dst_pkg = layer(target), package(target)
+        why = None
+        if dst_layer > src_layer:
+            why = f"{LAYERS[src_layer]} {module} may not import {LAYERS[dst_layer]} {target}"
+        elif is_process and dst_pkg is not None and dst_pkg != src_pkg:
+            what = "the application" if dst_pkg == APP else f"process package services/{dst_pkg}"
+            why = f"process package services/{src_pkg} may not import {what} ({target})"
+        if why and by_name and (rel_path, target) in DEV_COMMANDS:
+            continue
+        if why:
+            out.append(f"{rel_path}:{line}: {text}{' (names a module)' if by_name else ''}: {why}")
+    return out
+
+
+def test_every_import_goes_down_the_layers():
+    mods = all_modules()
+    names = set(mods)
+    bad = []
+    for module, path in mods.items():
+        bad += violations(str(path.relative_to(ROOT)), path.read_text(encoding="utf-8"), names)
+    assert not bad, "imports against the layering (see tests/test_layers.py):\n" + "\n".join(bad)
+
+
+def test_services_holds_process_packages_and_the_application():
+    """services/ = one package per process (each with service.py), the application and the system config."""
+    services = ROOT / "services"
+    loose = sorted(p.name for p in services.glob("*.py") if p.name not in ("__init__.py", "system_config.py"))
+    assert not loose, f"modules directly in services/ (belong in services/app/ or a process package): {loose}"
+    for d in sorted(p for p in services.iterdir() if (p / "__init__.py").exists()):
+        if d.name != APP:
+            assert (d / "service.py").exists(), f"services/{d.name}/ is not a process (no service.py): move it"
+
+
+def test_dev_command_exceptions_are_still_needed():
+    mods = all_modules()
+    names = set(mods)
+    used = set()
+    for rel, target in DEV_COMMANDS:
+        src = (ROOT / rel).read_text(encoding="utf-8")
+        if any(t == target and s for _, t, _, s in imports_of(src, module_of(ROOT / rel), False, names)):
+            used.add((rel, target))
+        assert target in names and layer(target) == 5, f"DEV_COMMANDS names {target}, not a module of tools/"
+    assert used == DEV_COMMANDS, f"stale DEV_COMMANDS entries: {sorted(DEV_COMMANDS - used)}"
+
+
+def test_the_check_sees_lazy_imports_strings_and_names_file_and_line():
+    names = set(all_modules())
+    src = ("import numpy as np\n"
+           "from shared.geometry import inv_T\n"
+           "from services.system_config import load_system_config\n"
+           "def f():\n"
+           "    from services.mapping.submaps import Submap\n"
+           "    from services.app import supervisor\n"
+           "    return importlib.import_module('tools.eval.suite')\n")
+    bad = violations("services/backend/x.py", src, names)
+    assert len(bad) == 3, bad
+    assert bad[0] == ("services/backend/x.py:5: from services.mapping.submaps import Submap: process package "
+                      "services/backend may not import process package services/mapping (services.mapping.submaps)")
+    assert bad[1] == ("services/backend/x.py:6: from services.app import supervisor: process package "
+                      "services.backend.x may not import application services.app.supervisor")
+    assert bad[2].startswith("services/backend/x.py:7: 'tools.eval.suite' (names a module): ")
+    assert violations("shared/x.py", "from transport.queues import Empty\n", names) == [
+        "shared/x.py:1: from transport.queues import Empty: shared shared.x may not import transport transport.queues"]
+    # a schema imports only shared, transport and schemas; the application may import anything but tools
+    assert violations("services/backend/config.py", "from services.backend.estimator import X\n", names)
+    assert not violations("services/system_config.py", "from services.mapping.config import MappingConfig\n", names)
+    assert not violations("services/app/run_cmd.py", "from services.mapping.io import write_ply\n", names)
+    assert violations("services/app/demo_cmd.py", "from tools.eval.suite import main\n", names)
