@@ -46,6 +46,8 @@ class Input:
     depth: int | None = None  # queue depth (None: the topic's)
     wait_until_trigger_stamp: bool = False  # side input the trigger waits for (up to the node's wait_s)
     shed: str | None = None  # trigger input: node method (pending list) -> (kept list, skipped count)
+    when: str = ""  # the condition under which the node reads it (docs), e.g. "o2p.enabled"; empty: always
+    note: str = ""  # what the node uses it for (docs)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -80,6 +82,7 @@ class ProcessNode:
     name: ClassVar[str]
     inputs: ClassVar[tuple[Input, ...]]
     outputs: ClassVar[tuple[Topic, ...]]
+    output_notes: ClassVar[dict[str, str]] = {}  # topic key -> when / what is published (docs)
     stage: ClassVar[str] = "process"  # stage name of the trigger handler in stats/<name>
     budget_ms: float | None = None  # the stage's budget (per instance: from its config)
     wait_s: float = 0.0  # longest wait for a wait_until_trigger_stamp input [s] (per instance: from its config)

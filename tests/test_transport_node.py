@@ -142,3 +142,20 @@ def test_bench_transport_short_run_writes_json(tmp_path):
         assert f["sent"] == 30 and f["delivered"] + f["drops"] >= f["sent"]
     assert r["frames"][0]["payload_bytes"] > 786432 and r["frames"][0]["received_shm"] == r["frames"][0]["delivered"]
     assert r["frames"][1]["received_shm"] == 0
+
+
+def test_node_refuses_topics_its_process_does_not_declare():
+    """A service's transport Node with its declaration (services/<process>/node.py) subscribes and publishes only
+    what the declaration lists (stats/ and heartbeat/ belong to every node)."""
+    from services.player.node import PlayerNode
+    from shared.dataflow import UndeclaredTopic
+
+    with router() as cfg:
+        with Node("player", cfg, handle_signals=False, declared=PlayerNode) as node:
+            node.publisher(topics.FRAME)
+            node.subscriber(topics.CONTROL)
+            node.subscriber(topics.HEARTBEAT)
+            with pytest.raises(UndeclaredTopic, match="subscribes to 'depth/stereo'"):
+                node.subscriber(topics.DEPTH_STEREO)
+            with pytest.raises(UndeclaredTopic, match="publishes 'estimator/state'"):
+                node.publisher(topics.STATE)

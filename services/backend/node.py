@@ -121,15 +121,20 @@ class BackendNode(ProcessNode):
     name = "backend"
     stage = "optimise"
     inputs = (
-        Input(topics.FEATURES, "on_features", role="trigger", shed="shed"),
-        Input(topics.IMU, "on_imu", wait_until_trigger_stamp=True),  # the IMU up to the frame's time
-        Input(topics.MAP_FIELD, "on_map_input", policy="all", depth=64),  # o2p: drained before each frame
-        Input(topics.MAP_O2P_POINTS, "on_map_input"),
-        Input(topics.DEPTH_STEREO, "on_map_input", depth=8),
-        Input(topics.KEYFRAME_FEATURES, "on_keyframe_features"),  # loop closure
-        Input(topics.STREAM_END, "on_stream_end", role="idle"),  # loop closure: final trajectory after the last frame
+        Input(topics.FEATURES, "on_features", role="trigger", shed="shed", note="tracks of each frame"),
+        Input(topics.IMU, "on_imu", wait_until_trigger_stamp=True, note="pre-integration, up to the frame's time"),
+        Input(topics.MAP_FIELD, "on_map_input", policy="all", depth=64, when="o2p.enabled",
+              note="submap fields for the occupancy-to-point factors"),
+        Input(topics.MAP_O2P_POINTS, "on_map_input", when="o2p.enabled", note="map-to-map points"),
+        Input(topics.DEPTH_STEREO, "on_map_input", depth=8, when="o2p.enabled", note="frame-to-map points"),
+        Input(topics.KEYFRAME_FEATURES, "on_keyframe_features", when="loop.enabled", note="loop detection"),
+        Input(topics.STREAM_END, "on_stream_end", role="idle", when="loop.enabled",
+              note="the final bundle adjustment after the last frame"),
     )
     outputs = (topics.STATE, topics.KEYFRAMES, topics.LANDMARKS, topics.TRAJECTORY_FINAL)
+    output_notes = {topics.STATE.key: "every frame", topics.KEYFRAMES.key: "after each optimisation",
+                    topics.LANDMARKS.key: "after each keyframe's optimisation",
+                    topics.TRAJECTORY_FINAL.key: "once, after sensors/end (loop.enabled)"}
 
     def __init__(self, cfg, cameras, restarted: bool = False) -> None:
         bc = cfg.backend

@@ -74,12 +74,13 @@ class DepthNode(ProcessNode):
     name = "depth"
     stage = "depth"
     inputs = (
-        Input(topics.FRAME, "on_frame", role="trigger", depth=1),  # keep-latest of one, paced at depth.rate_hz
-        Input(topics.STATE, "on_state", wait_until_trigger_stamp=True),  # the frame's pose
-        Input(topics.FRAME, "remember", policy="all"),  # MVS: every frame's left image for the keyframe views
-        Input(topics.KEYFRAMES, "on_keyframes"),
-        Input(topics.LANDMARKS, "on_landmarks", depth=1),
+        Input(topics.FRAME, "on_frame", role="trigger", depth=1, note="the frame to work on, at depth.rate_hz"),
+        Input(topics.STATE, "on_state", wait_until_trigger_stamp=True, note="the frame's pose"),
+        Input(topics.FRAME, "remember", policy="all", when="MVS on", note="left images for the keyframe views"),
+        Input(topics.KEYFRAMES, "on_keyframes", note="MVS source views"),
+        Input(topics.LANDMARKS, "on_landmarks", depth=1, note="the MVS prior"),
     )
+    output_notes = {topics.DEPTH_STEREO.key: "each processed frame", topics.DEPTH_FUSED.key: "each processed frame"}
     outputs = (topics.DEPTH_STEREO, topics.DEPTH_FUSED)
 
     def __init__(self, dc, pipe: DepthPipeline) -> None:

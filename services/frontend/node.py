@@ -38,11 +38,12 @@ class FrontendNode(ProcessNode):
     name = "frontend"
     stage = "track"
     inputs = (
-        Input(topics.FRAME, "on_frame", role="trigger"),
-        Input(topics.IMU, "on_imu", wait_until_trigger_stamp=True),  # the gyro up to the frame's time
-        Input(topics.STATE, "on_state", policy="latest", depth=1),  # only the newest gyro bias matters
+        Input(topics.FRAME, "on_frame", role="trigger", note="images to track"),
+        Input(topics.IMU, "on_imu", wait_until_trigger_stamp=True, note="gyro rotation prior, up to the frame's time"),
+        Input(topics.STATE, "on_state", policy="latest", depth=1, note="the newest gyro bias"),
     )
     outputs = (topics.FEATURES, topics.KEYFRAME_FEATURES)
+    output_notes = {topics.FEATURES.key: "every frame", topics.KEYFRAME_FEATURES.key: "each keyframe, before its frame"}
 
     def __init__(self, cfg, cameras, first_landmark_id: int = 0) -> None:
         self.cfg = cfg

@@ -227,13 +227,17 @@ class MappingNode(ProcessNode):
 
     name = "mapping"
     inputs = (
-        Input(topics.STATE, "on_state", policy="all"),  # buffered by stamp (depth: mapping.state_buffer)
-        Input(topics.KEYFRAMES, "on_keyframes"),
-        Input(topics.DEPTH_STEREO, "on_depth"),  # one of the two depth topics (mapping.depth_topic)
-        Input(topics.DEPTH_FUSED, "on_depth"),
-        Input(topics.TRAJECTORY_FINAL, "on_final"),  # after the stream: no depth follows it
+        Input(topics.STATE, "on_state", policy="all", note="poses by stamp (mapping.state_buffer of them)"),
+        Input(topics.KEYFRAMES, "on_keyframes", note="submap poses follow their keyframes"),
+        Input(topics.DEPTH_STEREO, "on_depth", when="mapping.depth_topic = depth/stereo (default)",
+              note="depth to integrate"),
+        Input(topics.DEPTH_FUSED, "on_depth", when="mapping.depth_topic = depth/fused", note="depth to integrate"),
+        Input(topics.TRAJECTORY_FINAL, "on_final", note="submaps move onto it (mapping.follow_final)"),
     )
     outputs = (topics.SUBMAP, topics.MAP_FIELD, topics.MAP_O2P_POINTS)
+    output_notes = {topics.SUBMAP.key: "changed submaps, at most every mapping.mesh_period_s",
+                    topics.MAP_FIELD.key: "a closed submap's field; the current one every mapping.field_period_s",
+                    topics.MAP_O2P_POINTS.key: "per closed submap (mapping.o2p_points > 0)"}
 
     def __init__(self, cfg: MappingConfig, out_dir: str | None = None, clock=time.monotonic) -> None:
         self.cfg, self.out_dir, self.clock = cfg, out_dir, clock

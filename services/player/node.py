@@ -10,8 +10,11 @@ from shared.dataflow import Input, ProcessNode
 class PlayerNode(ProcessNode):
     name = "player"
     inputs = (
-        Input(topics.CONTROL, "on_control"),  # pause / resume / stop from the viewer or a user
-        Input(topics.STATE, "on_state", policy="latest", depth=64),  # lockstep: the next frame after this one's state
-        Input(topics.HEARTBEAT, "on_heartbeat", policy="all", depth=1000),  # --wait-for: services up before playing
+        Input(topics.CONTROL, "on_control", note="pause, resume, stop"),
+        Input(topics.STATE, "on_state", policy="latest", depth=64, when="--lockstep",
+              note="the next frame after this one's state"),
+        Input(topics.HEARTBEAT, "on_heartbeat", policy="all", depth=1000, when="--wait-for",
+              note="the services are up before playing"),
     )
     outputs = (topics.IMU, topics.FRAME, topics.STREAM_END)
+    output_notes = {topics.STREAM_END.key: "once, after the last frame"}

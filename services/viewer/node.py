@@ -12,5 +12,6 @@ SHOWN_TOPICS = (topics.STATE, topics.KEYFRAMES, topics.SUBMAP, topics.FRAME, top
 
 class ViewerNode(ProcessNode):
     name = "viewer"
-    inputs = tuple(Input(t, "on_message") for t in SHOWN_TOPICS)
-    outputs = (topics.CONTROL,)  # the page's pause / resume / stop buttons
+    inputs = tuple(Input(t, "on_message", note="shown") for t in SHOWN_TOPICS)
+    outputs = (topics.CONTROL,)
+    output_notes = {topics.CONTROL.key: "the page's pause and resume buttons"}
