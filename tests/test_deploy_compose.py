@@ -143,5 +143,7 @@ def test_dockerfiles_install_torch_then_the_project() -> None:
     for text in (cpu, cuda):
         assert text.index("torch==") < text.index("COPY services"), "torch must come before the project"
     # what the images copy is what the project is made of
-    for folder in ("services", "shared", "transport", "tools", "configs"):
+    for folder in ("services", "shared", "transport", "tools", "configs", "data/euroc"):
         assert f"COPY {folder} {folder}" in cpu and f"COPY {folder} {folder}" in cuda
+    ignored = (REPO / ".dockerignore").read_text().split()
+    assert "data/*" in ignored and "!data/euroc" in ignored  # generated data stays out, the bundled files go in
