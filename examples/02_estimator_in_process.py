@@ -1,10 +1,11 @@
 """02: run the visual-inertial estimator in one process, without Zenoh, and measure its error.
 
-The services are thin shells around transport-free algorithms: the frontend's ``FrontendShell`` (KLT tracking of
-both cameras, gyro-aided) and the back end's ``BackendShell`` (a keyframe-window smoother in gtsam with IMU
-pre-integration). ``tools/vio/offline.py`` feeds them a dataset in the order the player would publish it (IMU
-samples and frames interleaved by stamp), hands each feature frame to the back end and the back end's gyro bias
-back to the frontend, exactly as the two services do over ``frontend/frame`` and ``estimator/state``. This
+Each service is a transport-free node: the frontend's ``FrontendNode`` (KLT tracking of both cameras, gyro-aided)
+and the back end's ``BackendNode`` (a keyframe-window smoother in gtsam with IMU pre-integration).
+``tools/vio/offline.py`` runs them on the in-process runner (services/app/inprocess.py), which feeds a dataset in
+the order the player would publish it (IMU samples and frames interleaved by stamp) and delivers each feature frame
+to the back end and the back end's state back to the frontend, exactly as over ``frontend/frame`` and
+``estimator/state`` in a lockstep run. This
 script calls it and reads the result: the causal trajectory (one pose per camera frame, never revised) and its
 ATE against the replica's ground truth after SE(3) alignment (the paper's sec. V)::
 

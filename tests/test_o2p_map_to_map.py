@@ -114,7 +114,7 @@ def test_final_bundle_adjustment_uses_map_to_map(room):
 def test_submap_anchor_uses_the_keyframe_pose_as_published():
     """The mapping's T_WM of a submap lives in the frame of the keyframe poses it last received, so the back end
     takes T_KM against the pose the last Keyframes message carried, not against a newer correction."""
-    from services.backend.service import BackendShell
+    from services.backend.node import BackendShell
     from services.backend.loop.backend_loop import LoopClosingBackend
     from services.system_config import load_system_config
     from shared.geometry import make_T, so3_exp

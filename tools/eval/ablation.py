@@ -15,7 +15,7 @@ Rows (each a full frontend + back end + loop closure + depth + mapping run over 
 * ``mono_baseline``: as ``mono`` without the factors (the map still from MVS depth): the row ``mono`` is judged
   against.
 
-The components are the services' own: ``FrontendShell``, ``BackendShell`` wrapped in ``LoopClosingBackend``
+The components are the services' own: ``FrontendNode``, ``BackendShell`` wrapped in ``LoopClosingBackend``
 when ``loop.enabled`` (as the back-end service does: loop closure corrects the published poses, and at the
 end the final bundle adjustment gives the non-causal trajectory), ``DepthPipeline``, ``SubmapMapper`` with
 its field messages and map-to-map point pool. Depth runs on every ``--depth-every``-th camera frame (default:
@@ -165,8 +165,8 @@ def run_row(row: str, dataset: Path, overrides: list[str], seconds: float, depth
             stereo_cache: dict, mesh: bool = True, progress: _Progress | None = None,
             out_dir: Path | None = None) -> dict:
     """One row over ``dataset``; raises on configuration or component errors (the caller records them)."""
-    from services.backend.service import BackendShell
-    from services.frontend.service import FrontendShell
+    from services.backend.node import BackendShell
+    from services.frontend.node import FrontendNode
     from services.backend.loop.backend_loop import LoopClosingBackend
     from services.frontend.keyframe_features import keyframe_features_message
     from services.mapping.export import field_message
@@ -189,7 +189,7 @@ def run_row(row: str, dataset: Path, overrides: list[str], seconds: float, depth
     if not cfg.rig.calibration:
         cfg = override(cfg, {"rig.calibration": str(dataset)})
     cams = load_rig_config(cfg.rig)
-    fe, shell = FrontendShell(cfg.frontend, cams), BackendShell(cfg.backend, cams)
+    fe, shell = FrontendNode(cfg.frontend, cams), BackendShell(cfg.backend, cams)
     dense = row in DENSE
     if dense:
         shell.enable_o2p(cfg.o2p)
