@@ -34,5 +34,7 @@ demo:
 	@t0=$$(date +%s%N); $(MAKE) --no-print-directory setup && \
 	$(BIN)/sigmaslam demo --setup-s $$(( ($$(date +%s%N) - t0) / 1000000000 ))
 
+# everything CI runs (.ci/run): lint, then every tier (unit, service, e2e in its reduced form; tests/README.md)
 test: setup
+	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q

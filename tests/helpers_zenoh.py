@@ -7,15 +7,19 @@ import contextlib
 import os
 import subprocess
 import sys
+import threading
 import time
 import uuid
-from pathlib import Path
 from typing import Callable, Iterator
 
+from shared import topics
+from shared.paths import REPO_ROOT
+from shared.messages import Heartbeat
 from transport.config import TransportConfig
+from transport.pubsub import Subscriber
 from transport.session import free_local_port, open_session
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = REPO_ROOT  # the repository root (children run there)
 
 
 free_port = free_local_port  # the one helper; tests import it under this name
@@ -58,3 +62,23 @@ def wait_for(predicate: Callable[[], bool], timeout: float = 5.0, interval: floa
             return True
         time.sleep(interval)
     return bool(predicate())
+
+
+def wait_for_heartbeat(session, cfg: TransportConfig, service: str, timeout: float = 30.0,
+                       proc: subprocess.Popen | None = None) -> bool:
+    """Wait until ``service`` (a Node in a child process) publishes a periodic 'running' heartbeat (seq >= 1: its
+    subscriptions are declared by then; the rule of the player's ``--wait-for``) on ``cfg``'s namespace, through
+    ``session``. False after ``timeout`` seconds or as soon as ``proc`` (if given) has exited."""
+    up = threading.Event()
+
+    def on_heartbeat(msg: Heartbeat) -> None:
+        if msg.state == "running" and msg.header.seq >= 1:
+            up.set()
+
+    key = f"{cfg.namespace.rstrip('/')}/{topics.per_service(topics.HEARTBEAT, service)}"
+    sub = Subscriber(session, key, Heartbeat, handler=on_heartbeat, name=f"test-wait-{service}")
+    try:
+        wait_for(lambda: up.is_set() or (proc is not None and proc.poll() is not None), timeout)
+    finally:
+        sub.close()
+    return up.is_set()

@@ -6,7 +6,6 @@ from pathlib import Path
 
 import gtsam
 import numpy as np
-import pytest
 
 from services.backend.config import BackendConfig
 from services.backend.imu_factors import ImuBuffer, make_bias, make_params, predict

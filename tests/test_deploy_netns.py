@@ -20,7 +20,9 @@ from tests.helpers_zenoh import REPO, child_env
 from tools.netns_lab import NetnsLab, unavailable_reason
 
 REASON = unavailable_reason()
-pytestmark = pytest.mark.skipif(REASON is not None, reason=f"multi-host test skipped: {REASON}")
+# service tier: processes in network namespaces (tools.netns_lab starts them; tests/conftest.py cannot see that)
+pytestmark = [pytest.mark.service,
+              pytest.mark.skipif(REASON is not None, reason=f"multi-host test skipped: {REASON}")]
 
 SIGMASLAM = [sys.executable, "-m", "services.app.cli"]
 

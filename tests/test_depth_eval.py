@@ -12,6 +12,8 @@ from services.app import cli
 from tools.depth import make_dataset
 from tools.depth.evaluate import METHODS
 
+pytestmark = pytest.mark.e2e  # renders a split and runs the whole evaluation command (~20 s)
+
 
 @pytest.fixture(scope="module")
 def tiny_set(tmp_path_factory):

@@ -23,7 +23,7 @@ from shared.camera import camera_from_sensor_yaml, read_sensor_yaml_file
 from shared.codec import Header
 from shared.config import to_dict
 from shared.paths import euroc_dir
-from tests.helpers_zenoh import REPO, child_env, router, wait_for
+from tests.helpers_zenoh import REPO, child_env, router, wait_for, wait_for_heartbeat
 from tools.depth.scenes import random_camera, random_scene, render_pinhole, render_rays
 from transport.pubsub import Publisher, Subscriber
 from transport.session import open_session
@@ -69,11 +69,11 @@ def test_depth_service_end_to_end(tmp_path, frame_data):
         lines: list[str] = []
         threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, "")), daemon=True).start()
         try:
-            assert wait_for(lambda: any(ln.startswith("depth: running") for ln in lines) or proc.poll() is not None, 60.0)
-            assert proc.poll() is None, "".join(lines)
             ns = tcfg.namespace
             stereo, fused, stats = [], [], []
             with open_session(tcfg) as session:
+                # up once it heartbeats (after warming its networks up)
+                assert wait_for_heartbeat(session, tcfg, "depth", 60.0, proc), "".join(lines)
                 subs = [Subscriber(session, f"{ns}/{topics.DEPTH_STEREO.key}", m.DepthFrame, "all", 64, handler=stereo.append),
                         Subscriber(session, f"{ns}/{topics.DEPTH_FUSED.key}", m.DepthFrame, "all", 64, handler=fused.append),
                         Subscriber(session, f"{ns}/stats/depth", m.ServiceStats, "all", 256, handler=stats.append)]

@@ -14,21 +14,14 @@ from services.app.cli import main
 from tools.eval.ablation_table import table_markdown
 
 
-@pytest.fixture(scope="module")
-def replica():
-    from services.app.synth.api import ensure_default_replica
-
-    return ensure_default_replica(progress=False)
-
-
 @pytest.mark.e2e
-def test_short_ablation_writes_results_and_resume_skips_finished_rows(tmp_path, replica, capsys):
+def test_short_ablation_writes_results_and_resume_skips_finished_rows(tmp_path, default_replica, capsys):
     out = tmp_path / "abl"
-    argv = ["eval", "ablation", str(replica), "--rows", "baseline,learned", "--seconds", "4", "--depth-every", "8",
-            "--out", str(out)]
+    argv = ["eval", "ablation", str(default_replica), "--rows", "baseline,learned", "--seconds", "4",
+            "--depth-every", "8", "--out", str(out)]
     assert main(argv) == 0
     printed = capsys.readouterr().out
-    label = replica.name
+    label = default_replica.name
     for row in ("baseline", "learned"):
         assert f"[eval ablation] {label} {row}: running" in printed and f"{label} {row}: done in" in printed
     res = json.loads((out / "ablation.json").read_text())["replicas"][label]
@@ -62,7 +55,7 @@ def test_short_ablation_writes_results_and_resume_skips_finished_rows(tmp_path, 
     # a second run of the same row (not resumed) gives the same trajectories to the bit: loop.synchronous (set by
     # eval ablation) takes the loop thread's timing out of the result
     rerun = tmp_path / "rerun"
-    assert main(["eval", "ablation", str(replica), "--rows", "learned", "--seconds", "4", "--depth-every", "8",
+    assert main(["eval", "ablation", str(default_replica), "--rows", "learned", "--seconds", "4", "--depth-every", "8",
                  "--no-mesh", "--out", str(rerun)]) == 0
     assert json.loads((rerun / label / "learned.json").read_text())["overrides"][0] == "loop.synchronous=true"
     for name in ("trajectory_causal.txt", "trajectory_final.txt"):
@@ -70,22 +63,22 @@ def test_short_ablation_writes_results_and_resume_skips_finished_rows(tmp_path, 
 
 
 @pytest.mark.e2e
-def test_mono_row_runs_on_mvs_depth_or_fails_clearly_without_depth_mono(tmp_path, replica, capsys):
+def test_mono_row_runs_on_mvs_depth_or_fails_clearly_without_depth_mono(tmp_path, default_replica, capsys):
     from services.depth.config import DepthConfig
 
     out = tmp_path / "abl"
     # 6 s: MVS alone has no depth until keyframes with enough baseline are posed (the first ~3 s here)
-    argv = ["eval", "ablation", str(replica), "--rows", "mono", "--seconds", "6", "--depth-every", "8", "--no-mesh",
-            "--out", str(out)]
+    argv = ["eval", "ablation", str(default_replica), "--rows", "mono", "--seconds", "6", "--depth-every", "8",
+            "--no-mesh", "--out", str(out)]
     if "mono" not in {f.name for f in dataclasses.fields(DepthConfig)}:
         assert main(argv) == 1
-        r = json.loads((out / replica.name / "mono.json").read_text())
+        r = json.loads((out / default_replica.name / "mono.json").read_text())
         assert "depth.mono" in r["error"]
         assert "failed: ValueError: this build has no monocular depth" in (out / "table.md").read_text()
-        assert "row mono failed" in (out / replica.name / "mono.log").read_text()  # the traceback: row log only
+        assert "row mono failed" in (out / default_replica.name / "mono.log").read_text()  # the traceback: row log only
         return
-    assert main(argv) == 0, (out / replica.name / "mono.log").read_text()[-3000:]
-    r = json.loads((out / replica.name / "mono.json").read_text())
+    assert main(argv) == 0, (out / default_replica.name / "mono.log").read_text()[-3000:]
+    r = json.loads((out / default_replica.name / "mono.json").read_text())
     assert r["overrides"][-4:] == ["rig.cameras=[cam0]", "depth.mono=true", "depth.use_mvs=true", "o2p.enabled=true"]
     assert r["depth"]["stereo_weights"] == "-" and r["depth"]["mvs_weights"] != "-"  # MVS alone
     assert r["depth_frames"] > 0  # MVS depth reached the map once the first keyframes were posed

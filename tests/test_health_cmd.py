@@ -5,7 +5,8 @@ from __future__ import annotations
 import subprocess
 import sys
 
-from tests.helpers_zenoh import REPO, child_env, free_port, router, spawn_python
+from tests.helpers_zenoh import REPO, child_env, free_port, router, spawn_python, wait_for_heartbeat
+from transport.session import open_session
 
 NODE = r"""
 import sys, time
@@ -13,7 +14,6 @@ from transport.config import TransportConfig
 from transport.node import Node
 cfg = TransportConfig(namespace=sys.argv[1], connect=[sys.argv[2]], heartbeat_period_s=0.2)
 with Node("tracker", cfg) as node:
-    print("up", flush=True)
     node.wait(30)
 """
 
@@ -39,7 +39,8 @@ def test_router_and_service_heartbeat() -> None:
         assert r.returncode == 1 and "no heartbeat from 'tracker'" in r.stderr
         node = spawn_python(NODE, cfg.namespace, cfg.connect[0])
         try:
-            assert node.stdout.readline().strip() == "up"
+            with open_session(cfg) as session:  # the node is up (its start can take seconds on a loaded machine)
+                assert wait_for_heartbeat(session, cfg, "tracker", 30.0, node), f"no heartbeat; exit code {node.poll()}"
             r = health("tracker", *_sets(cfg), "--timeout", "5")
             assert r.returncode == 0, r.stderr
             assert "tracker alive" in r.stdout

@@ -1,5 +1,3 @@
-from pathlib import Path
-
 import gtsam
 import numpy as np
 
@@ -45,7 +43,6 @@ def test_preintegration_reproduces_relative_poses():
     cam = cam[(cam > traj.t0_ns + 10**9) & (cam < traj.t_end_ns - 10**9)][100:160]
     t_imu = np.arange(cam[0], cam[-1] + 1, 5_000_000, dtype=np.int64)
     t_all = np.union1d(t_imu, cam)
-    imu = simulate_imu(traj, t_all)
     params = gtsam.PreintegrationParams.MakeSharedU(9.81)
     params.setGyroscopeCovariance(np.eye(3) * 1e-8)
     params.setAccelerometerCovariance(np.eye(3) * 1e-8)

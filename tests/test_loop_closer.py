@@ -9,6 +9,7 @@ transport. Every landmark carries a fixed random ORB-like code, observed with a 
 """
 
 import numpy as np
+import pytest
 
 import vio_sim as sim
 from services.backend.config import BackendConfig
@@ -75,6 +76,7 @@ def _loops_agree_with_ground_truth(closer, times, gt):
         assert np.linalg.norm(err[:3, 3]) < 0.1, (old, new, err[:3, 3])
 
 
+@pytest.mark.e2e  # the estimator and the loop closer over 24-32 s simulated flights
 def test_revisits_are_closed_and_every_loop_is_true():
     times, gt, out, closer, est = _run(32.0)
     c = closer.counts
@@ -90,6 +92,7 @@ def test_revisits_are_closed_and_every_loop_is_true():
     assert closer.covisibility.covisible(k, 5)
 
 
+@pytest.mark.e2e  # the estimator and the loop closer over 24-32 s simulated flights
 def test_relocalisation_after_blank_cameras():
     # 6 s without images (the 8-keyframe window forgets every landmark) with an accelerometer bias the
     # estimator has not fully learnt yet: the IMU-only segment drifts
@@ -110,6 +113,7 @@ def test_relocalisation_after_blank_cameras():
     assert cor.mean() < 0.5 * raw.mean(), (raw.mean(), cor.mean())
 
 
+@pytest.mark.e2e  # the estimator and the loop closer over 24-32 s simulated flights
 def test_synchronous_runner_publishes_what_the_closer_computes_at_once():
     # loop.synchronous: no thread; each event is handled as it is submitted, so the published poses are exactly
     # those of calling the closer directly (the threaded runner publishes them whenever its thread gets there)

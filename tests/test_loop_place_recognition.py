@@ -15,8 +15,12 @@ from services.frontend.config import FrontendConfig
 from services.backend.loop.place_recognition import PlaceDatabase
 from services.backend.loop.verification import FeatureSet, verify_pnp
 from services.backend.loop.vocabulary import Vocabulary, hamming, k_majority, l1_score
-from shared.geometry import inv_T, so3_exp
+from shared.geometry import inv_T
 from tools.build_vocabulary import frontend_descriptors, look_pose
+
+# e2e tier: a textured scene and a 25-keyframe flight rendered through the real rig (~30 s of CPU); the loop
+# closer's logic on synthetic features is in the unit tier (tests/test_loop_closer.py)
+pytestmark = pytest.mark.e2e
 
 N_CIRCLE = 24
 

@@ -19,11 +19,9 @@ from tools.bench_mapping import replica_frames
 
 
 @pytest.mark.e2e
-def test_replica_gt_depth_mesh_accuracy(tmp_path):
-    from services.app.synth.api import ensure_default_replica, ensure_replica
-
+def test_replica_gt_depth_mesh_accuracy(tmp_path, cached_replica, request):
     full = os.environ.get("SIGMASLAM_E2E") == "full"
-    folder = ensure_default_replica(progress=False) if full else ensure_replica("V1_02", duration_s=1.5, progress=False)
+    folder = request.getfixturevalue("default_replica") if full else cached_replica("V1_02", duration_s=1.5)
     mapper = SubmapMapper(SensorModelConfig(sigma_model="quadratic", k_sigma=0.005), SubmapConfig())
     n = 0
     for stamp, d, K, T_WC in replica_frames(folder, 0, 2):

@@ -23,7 +23,7 @@ from shared import topics
 from shared.codec import Header
 from shared.config import to_dict
 from shared.geometry import inv_T, make_T, so3_exp
-from tests.helpers_zenoh import REPO, child_env, router, wait_for
+from tests.helpers_zenoh import REPO, child_env, router, wait_for, wait_for_heartbeat
 from tools.raycast_depth import DepthRenderer, intrinsics, look_at, room_scene
 from transport.pubsub import Publisher, Subscriber
 from transport.session import open_session
@@ -59,10 +59,9 @@ def test_mapping_service_end_to_end(tmp_path):
         lines: list[str] = []
         threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, "")), daemon=True).start()
         try:
-            assert wait_for(lambda: any(ln.startswith("mapping:") for ln in lines) or proc.poll() is not None, 30.0)
-            assert proc.poll() is None, "".join(lines)
             got: list[m.SubmapMesh] = []
             with open_session(tcfg) as session:
+                assert wait_for_heartbeat(session, tcfg, "mapping", 30.0, proc), "".join(lines)
                 sub = Subscriber(session, f"{tcfg.namespace}/{topics.SUBMAP.key}", m.SubmapMesh, "all", 64, handler=got.append)
                 fields: list[m.OccupancyField] = []
                 sub_field = Subscriber(session, f"{tcfg.namespace}/{topics.MAP_FIELD.key}", m.OccupancyField, "all", 64,

@@ -41,6 +41,7 @@ def test_still_motion_measures_small_rotation_and_rejects_motion():
     assert still_motion(xy_kf[:10], xy_n[:10], f, R_SC, 1.0, 20) is None  # too few features to tell
 
 
+@pytest.mark.e2e  # the frontend and back end over 9 s of rendered frames (~25 s)
 def test_mono_vio_tracks_a_still_start_and_take_off(tmp_path):
     # V1_02 from 1 s: 2 s standing on the ground with the rotors running, then take-off (real IMU)
     data = e2e_dataset.make_dataset(tmp_path / "data", "V1_02", start_s=1.0, seconds=9.0, real_imu=True)

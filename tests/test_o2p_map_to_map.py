@@ -15,7 +15,7 @@ from services.backend.loop.final_ba import bundle_adjust
 from services.backend.loop.history import KeyframeRecord
 from services.backend.loop.loop_closer import LoopCloser, ThreadedLoopCloser
 from services.backend.loop.pose_graph import PoseGraph
-from tests.test_o2p_terms import S, err, map_to_map_term, room  # noqa: F401,F811 (room: the fixture)
+from tests.test_o2p_terms import S, err, map_to_map_term
 
 # odometry between the two anchors, loose: the term has to do the pulling (3 deg, 10 cm); the anchor's error
 # includes a tilt, which the loop closer's attitude factors (loop.attitude_sigma_deg) would hold, so they are off
@@ -30,8 +30,8 @@ def records(P_o, T_est):
     return [rec(1, 1 * S, P_o, next_state=7, rel_cov_to_next=REL_COV, T_WS_next=T_est), rec(7, 4 * S, T_est)]
 
 
-def test_pose_graph_map_to_map_pulls_the_submap_anchor_back(room):
-    term, P_o, T_true, T_est = map_to_map_term(room)
+def test_pose_graph_map_to_map_pulls_the_submap_anchor_back(o2p_room):
+    term, P_o, T_true, T_est = map_to_map_term(o2p_room)
     for with_term in (False, True):
         pg = PoseGraph()
         pg.add_node(1, P_o)
@@ -47,7 +47,8 @@ def test_pose_graph_map_to_map_pulls_the_submap_anchor_back(room):
         else:
             assert rot > 1.5 and tr > 0.03  # odometry alone keeps the error
     # capped at N_eff = 10 points (the default) the term still pulls, less hard against the loose odometry
-    capped, *_ = map_to_map_term(room, O2PConfig(enabled=True, frame_to_map=False, map_to_map=True, effective_points=10))
+    capped, *_ = map_to_map_term(o2p_room, O2PConfig(enabled=True, frame_to_map=False, map_to_map=True,
+                                                     effective_points=10))
     pg = PoseGraph()
     pg.add_node(1, P_o)
     pg.add_node(7, T_est, REL_COV)
@@ -56,8 +57,8 @@ def test_pose_graph_map_to_map_pulls_the_submap_anchor_back(room):
     assert rot < 1.0 and tr < 0.02
 
 
-def test_map_to_map_waits_in_the_loop_closer_for_its_anchor_nodes(room):
-    term, P_o, T_true, T_est = map_to_map_term(room)
+def test_map_to_map_waits_in_the_loop_closer_for_its_anchor_nodes(o2p_room):
+    term, P_o, T_true, T_est = map_to_map_term(o2p_room)
     closer = LoopCloser(LoopConfig(attitude_sigma_deg=0), [])
     rec1, rec7 = records(P_o, T_est)
     assert not closer.add_map_to_map(term)  # no node yet
@@ -78,10 +79,10 @@ def test_map_to_map_waits_in_the_loop_closer_for_its_anchor_nodes(room):
     assert "map_to_map_chi2" not in closer.counts
 
 
-def test_threaded_loop_closer_takes_map_to_map_terms(room):
+def test_threaded_loop_closer_takes_map_to_map_terms(o2p_room):
     """Through the closer's thread (as the back end submits them): the correction and the corrected
     keyframes follow the solve that includes the term."""
-    term, P_o, T_true, T_est = map_to_map_term(room)
+    term, P_o, T_true, T_est = map_to_map_term(o2p_room)
     runner = ThreadedLoopCloser(LoopCloser(LoopConfig(attitude_sigma_deg=0), []))
     try:
         rec1, rec7 = records(P_o, T_est)
@@ -98,8 +99,8 @@ def test_threaded_loop_closer_takes_map_to_map_terms(room):
         runner.close()
 
 
-def test_final_bundle_adjustment_uses_map_to_map(room):
-    term, P_o, T_true, T_est = map_to_map_term(room)
+def test_final_bundle_adjustment_uses_map_to_map(o2p_room):
+    term, P_o, T_true, T_est = map_to_map_term(o2p_room)
     recs = records(P_o, T_est)
     without = bundle_adjust(recs, [], prior_sigma_rot=1e-4, prior_sigma_pos=1e-4)
     res = bundle_adjust(recs, [], prior_sigma_rot=1e-4, prior_sigma_pos=1e-4, map_to_map=[term])

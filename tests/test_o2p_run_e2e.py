@@ -22,17 +22,10 @@ from helpers_zenoh import REPO, child_env, free_port
 FULL = os.environ.get("SIGMASLAM_E2E", "") == "full"
 
 
-@pytest.fixture(scope="module")
-def replica():
-    from services.app.synth.api import ensure_default_replica
-
-    return ensure_default_replica(progress=False)
-
-
 @pytest.mark.e2e
-def test_run_with_o2p_builds_frame_to_map_factors_from_the_services_messages(tmp_path, replica):
+def test_run_with_o2p_builds_frame_to_map_factors_from_the_services_messages(tmp_path, default_replica):
     out = tmp_path / "run"
-    argv = [sys.executable, "-m", "services.app.cli", "run", str(replica), str(REPO / "configs" / "demo.yaml"),
+    argv = [sys.executable, "-m", "services.app.cli", "run", str(default_replica), str(REPO / "configs" / "demo.yaml"),
             "--out", str(out), "--timeout-s", "600", "--set", "o2p.enabled=true", "--set", f"viewer.port={free_port()}"]
     if not FULL:
         argv.append("--player-arg=--max-frames=300")

@@ -16,17 +16,10 @@ from services.mapping.export import field_message
 from services.mapping.mesh import ChunkMesher
 from services.mapping.submaps import Submap
 from shared.geometry import inv_T, make_T, so3_exp
-from tests.o2p_room import H, K, W, mapped_room, view
+from tests.o2p_room import H, K, W, view
 from tools.raycast_depth import intrinsics, room_scene
 
 S = 1_000_000_000  # 1 s in ns
-
-
-@pytest.fixture(scope="module")
-def room():
-    store, renderer, cfg = mapped_room(0.02)
-    msg = field_message(Submap(0, np.eye(4), 1 * S, store, ChunkMesher(4)), cfg.l_min)
-    return msg, renderer
 
 
 def perturbed(T, seed, rot_deg=2.0, trans_m=0.04):
@@ -68,8 +61,8 @@ def test_select_depth_points_lowest_sigma_spread_and_back_projected():
         select_depth_points(depth, sigma[:5], K, 200)
 
 
-def test_frame_to_map_pulls_a_keyframe_back_and_needs_covisibility(room):
-    msg, renderer = room
+def test_frame_to_map_pulls_a_keyframe_back_and_needs_covisibility(o2p_room):
+    msg, renderer = o2p_room
     T_true = view(2.0)  # a view whose points constrain all three translations (1.3 sees mostly one wall)
     stamps = {5: 5 * S}
     for covisible in (False, True):
@@ -92,11 +85,11 @@ def test_frame_to_map_pulls_a_keyframe_back_and_needs_covisibility(room):
         assert terms.factors({}, gtsam.Values()) == []  # the state left the window: its factor goes
 
 
-def map_to_map_term(room, cfg=None, expect_term=True):
+def map_to_map_term(o2p_room, cfg=None, expect_term=True):
     """Submap 0 = the mapped room (T_WM = I, created at 1 s, anchored on keyframe state 1 at P_o); submap 1
     created at 4 s, anchored on state 7, integrated at the estimate T_est of its anchor (true pose T_true):
     its points are right in M_1, its pose is off by 2 deg / 4 cm. Returns the queued term and the poses."""
-    msg, renderer = room
+    msg, renderer = o2p_room
     P_o, T_true = view(0.5), view(3.0)
     T_est = perturbed(T_true, 8)
     published = {1 * S: (1, P_o), 4 * S: (7, T_est)}  # keyframe poses as the mapping saw them
@@ -122,17 +115,17 @@ def map_to_map_term(room, cfg=None, expect_term=True):
 
 
 @pytest.mark.parametrize("gap_s", [0.9, 1.1])
-def test_map_to_map_target_gap(room, gap_s):
+def test_map_to_map_target_gap(o2p_room, gap_s):
     # submap 0 holds frames 1-3 s, submap 1 begins at 4 s: 1 s apart, so a target with a 0.9 s gap, none with 1.1 s
     cfg = O2PConfig(enabled=True, frame_to_map=False, map_to_map=True, effective_points=0, map_target_gap_s=gap_s)
-    got = map_to_map_term(room, cfg, expect_term=gap_s < 1.0)
+    got = map_to_map_term(o2p_room, cfg, expect_term=gap_s < 1.0)
     assert (got is not None) == (gap_s < 1.0)
     with pytest.raises(ValueError):
         O2PConfig(map_target_gap_s=-1.0).check()
 
 
-def test_map_to_map_term_binds_both_submaps_to_their_anchor_keyframes(room):
-    term, P_o, T_true, T_est = map_to_map_term(room)
+def test_map_to_map_term_binds_both_submaps_to_their_anchor_keyframes(o2p_room):
+    term, P_o, T_true, T_est = map_to_map_term(o2p_room)
     assert (term.submap, term.target, term.state_m, term.state_o) == (1, 0, 7, 1)
     assert np.allclose(term.T_KM_m, np.eye(4)) and np.allclose(term.T_KM_o, inv_T(P_o))
     # at the anchors' true poses the points lie on the room's surfaces: the factor's error is ~0 there and large
@@ -146,13 +139,13 @@ def test_map_to_map_term_binds_both_submaps_to_their_anchor_keyframes(room):
     assert e_true < 0.05 * f_true.error(v)
     # without a loop closer (no anchor binding) the term is counted, not built
     terms = OccupancyTerms(O2PConfig(enabled=True, map_to_map=True))
-    terms.add_field(room[0])
+    terms.add_field(o2p_room[0])
     terms.add_submap_points(0, np.zeros((5, 3)), np.full(5, 0.03))
     assert terms.pop_map_to_map() == [] and terms.counts["map_to_map_no_pose_graph"] == 1
 
 
-def test_submap_point_pool_keeps_spread_lowest_sigma_points_in_the_submap_frame(room):
-    _, renderer = room
+def test_submap_point_pool_keeps_spread_lowest_sigma_points_in_the_submap_frame(o2p_room):
+    _, renderer = o2p_room
     Wf, Hf = 320, 240
     Kf = intrinsics(Wf, Hf)
     T_WM = view(0.5)
@@ -186,10 +179,10 @@ def test_submap_points_message_round_trip():
     assert back.submap_id == 2 and np.array_equal(back.points_M, msg.points_M) and np.array_equal(back.sigma, msg.sigma)
 
 
-def test_depth_between_keyframes_attaches_to_the_nearest_state(room):
+def test_depth_between_keyframes_attaches_to_the_nearest_state(o2p_room):
     """Depth at 5.1 s, window state at 5.0 s: points move into the state's frame by the estimates' relative
     pose, and the factor still pulls the state onto the map (exact stamps only: no factor)."""
-    msg, renderer = room
+    msg, renderer = o2p_room
     T_k = view(2.0)
     T_d = T_k @ make_T(so3_exp(np.array([0.0, 0.02, 0.0])), np.array([0.05, 0.0, 0.02]))  # 0.1 s of motion
     T_k_est = perturbed(T_k, 5)
@@ -214,10 +207,10 @@ def test_depth_between_keyframes_attaches_to_the_nearest_state(room):
             assert rot < 0.3 and tr < 0.01
 
 
-def test_target_state_leaving_the_window_holds_the_submap_fixed(room):
+def test_target_state_leaving_the_window_holds_the_submap_fixed(o2p_room):
     """Submap 0 anchored on window state 1: the factor acts on both poses; when state 1 leaves the window the
     factor stays (submap held at its T_WM) instead of referring to a missing key."""
-    msg, renderer = room
+    msg, renderer = o2p_room
     T_true = view(2.0)
     terms = OccupancyTerms(O2PConfig(enabled=True))
     for t in range(1, 4):
@@ -237,12 +230,12 @@ def test_target_state_leaving_the_window_holds_the_submap_fixed(room):
     assert rot < 0.3 and tr < 0.01
 
 
-def test_loop_correction_maps_published_depth_and_submaps_into_the_window_frame(room):
+def test_loop_correction_maps_published_depth_and_submaps_into_the_window_frame(o2p_room):
     """With loop closure, depth poses and submap poses arrive in the corrected frame W' = T_W'W W while the
     window lives in W: the factor must pull the state to its true pose in W, not to T_W'W T_true."""
     import dataclasses
 
-    msg, renderer = room
+    msg, renderer = o2p_room
     C = make_T(so3_exp(np.radians([0.0, 0.0, 5.0])), np.array([0.2, -0.1, 0.05]))  # T_W'W
     T_true = view(2.0)
     T_est = perturbed(T_true, 6, 1.0, 0.02)
@@ -271,9 +264,9 @@ def test_loop_correction_maps_published_depth_and_submaps_into_the_window_frame(
 
 
 @pytest.mark.parametrize("min_age_s", [1.5, 2.5])
-def test_frame_to_map_target_must_be_old_enough(room, min_age_s):
+def test_frame_to_map_target_must_be_old_enough(o2p_room, min_age_s):
     # submap 0 was mapped from 1 s to 3 s; the frame at 5 s is 2 s after it: a target with a 1.5 s gap, none with 2.5 s
-    msg, renderer = room
+    msg, renderer = o2p_room
     T_true = view(2.0)
     terms = OccupancyTerms(O2PConfig(enabled=True, min_target_age_s=min_age_s))
     for t in range(1, 4):
@@ -293,10 +286,10 @@ def test_frame_to_map_target_must_be_old_enough(room, min_age_s):
         O2PConfig(min_target_age_s=-1.0).check()
 
 
-def test_a_verified_loop_makes_the_old_submap_covisible(room):
+def test_a_verified_loop_makes_the_old_submap_covisible(o2p_room):
     # the frame at 20 s sees none of submap 0's landmark ids (a revisit: the tracker made new ones), so there is
     # no target; the loop closer's match of that keyframe to submap 0's landmarks makes submap 0 its o(k)
-    msg, renderer = room
+    msg, renderer = o2p_room
     T_true = view(2.0)
     for loop in (False, True):
         terms = OccupancyTerms(O2PConfig(enabled=True))

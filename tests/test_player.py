@@ -20,7 +20,6 @@ from shared.euroc_writer import write_euroc
 from shared.messages import Control, EstimatorState
 from tools.dataset_convert import euroc_to_mcap, mcap_to_euroc
 from transport.node import Node
-from transport.queues import Empty
 
 T0 = 1_403_715_523_912_143_104
 N_FRAMES = 10

@@ -43,10 +43,8 @@ import pytest
 from helpers_zenoh import REPO, child_env
 from shared.euroc import read_euroc_csv, read_tum
 from shared.geometry import quat_wxyz_to_R
-from shared.paths import shared_dir
 from shared.metrics.ate import associate
 
-MICRO = shared_dir() / "data" / "real" / "euroc_V1_01_micro"
 SERVICES = "supervisor.services=[{name: frontend, argv: [frontend]}, {name: backend, argv: [backend]}, " \
            "{name: depth, argv: [depth]}, {name: mapping, argv: [mapping]}]"  # configs/demo.yaml's, no viewer
 FRAMES = 60
@@ -54,13 +52,11 @@ LIMIT_M = 0.02
 
 
 @pytest.mark.e2e
-@pytest.mark.skipif(not (MICRO / "mav0").is_dir(),
-                    reason=f"{MICRO}: real EuRoC frames not found (set SIGMASLAM_SHARED to the folder holding "
-                           "data/real/euroc_V1_01_micro)")
-def test_run_on_real_euroc_frames(tmp_path):
+def test_run_on_real_euroc_frames(tmp_path, real_data):
+    micro = real_data("euroc_V1_01_micro", "mav0")  # skipped without it
     out = tmp_path / "v101"
     t0 = time.monotonic()
-    proc = subprocess.run([sys.executable, "-m", "services.app.cli", "run", str(MICRO), "--out", str(out),
+    proc = subprocess.run([sys.executable, "-m", "services.app.cli", "run", str(micro), "--out", str(out),
                            str(REPO / "configs" / "demo.yaml"), "--set", SERVICES, "--timeout-s", "300"],
                           cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=600)
     wall = time.monotonic() - t0
@@ -81,7 +77,7 @@ def test_run_on_real_euroc_frames(tmp_path):
     assert len(est) == after and np.array_equal(est.stamps_ns, read_euroc_csv(out / "trajectory_causal.csv").stamps_ns)
 
     # (b) drift against the ground truth, over the span both cover
-    gt_path = MICRO / "groundtruth_tum.txt"
+    gt_path = micro / "groundtruth_tum.txt"
     ate = json.loads((out / "ate.json").read_text())
     assert ate["groundtruth"] == str(gt_path), ate  # found by itself, no --gt
     assert 30 <= ate["matched"] < ate["poses"] == after, ate  # the overlap only: ground truth starts 1.04 s late

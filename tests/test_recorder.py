@@ -23,7 +23,7 @@ from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from mcap.reader import make_reader
 
-from helpers_zenoh import REPO, child_env, router, wait_for
+from helpers_zenoh import REPO, child_env, router, wait_for, wait_for_heartbeat
 from services.recorder.mcap_reader import read_metadata, read_recording
 from services.recorder.recovery import recover
 from services.app.cli import main as cli_main
@@ -91,13 +91,15 @@ def write_config(tmp_path, tcfg, **recorder) -> str:
     return str(path)
 
 
-def start_recorder(cfg_path: str, out) -> tuple[subprocess.Popen, list[str]]:
-    """Start `sigmaslam record`; returns once it prints "recording ..." (its subscriber is declared)."""
+def start_recorder(tcfg, cfg_path: str, out) -> tuple[subprocess.Popen, list[str]]:
+    """Start `sigmaslam record`; returns once its node heartbeats 'running' (publish_all then waits for its
+    subscriber to match each publisher)."""
     proc = subprocess.Popen([sys.executable, "-m", "services.app.cli", "record", cfg_path, "--out", str(out)],
                             cwd=REPO, env=child_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines: list[str] = []
     threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, "")), daemon=True).start()
-    ok = wait_for(lambda: any(line.startswith("recording") for line in lines) or proc.poll() is not None, 20.0)
+    with open_session(tcfg) as session:
+        ok = wait_for_heartbeat(session, tcfg, "recorder", 30.0, proc)
     assert ok and proc.poll() is None, "".join(lines)
     return proc, lines
 
@@ -135,7 +137,7 @@ def test_record_sigterm_complete_file(tmp_path):
     out = tmp_path / "run.mcap"
     with router() as tcfg:
         cfg_path = write_config(tmp_path, tcfg, chunk_size_bytes=256 * 1024)
-        proc, lines = start_recorder(cfg_path, out)
+        proc, lines = start_recorder(tcfg, cfg_path, out)
         try:
             sent = publish_all(tcfg, make_messages(12))
             proc.send_signal(signal.SIGTERM)
@@ -221,7 +223,7 @@ def test_record_sigkill_recoverable(tmp_path):
     with router() as tcfg:
         # small chunks, no timed flush: what is on disk is exactly the completed chunks
         cfg_path = write_config(tmp_path, tcfg, chunk_size_bytes=4096, flush_period_s=1000.0, foxglove=False)
-        proc, _lines = start_recorder(cfg_path, out)
+        proc, _lines = start_recorder(tcfg, cfg_path, out)
         try:
             sent = publish_all(tcfg, {topics.IMU.key: make_messages(n)[topics.IMU.key]})
             proc.kill()

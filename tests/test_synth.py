@@ -9,18 +9,18 @@ import gtsam
 import numpy as np
 import pytest
 
+from helpers_data import needs_sequence
 from shared.camera import load_rig
 from shared.depth_io import DepthFolder, read_depth_png, write_depth_png
 from shared.euroc import read_euroc_csv
 from shared.euroc_reader import EurocDataset
 from shared.imu_sim import G_W, read_imu_csv, time_offset
-from shared.paths import euroc_files, has_sequence
+from shared.paths import REPO_ROOT, euroc_files
 from shared.trajectory import Trajectory, procedural
 from services.app.synth.render import RenderConfig, Renderer
 from services.app.synth.replica import ReplicaSpec, generate, load_calibration, plan
 from services.app.synth.scene import build_scene, read_ply
 
-REPO = __import__("pathlib").Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -63,9 +63,7 @@ def test_gt_depth_lies_on_mesh_and_reprojects(small_scene, rig, tmp_path):
 
 @pytest.mark.parametrize("scene,site,sequence", [
     ("vicon-a", "vicon", "V2_01"),
-    pytest.param("machinehall-b", "machinehall", "MH_04", marks=pytest.mark.skipif(
-        not has_sequence("MH_04"), reason="EuRoC MH_04 is not bundled: set SIGMASLAM_SHARED to a folder with "
-        "data/euroc (../shared beside the checkout)")),
+    pytest.param("machinehall-b", "machinehall", "MH_04", marks=needs_sequence("MH_04")),  # not bundled
 ])
 def test_scene_clearance_variants_and_ply(tmp_path, scene, site, sequence):
     """Every ground-truth position of the site keeps >= 0.5 m from all geometry; variants differ; PLY is exact."""
@@ -119,6 +117,7 @@ def replica(tmp_path_factory):
     return generate(spec, out, progress=False)
 
 
+@pytest.mark.e2e  # the generator end to end: renders and writes a 0.6 s replica
 def test_replica_layout_and_reader(replica):
     ds = EurocDataset(replica)
     stamps = np.loadtxt(euroc_files("V1_02")["image_timestamps"], dtype=np.int64)
@@ -139,6 +138,7 @@ def test_replica_layout_and_reader(replica):
     assert np.allclose(load_rig(replica)[1].T_SC, load_rig(replica)[1].T_SC)
 
 
+@pytest.mark.e2e  # the generator end to end: renders and writes a 0.6 s replica
 def test_replica_depth_consistent_with_groundtruth_pose(replica):
     """Depth of cam0 and cam1 at the same stamp agree in 3D: GT poses, T_SC and depth are consistent."""
     rig = load_rig(replica)
@@ -158,6 +158,7 @@ def test_replica_depth_consistent_with_groundtruth_pose(replica):
     assert np.median(err) < 2e-3  # nearest-pixel lookup: small except at occlusion edges
 
 
+@pytest.mark.e2e  # the generator end to end: renders and writes a 0.6 s replica
 def test_simulated_imu_preintegration_matches_groundtruth(replica):
     """Noise off: pre-integrating the replica's imu0 between image times reproduces the GT relative poses."""
     imu = read_imu_csv(replica / "mav0" / "imu0" / "data.csv")
@@ -214,22 +215,37 @@ def test_error_paths(tmp_path):
     with pytest.raises(ValueError, match="16-bit"):
         read_depth_png(tmp_path / "eight.png", 0.0002)
     res = subprocess.run([sys.executable, "-m", "services.app.cli", "synth", "--out", str(tmp_path / "y"),
-                          "--groundtruth", str(tmp_path / "missing.csv")], cwd=REPO, capture_output=True, text=True)
+                          "--groundtruth", str(tmp_path / "missing.csv")], cwd=REPO_ROOT, capture_output=True, text=True)
     assert res.returncode == 1 and "missing.csv" in res.stderr
 
 
-def test_ensure_replica_generates_once_under_concurrency(tmp_path):
+def test_ensure_replica_generates_once_under_concurrency(tmp_path, monkeypatch):
+    """Two threads ask for the same replica at once: one generates (into .partial, renamed when done), the other
+    waits on the lock and gets the same folder; a later call finds it cached. Generation itself is stubbed (what it
+    writes: test_replica_layout_and_reader); the stub keeps the lock held a while so that the threads overlap."""
     import threading
     import time
 
-    from services.app.synth.api import ensure_replica
+    from services.app.synth import api
 
-    paths, errors = [], []
+    calls, errors, paths = [], [], []
+
+    def fake_generate(spec, out, progress=True):
+        calls.append(spec)
+        time.sleep(0.2)  # the other thread reaches the lock meanwhile
+        out.mkdir(parents=True)
+        (out / "replica.yaml").write_text(f"frames: {len(plan(spec)['frames'])}\n")
+        return out
+
+    monkeypatch.setattr(api, "generate", fake_generate)
+
+    def get():
+        return api.ensure_replica("V1_02", "vicon-b", imu="sim", duration_s=0.3, start_s=5.0, root=tmp_path,
+                                  progress=False)
 
     def call():
         try:
-            paths.append(ensure_replica("V1_02", "vicon-b", imu="sim", duration_s=0.3, start_s=5.0, root=tmp_path,
-                                        progress=False))
+            paths.append(get())
         except Exception as exc:  # reported below
             errors.append(exc)
 
@@ -239,11 +255,10 @@ def test_ensure_replica_generates_once_under_concurrency(tmp_path):
     for t in threads:
         t.join()
     assert not errors and len(paths) == 2 and paths[0] == paths[1]
+    assert len(calls) == 1  # generated once, the other caller waited for it
     assert (paths[0] / "replica.yaml").is_file() and not list(tmp_path.glob("*.partial"))
-    t = time.monotonic()
-    assert ensure_replica("V1_02", "vicon-b", imu="sim", duration_s=0.3, start_s=5.0, root=tmp_path) == paths[0]
-    assert time.monotonic() - t < 1.0  # cached
-    assert EurocDataset(paths[0]).frame_stamps_ns.size == 7  # 0.3 s at 20 Hz, both ends included
+    assert get() == paths[0] and len(calls) == 1  # cached: not generated again
+    assert (paths[0] / "replica.yaml").read_text() == "frames: 7\n"  # 0.3 s at 20 Hz, both ends included
 
 
 def test_compiled_texturing_matches_numpy_reference(small_scene, rig):

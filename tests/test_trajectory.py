@@ -1,5 +1,3 @@
-from pathlib import Path
-
 import numpy as np
 
 from shared.euroc import read_euroc_csv

@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from helpers_zenoh import REPO, child_env, free_port, router, service_config, spawn_python, wait_for
+from helpers_zenoh import REPO, child_env, free_port, router, service_config, spawn_python, wait_for, wait_for_heartbeat
 from shared import topics
 from shared.messages import Header, ImuSample
 from transport.node import Node
@@ -28,7 +28,6 @@ cfg = TransportConfig(**json.loads(sys.argv[1]))
 with Node("worker", cfg) as node:
     imu = node.subscriber(topics.IMU)
     work = node.timer("work", budget_ms=1.0)
-    print("ready", flush=True)
     while not node.stopped:
         try:
             imu.get(timeout=0.05)
@@ -48,7 +47,7 @@ def test_node_publishes_stats_and_heartbeat_and_stops_on_signal(sig):
         beats = Subscriber(s, f"{ns}/heartbeat/*", topics.HEARTBEAT.msg_type, "all", 200)
         child = spawn_python(SERVICE_CHILD, json.dumps(dataclasses.asdict(cfg)))
         try:
-            assert child.stdout.readline().strip() == "ready"
+            assert wait_for_heartbeat(s, cfg, "worker", 30.0, child), f"no heartbeat; exit code {child.poll()}"
             pub = Publisher(s, topics.IMU.key_expr(ns), ImuSample, cfg, block=True)
             assert pub.wait_for_subscribers(5)
             for i in range(10):

@@ -1,7 +1,6 @@
 """Stage timers (overruns, percentiles, rate) and the ServiceStats message built from them."""
 
 import math
-import time
 
 import numpy as np
 import pytest
@@ -9,6 +8,7 @@ import pytest
 from shared import codec
 from shared.messages import Heartbeat, ServiceStats
 from transport.queues import BoundedQueue
+from transport import stats as stats_module
 from transport.stats import StageTimer, StatsCollector, heartbeat
 
 
@@ -22,22 +22,27 @@ def test_overruns_counted_against_budget():
     assert s.p99_ms == pytest.approx(np.percentile([1, 5, 9.9, 10.1, 50, 3], 99))
 
 
-def test_context_manager_measures_wall_time_and_rate():
-    t = StageTimer("sleep", budget_ms=5.0)
+def test_context_manager_measures_time_and_rate(fake_clock):
+    fake_clock.install(stats_module)
+    t = StageTimer("work", budget_ms=5.0)
     for _ in range(5):
         with t:
-            time.sleep(0.01)
+            fake_clock.advance(0.010)  # the stage takes 10 ms
+        fake_clock.advance(0.015)  # and starts every 25 ms
     s = t.snapshot()
     assert s.count == 5 and s.overruns == 5
-    assert 10.0 <= s.p50_ms < 50.0
-    assert 10 < s.rate_hz <= 100  # five items about 10 ms apart
+    assert s.p50_ms == pytest.approx(10.0) and s.p99_ms == pytest.approx(10.0)
+    assert s.rate_hz == pytest.approx(40.0)  # four intervals of 25 ms between the five items
 
 
-def test_no_budget_never_overruns_and_window_expires():
+def test_no_budget_never_overruns_and_window_expires(fake_clock):
+    fake_clock.install(stats_module)
     t = StageTimer("free", window_s=0.05)
     t.record(10.0)
     assert t.snapshot().overruns == 0 and math.isnan(t.snapshot().budget_ms)
-    time.sleep(0.07)
+    fake_clock.advance(0.049)
+    assert t.snapshot().p50_ms == pytest.approx(10e3)  # still in the window
+    fake_clock.advance(0.002)
     s = t.snapshot()
     assert s.count == 1 and math.isnan(s.p50_ms) and s.rate_hz == 0.0
     with pytest.raises(ValueError, match="budget"):

@@ -12,7 +12,6 @@ import sys
 import time
 
 import numpy as np
-import pytest
 import yaml
 
 import frontend_scene as fs

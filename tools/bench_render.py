@@ -35,10 +35,16 @@ def main() -> None:
     img_t, dep_t, rig_t = [], [], []
     for s in stamps:
         T_WC = traj.pose(s) @ cams[0].T_SC
-        t = time.perf_counter(); r.image([T_WC], 0, 0.0, rng); img_t.append(time.perf_counter() - t)
+        t = time.perf_counter()
+        r.image([T_WC], 0, 0.0, rng)
+        img_t.append(time.perf_counter() - t)
         r._last_hit = None  # time a depth cast of its own
-        t = time.perf_counter(); r.depth(T_WC, 0); dep_t.append(time.perf_counter() - t)
-        t = time.perf_counter(); r.render_rig(traj.pose(s), 0.0, rng); rig_t.append(time.perf_counter() - t)
+        t = time.perf_counter()
+        r.depth(T_WC, 0)
+        dep_t.append(time.perf_counter() - t)
+        t = time.perf_counter()
+        r.render_rig(traj.pose(s), 0.0, rng)
+        rig_t.append(time.perf_counter() - t)
     print(f"scene {a.scene}: {len(scene.triangles)} triangles, atlas {scene.atlas.shape}, built in {t_scene:.1f} s")
     print(f"one image 752x480 (supersample {a.supersample}): median {np.median(img_t) * 1e3:.0f} ms; "
           f"GT depth: median {np.median(dep_t) * 1e3:.0f} ms; "

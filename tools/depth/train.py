@@ -56,7 +56,7 @@ def _photometric(rng, img: np.ndarray) -> np.ndarray:
 
 def stereo_batch(scenes, rng, batch: int, crop: tuple[int, int]):
     ch, cw = crop
-    L, R, U, V = [], [], [], []
+    L, R, U = [], [], []
     for _ in range(batch):
         s = scenes[rng.integers(len(scenes))]
         i = rng.integers(len(s["left"]))

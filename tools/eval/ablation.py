@@ -41,7 +41,6 @@ mesh, overrides).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import logging
 import sys
