@@ -155,25 +155,34 @@ class InProcessRunner:
     ``run(source)`` takes (topic, message) pairs in time order (a dataset's IMU and frames, then a StreamEnd) and
     hands each to every node that reads its topic; whatever the nodes emit is delivered in turn (stamp order, ties
     first-in first-out) until nothing is left, before the next source message: a frame is fully processed before
-    the next is read, as with a player that waits for each state. ``idle`` inputs are handled when nothing else is
-    pending. ``taps`` are called with every (topic, message) delivered (what a subscriber of everything sees)."""
+    the next is read, as with a player that waits for each state. A trigger message whose node waits for a side
+    input (``wait_until_trigger_stamp``) that has not reached its stamp yet is held until that input does, or until
+    nothing else is pending (the Zenoh runner's time-out). ``idle`` inputs are handled when nothing else is pending;
+    every node's ``tick`` runs after each source message's messages. ``now_ns`` is the stamp of the latest source
+    message (a sensor-time clock for nodes that need one). ``taps`` are called with every (topic, message)
+    delivered (what a subscriber of everything sees)."""
 
     def __init__(self, nodes: list[ProcessNode], taps: Iterable[Any] = ()) -> None:
         self.nodes = nodes
         self.taps = list(taps)
+        self.now_ns = 0
         self._heap: list = []
         self._idle: list = []
+        self._held: list = []  # (stamp, seq, node, input, message): triggers waiting for a side input
         self._seq = itertools.count()
         self._last_trigger: dict[int, int] = {}
+        self._newest: dict[tuple[int, int], int] = {}  # (id(node), id(input)) -> newest stamp handled
         self.emitted: dict[str, int] = {}
         # (node name, handler) -> [(wall s, thread CPU s)] of every call: the per-stage times of an in-process run
         self.times: dict[tuple[str, str], list[tuple[float, float]]] = {}
 
-    def _handle(self, node: ProcessNode, inp: Input, msg: Message) -> list[Emit]:
+    def _handle(self, node: ProcessNode, inp: Input, msg: Message) -> None:
         t0, c0 = time.perf_counter(), time.thread_time()
         out = node.handle(inp, msg)
         self.times.setdefault((node.name, inp.handler), []).append((time.perf_counter() - t0, time.thread_time() - c0))
-        return out
+        key = (id(node), id(inp))
+        self._newest[key] = max(self._newest.get(key, -1), int(msg.header.stamp_ns))
+        self._emit(out)
 
     def _push(self, topic: Topic, msg: Message) -> None:
         heapq.heappush(self._heap, (int(msg.header.stamp_ns), next(self._seq), topic, msg))
@@ -188,6 +197,21 @@ class InProcessRunner:
         self._last_trigger[id(node)] = stamp
         return False
 
+    def _waited_reached(self, node: ProcessNode, stamp: int) -> bool:
+        return all(self._newest.get((id(node), id(i)), -1) >= stamp for i in node.inputs if i.wait_until_trigger_stamp)
+
+    def _release(self, node: ProcessNode | None = None) -> None:
+        """Handle held triggers (of ``node`` whose waited inputs have caught up; with None, all: the time-out)."""
+        self._held.sort(key=lambda h: (h[0], h[1]))
+        keep = []
+        for h in self._held:
+            stamp, _, n, inp, msg = h
+            if node is None or (n is node and self._waited_reached(n, stamp)):
+                self._handle(n, inp, msg)
+            else:
+                keep.append(h)
+        self._held = keep
+
     def _deliver(self, topic: Topic, msg: Message) -> None:
         for tap in self.taps:
             tap(topic, msg)
@@ -197,8 +221,12 @@ class InProcessRunner:
                     continue
                 if inp.role == "idle":
                     self._idle.append((node, inp, msg))
+                elif inp.role == "trigger" and not self._waited_reached(node, int(msg.header.stamp_ns)):
+                    self._held.append((int(msg.header.stamp_ns), next(self._seq), node, inp, msg))
                 else:
-                    self._emit(self._handle(node, inp, msg))
+                    self._handle(node, inp, msg)
+                    if inp.wait_until_trigger_stamp and self._held:
+                        self._release(node)
 
     def _emit(self, emits: list[Emit]) -> None:
         for e in emits:
@@ -206,17 +234,23 @@ class InProcessRunner:
             self._push(e.topic, e.msg)
 
     def _drain(self) -> None:
-        while self._heap or self._idle:
+        while self._heap or self._held or self._idle:
             if self._heap:
                 _, _, topic, msg = heapq.heappop(self._heap)
                 self._deliver(topic, msg)
+            elif self._held:  # nothing else will come before the next source message: stop waiting
+                self._release()
             else:  # nothing else pending: the idle inputs' turn
                 node, inp, msg = self._idle.pop(0)
-                self._emit(self._handle(node, inp, msg))
+                self._handle(node, inp, msg)
 
     def run(self, source: Iterable[tuple[Topic, Message]]) -> None:
         for topic, msg in source:
+            self.now_ns = max(self.now_ns, int(msg.header.stamp_ns))
             self._push(topic, msg)
+            self._drain()
+            for node in self.nodes:
+                self._emit(node.tick())
             self._drain()
         for node in self.nodes:
             self._emit(node.close())
