@@ -29,6 +29,21 @@ def room():
     return msg, renderer
 
 
+class Anchors:
+    """A fixed SubmapAnchoring (services/backend/protocols.py), as the loop-closing back end's PublishedFrame
+    answers: ``published`` creation stamp -> (keyframe state, its pose as published), ``C`` = T_W'W or None."""
+
+    def __init__(self, published=None, C=None):
+        self.published, self.C = published or {}, C
+
+    def anchor_of(self, stamp_ns, T_WM):
+        n, T_WK = self.published[stamp_ns]
+        return n, inv_T(T_WK) @ T_WM
+
+    def correction(self):
+        return self.C
+
+
 def perturbed(T, seed, rot_deg=2.0, trans_m=0.04):
     rng = np.random.default_rng(seed)
     a, t = rng.normal(size=3), rng.normal(size=3)
@@ -100,8 +115,8 @@ def map_to_map_term(room, cfg=None, expect_term=True):
     P_o, T_true = view(0.5), view(3.0)
     T_est = perturbed(T_true, 8)
     published = {1 * S: (1, P_o), 4 * S: (7, T_est)}  # keyframe poses as the mapping saw them
-    terms = OccupancyTerms(cfg or O2PConfig(enabled=True, frame_to_map=False, map_to_map=True, effective_points=0))  # eq. 7 uncapped
-    terms.anchor_of = lambda stamp, T_WM: (published[stamp][0], inv_T(published[stamp][1]) @ T_WM)
+    terms = OccupancyTerms(cfg or O2PConfig(enabled=True, frame_to_map=False, map_to_map=True, effective_points=0),
+                           anchoring=Anchors(published))  # eq. 7 uncapped
     for t in range(1, 4):
         terms.note_frame(t * S, np.arange(0, 50))
     terms.add_field(msg)
@@ -247,9 +262,7 @@ def test_loop_correction_maps_published_depth_and_submaps_into_the_window_frame(
     T_true = view(2.0)
     T_est = perturbed(T_true, 6, 1.0, 0.02)
     for hooked, dt in ((True, 0), (True, S // 20), (False, 0)):
-        terms = OccupancyTerms(O2PConfig(enabled=True))
-        if hooked:
-            terms.correction = lambda: C
+        terms = OccupancyTerms(O2PConfig(enabled=True), anchoring=Anchors(C=C) if hooked else None)
         for t in range(1, 4):
             terms.note_frame(t * S, np.arange(0, 50))
         terms.add_field(dataclasses.replace(msg, T_WM=C @ np.asarray(msg.T_WM)))  # the map, published in W'
