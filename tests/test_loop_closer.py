@@ -1,5 +1,5 @@
-"""Loop closer on simulated VIO (estimator + marginalisation hook + bag of words + PnP + pose graph), no
-transport. Every landmark carries a fixed random ORB-like code, observed with a few flipped bits.
+"""Loop closer on simulated VIO (estimator + keyframe history as its marginalisation listener + bag of words + PnP +
+pose graph), no transport. Every landmark carries a fixed random ORB-like code, observed with a few flipped bits.
 
 * Revisits of the same place are proposed, verified and accepted, and every accepted loop agrees with the
   ground-truth relative pose (no false loop).
@@ -15,7 +15,7 @@ import vio_sim as sim
 from services.backend.config import BackendConfig
 from services.backend.estimator import BackendCamera, WindowedVioEstimator
 from services.backend.loop.config import LoopConfig
-from services.backend.loop.history import attach
+from services.backend.loop.history import KeyframeHistory
 from services.backend.loop.loop_closer import LoopCloser, ThreadedLoopCloser
 from services.backend.loop.verification import FeatureSet
 from shared.geometry import inv_T
@@ -30,11 +30,10 @@ def _run(t_end, blank=(np.inf, np.inf), seed=5, threaded=False, acc_bias=(0.05, 
     codes = rng.integers(0, 256, (len(pts), 32), dtype=np.uint8)
     cams = sim.rig(2)
     bcams = [BackendCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams]
-    est = WindowedVioEstimator(BackendConfig(compute_covariance=False), bcams)
-    hist = attach(est)
     closer = LoopCloser(LoopConfig(min_age_s=8.0), bcams)
     runner = ThreadedLoopCloser(closer, synchronous=threaded == "sync") if threaded else None
-    hist.listeners.append(runner.submit_record if threaded else closer.add_record)
+    hist = KeyframeHistory(listeners=[runner.submit_record if threaded else closer.add_record])
+    est = WindowedVioEstimator(BackendConfig(compute_covariance=False), bcams, on_marginalise=[hist])
     st, om, ac = sim.imu(tr, 0.0, t_end + 0.1, 200.0, rng, gyro_bias=(0.002, -0.001, 0.003), acc_bias=acc_bias,
                          **IMU_NOISE)
     t0 = 0.5

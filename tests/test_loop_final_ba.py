@@ -1,5 +1,5 @@
 """Final bundle adjustment over all keyframes (with IMU) on simulated VIO data: it improves the ATE of the
-causal trajectory; the keyframe history captured from the estimator's marginalisation hook is complete."""
+causal trajectory; the keyframe history (the estimator's marginalisation listener) is complete."""
 
 import numpy as np
 
@@ -7,7 +7,7 @@ import vio_sim as sim
 from services.backend.config import BackendConfig
 from services.backend.estimator import BackendCamera, WindowedVioEstimator
 from services.backend.loop.final_ba import bundle_adjust, follow_keyframes
-from services.backend.loop.history import attach
+from services.backend.loop.history import KeyframeHistory
 from shared.metrics.ate import compute_ate
 
 IMU_NOISE = dict(gyro_nd=1.7e-4, acc_nd=2e-3, gyro_rw=1.9e-5, acc_rw=3e-3)
@@ -18,9 +18,9 @@ def _run(t_end=24.0, t0=0.5, rate=10.0, seed=3, sigma_px=1.0):
     tr = sim.Trajectory()
     pts = sim.landmarks_cylinder(400, seed=4)
     cams = sim.rig(2)
+    hist = KeyframeHistory()
     est = WindowedVioEstimator(BackendConfig(compute_covariance=False),
-                               [BackendCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams])
-    hist = attach(est)
+                               [BackendCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams], on_marginalise=[hist])
     st, om, ac = sim.imu(tr, 0.0, t_end + 0.1, 200.0, rng, gyro_bias=(0.002, -0.001, 0.003),
                          acc_bias=(0.05, -0.03, 0.02), **IMU_NOISE)
     T0 = tr.T_WS(np.array([t0]))[0]

@@ -1,8 +1,8 @@
 """One camera: the occupancy-to-point factors wait for the window's metric hold (services/backend/o2p_terms.py,
-OccupancyTerms.window_factors as the back end's hook). A real one-camera WindowedVioEstimator on a rig standing
-still: before its first still keyframe it has no scale, and depth frames and submaps of that time are never
-used, even later; once it stood still and ``o2p.mono_settle_s`` passed, a covisible submap begun after the hold
-gets a frame-to-map factor."""
+OccupancyTerms.window_factors, the terms being the estimator's extra-factor source). A real one-camera
+WindowedVioEstimator on a rig standing still: before its first still keyframe it has no scale, and depth frames and
+submaps of that time are never used, even later; once it stood still and ``o2p.mono_settle_s`` passed, a covisible
+submap begun after the hold gets a frame-to-map factor."""
 
 from __future__ import annotations
 
@@ -33,9 +33,9 @@ def room():
 def test_dense_factors_wait_for_the_metric_hold_of_a_one_camera_window(room):
     store, renderer, l_min = room
     cam = sim.rig(1)[0]
-    est = WindowedVioEstimator(BackendConfig(), [BackendCamera(cam.T_SC, cam.undistort, cam.K[0, 0])])
     terms = OccupancyTerms(O2PConfig(enabled=True, mono_settle_s=0.5))
-    est.extra_factors = terms.window_factors  # as BackendShell.enable_o2p wires it
+    est = WindowedVioEstimator(BackendConfig(), [BackendCamera(cam.T_SC, cam.undistort, cam.K[0, 0])],
+                               extra_factors=[terms])  # as the back end's composition root wires it
     still = sim.Trajectory(scale=0.0)  # standing still at the origin (rotors off: no vibration)
     st, om, ac = sim.imu(still, 0.0, 4.0, 200.0)
     pts = sim.landmarks_cylinder(300, seed=2)

@@ -47,8 +47,7 @@ def test_pose_graph_map_to_map_pulls_the_submap_anchor_back(o2p_room):
         else:
             assert rot > 1.5 and tr > 0.03  # odometry alone keeps the error
     # capped at N_eff = 10 points (the default) the term still pulls, less hard against the loose odometry
-    capped, *_ = map_to_map_term(o2p_room, O2PConfig(enabled=True, frame_to_map=False, map_to_map=True,
-                                                     effective_points=10))
+    capped, *_ = map_to_map_term(o2p_room, O2PConfig(enabled=True, frame_to_map=False, map_to_map=True, effective_points=10))
     pg = PoseGraph()
     pg.add_node(1, P_o)
     pg.add_node(7, T_est, REL_COV)
@@ -115,25 +114,24 @@ def test_final_bundle_adjustment_uses_map_to_map(o2p_room):
 def test_submap_anchor_uses_the_keyframe_pose_as_published():
     """The mapping's T_WM of a submap lives in the frame of the keyframe poses it last received, so the back end
     takes T_KM against the pose the last Keyframes message carried, not against a newer correction."""
-    from services.backend.node import BackendShell
-    from services.backend.loop.backend_loop import LoopClosingBackend
+    from services.backend.node import BackendNode
     from services.system_config import load_system_config
     from shared.geometry import make_T, so3_exp
     from shared.messages import Header, Keyframes
     from shared.rig import load_rig_config
 
     cfg = load_system_config(None, ["loop.synchronous=true", "o2p.enabled=true"])
-    shell = BackendShell(cfg.backend, load_rig_config(cfg.rig))
-    shell.enable_o2p(cfg.o2p)
-    lb = LoopClosingBackend(shell, cfg.loop)
+    node = BackendNode(cfg, load_rig_config(cfg.rig))  # the composition root: the terms' anchoring is the loop's
+    lb = node.loop
+    assert node.shell.o2p.anchoring is lb.published
     try:
         T_window = make_T(so3_exp(np.array([0.0, 0.0, 0.3])), np.array([1.0, 2.0, 0.5]))  # the window's estimate
         lb.history.records.append(KeyframeRecord(5, 2 * S, T_window, np.zeros(3), gtsam.imuBias.ConstantBias(), {}, {}))
         T_pub = make_T(so3_exp(np.array([0.0, 0.0, 0.32])), np.array([1.05, 1.9, 0.5]))  # as published (corrected)
-        lb.note_published(Keyframes(header=Header(stamp_ns=2 * S), ids=np.array([5]), stamps_ns=np.array([2 * S]),
-                                    T_WS=T_pub[None]))
+        lb.published.note_published(Keyframes(header=Header(stamp_ns=2 * S), ids=np.array([5]),
+                                              stamps_ns=np.array([2 * S]), T_WS=T_pub[None]))
         T_WM = T_pub @ make_T(np.eye(3), np.array([0.1, 0.0, 0.0]))  # the mapping: the submap 10 cm ahead of it
-        n, T_KM = lb.anchor_of(2 * S, T_WM)
+        n, T_KM = lb.published.anchor_of(2 * S, T_WM)
         assert n == 5 and np.allclose(T_KM[:3, 3], [0.1, 0.0, 0.0]) and np.allclose(T_KM[:3, :3], np.eye(3))
     finally:
-        lb.runner.close()
+        node.close()

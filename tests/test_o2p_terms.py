@@ -22,6 +22,21 @@ from tools.raycast_depth import intrinsics, room_scene
 S = 1_000_000_000  # 1 s in ns
 
 
+class Anchors:
+    """A fixed SubmapAnchoring (services/backend/protocols.py), as the loop-closing back end's PublishedFrame
+    answers: ``published`` creation stamp -> (keyframe state, its pose as published), ``C`` = T_W'W or None."""
+
+    def __init__(self, published=None, C=None):
+        self.published, self.C = published or {}, C
+
+    def anchor_of(self, stamp_ns, T_WM):
+        n, T_WK = self.published[stamp_ns]
+        return n, inv_T(T_WK) @ T_WM
+
+    def correction(self):
+        return self.C
+
+
 def perturbed(T, seed, rot_deg=2.0, trans_m=0.04):
     rng = np.random.default_rng(seed)
     a, t = rng.normal(size=3), rng.normal(size=3)
@@ -86,15 +101,15 @@ def test_frame_to_map_pulls_a_keyframe_back_and_needs_covisibility(o2p_room):
 
 
 def map_to_map_term(o2p_room, cfg=None, expect_term=True):
-    """Submap 0 = the mapped room (T_WM = I, created at 1 s, anchored on keyframe state 1 at P_o); submap 1
+    """Submap 0 = the mapped o2p_room (T_WM = I, created at 1 s, anchored on keyframe state 1 at P_o); submap 1
     created at 4 s, anchored on state 7, integrated at the estimate T_est of its anchor (true pose T_true):
     its points are right in M_1, its pose is off by 2 deg / 4 cm. Returns the queued term and the poses."""
     msg, renderer = o2p_room
     P_o, T_true = view(0.5), view(3.0)
     T_est = perturbed(T_true, 8)
     published = {1 * S: (1, P_o), 4 * S: (7, T_est)}  # keyframe poses as the mapping saw them
-    terms = OccupancyTerms(cfg or O2PConfig(enabled=True, frame_to_map=False, map_to_map=True, effective_points=0))  # eq. 7 uncapped
-    terms.anchor_of = lambda stamp, T_WM: (published[stamp][0], inv_T(published[stamp][1]) @ T_WM)
+    terms = OccupancyTerms(cfg or O2PConfig(enabled=True, frame_to_map=False, map_to_map=True, effective_points=0),
+                           anchoring=Anchors(published))  # eq. 7 uncapped
     for t in range(1, 4):
         terms.note_frame(t * S, np.arange(0, 50))
     terms.add_field(msg)
@@ -128,7 +143,7 @@ def test_map_to_map_term_binds_both_submaps_to_their_anchor_keyframes(o2p_room):
     term, P_o, T_true, T_est = map_to_map_term(o2p_room)
     assert (term.submap, term.target, term.state_m, term.state_o) == (1, 0, 7, 1)
     assert np.allclose(term.T_KM_m, np.eye(4)) and np.allclose(term.T_KM_o, inv_T(P_o))
-    # at the anchors' true poses the points lie on the room's surfaces: the factor's error is ~0 there and large
+    # at the anchors' true poses the points lie on the o2p_room's surfaces: the factor's error is ~0 there and large
     # at the estimate
     f_true = term.build(X(7), X(1), T_true, P_o)
     v = gtsam.Values()
@@ -157,7 +172,7 @@ def test_submap_point_pool_keeps_spread_lowest_sigma_points_in_the_submap_frame(
     assert n == 400
     p_M, s = pool.pop(3)
     assert pool.pop(3) is None
-    # the points lie on the room's surfaces: their distance to the mesh in world is ~0
+    # the points lie on the o2p_room's surfaces: their distance to the mesh in world is ~0
     import open3d as o3d
 
     scene = o3d.t.geometry.RaycastingScene()
@@ -240,9 +255,7 @@ def test_loop_correction_maps_published_depth_and_submaps_into_the_window_frame(
     T_true = view(2.0)
     T_est = perturbed(T_true, 6, 1.0, 0.02)
     for hooked, dt in ((True, 0), (True, S // 20), (False, 0)):
-        terms = OccupancyTerms(O2PConfig(enabled=True))
-        if hooked:
-            terms.correction = lambda: C
+        terms = OccupancyTerms(O2PConfig(enabled=True), anchoring=Anchors(C=C) if hooked else None)
         for t in range(1, 4):
             terms.note_frame(t * S, np.arange(0, 50))
         terms.add_field(dataclasses.replace(msg, T_WM=C @ np.asarray(msg.T_WM)))  # the map, published in W'

@@ -33,6 +33,8 @@ Design choices:
 from __future__ import annotations
 
 import dataclasses
+from typing import Sequence
+
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, L, V, X
@@ -43,7 +45,9 @@ from services.backend.config import BackendConfig
 from services.backend.frame_result import FrameResult, to_message_covariance
 from services.backend.imu_factors import ImuBuffer, imu_factor, make_bias, make_params, predict
 from services.backend.motion_only import optimise_latest
-from services.backend.landmarks import WindowLandmarks, select_landmarks
+from services.backend.priors import marginal_prior, state_priors
+from services.backend.protocols import ExtraFactorSource, MarginalisationListener
+from services.backend.landmarks import WindowLandmarks, gather_landmarks
 from services.backend.mono_init import bootstrap as mono_bootstrap
 from services.backend.still import mono_frame_factors
 from services.backend.triangulation import triangulate_checked
@@ -58,9 +62,13 @@ def _state_keys(n: int) -> list[int]:
 
 
 class WindowedVioEstimator:
-    """Feed IMU with :meth:`add_imu` and frames with :meth:`process_frame` (in time order)."""
+    """Feed IMU with :meth:`add_imu` and frames with :meth:`process_frame` (in time order). ``extra_factors``:
+    sources of factors for every window graph; ``on_marginalise``: told before the oldest keyframe leaves the
+    window (services/backend/protocols.py). Others read the window through the read API at the end."""
 
-    def __init__(self, cfg: BackendConfig, cameras: list[BackendCamera], imu_calib=None) -> None:
+    def __init__(self, cfg: BackendConfig, cameras: list[BackendCamera], imu_calib=None, *,
+                 extra_factors: Sequence[ExtraFactorSource] = (),
+                 on_marginalise: Sequence[MarginalisationListener] = ()) -> None:
         if not cameras:
             raise ValueError("the back end needs at least one camera")
         self.cfg = cfg
@@ -99,12 +107,8 @@ class WindowedVioEstimator:
         self.last_error = ""
         self._marginals: gtsam.Marginals | None = None
         self._first_frame_pending = False
-        # loop-closure hook (services/backend/loop/history.py): called as f(self, old, new) before keyframe `old` is
-        # marginalised, while the window's marginals still cover it
-        self.on_marginalise = None
-        # extra-factor hook (occupancy-to-point, services/backend/o2p_terms.py): f(self) -> factors added to
-        # every window graph; they may only use the window's X keys
-        self.extra_factors = None
+        self._extra_factors = tuple(extra_factors)
+        self._on_marginalise = tuple(on_marginalise)
 
     # ---------------------------------------------------------------- input
     def add_imu(self, stamp_ns: int, omega_S: np.ndarray, acc_S: np.ndarray) -> None:
@@ -124,11 +128,8 @@ class WindowedVioEstimator:
         sv = c.prior_sigma_vel_m_s if static else c.prior_sigma_vel_moving_m_s
         pose_sig = np.array([tilt, tilt, c.prior_sigma_rot_rad] + [c.prior_sigma_pos_m] * 3)
         bias_sig = np.array([c.prior_sigma_acc_bias] * 3 + [c.prior_sigma_gyro_bias] * 3)
-        self._priors = [
-            gtsam.PriorFactorPose3(X(n), gtsam.Pose3(T), gtsam.noiseModel.Diagonal.Sigmas(pose_sig)),
-            gtsam.PriorFactorVector(V(n), np.asarray(v_W, float), gtsam.noiseModel.Isotropic.Sigma(3, sv)),
-            gtsam.PriorFactorConstantBias(B(n), make_bias(gyro_bias, acc_bias),
-                                          gtsam.noiseModel.Diagonal.Sigmas(bias_sig))]
+        self._priors = state_priors(n, gtsam.Pose3(T), np.asarray(v_W, float), make_bias(gyro_bias, acc_bias),
+                                    pose_sig, sv, bias_sig)
         self.keyframes = [n]
         self.initialised = True
         self._first_frame_pending = True  # the next frame at this stamp attaches to this state
@@ -193,9 +194,7 @@ class WindowedVioEstimator:
         except RuntimeError as exc:  # e.g. an indeterminant system: fall back to the IMU chain alone
             self.failed_optimisations += 1
             self.last_error = str(exc)
-            for lm in list(self._in_graph):
-                self._in_graph.discard(lm)
-                self.values.erase(L(lm))
+            self.forget_triangulations()
             graph = self._build_graph(n)
             params.setOrdering(self._schur_ordering())
             self.values = gtsam.LevenbergMarquardtOptimizer(graph, self.values, params).optimize()
@@ -347,8 +346,8 @@ class WindowedVioEstimator:
             for s, obs in self._obs[lm].items():
                 for j, (c, xy) in enumerate(obs):
                     g.add(self._projection(lm, s, j, c, xy))
-        if self.extra_factors is not None:
-            for f in self.extra_factors(self):
+        for source in self._extra_factors:
+            for f in source.window_factors(self):
                 g.add(f)
         return g
 
@@ -414,26 +413,9 @@ class WindowedVioEstimator:
 
     def _marginalise_oldest(self) -> None:
         old, new = self.keyframes[0], self.keyframes[1]
-        if self.on_marginalise is not None:
-            self.on_marginalise(self, old, new)
-        keys = _state_keys(new)
-        lin = gtsam.Values()
-        lin.insert(X(new), self.values.atPose3(X(new)))
-        lin.insert(V(new), self.values.atVector(V(new)))
-        lin.insert(B(new), self.values.atConstantBias(B(new)))
-        cov = None
-        if self._marginals is not None:
-            try:
-                cov = self._marginals.jointMarginalCovariance(keys).fullMatrix()
-            except RuntimeError:
-                cov = None
-        if cov is None or not np.all(np.isfinite(cov)):
-            cov = np.diag([1e-2] * 3 + [1e-1] * 3 + [1.0] * 3 + [1e-2] * 3 + [1e-4] * 3)
-        info = np.linalg.inv(0.5 * (cov + cov.T))
-        R = np.linalg.cholesky(0.5 * (info + info.T)).T  # R^T R = information
-        jf = gtsam.JacobianFactor(X(new), R[:, 0:6], V(new), R[:, 6:9], B(new), R[:, 9:15], np.zeros(15),
-                                  gtsam.noiseModel.Unit.Create(15))
-        self._priors = [gtsam.LinearContainerFactor(jf, lin)]
+        for listener in self._on_marginalise:
+            listener.on_marginalise(self, old, new)
+        self._priors = [marginal_prior(self.values, new, self.joint_marginal(_state_keys(new)))]
         self.keyframes.pop(0)
         self._imu_factors.pop(new, None)
         self._still.pop(new, None)  # refers to the old state; the marginal prior holds its information
@@ -455,20 +437,60 @@ class WindowedVioEstimator:
         """The window's well-constrained landmarks at the current estimate, at most ``max_count`` (default
         ``cfg.max_published_landmarks``): those last seen most recently, then seen most often, are kept."""
         limit = self.cfg.max_published_landmarks if max_count is None else max_count
-        ids, p, nobs, last = [], [], [], []
-        for lm in self._in_graph:
-            by_state = self._obs.get(lm, {})
-            n_obs = sum(len(o) for o in by_state.values())
-            if n_obs < 2 or not self.values.exists(L(lm)):
-                continue
-            ids.append(lm)
-            p.append(self.values.atPoint3(L(lm)))
-            nobs.append(n_obs)
-            last.append(max(self.stamps[s] for s in by_state))
-        return select_landmarks(ids, p, nobs, last, limit)
+        return gather_landmarks(self._obs, self._in_graph, self.values, self.stamps, limit)
 
     # ---------------------------------------------------------------- introspection
     def window_counts(self) -> dict[str, int]:
         """Sizes that bound the per-frame cost: states in the window, landmarks with factors, total variables."""
         return {"keyframes": len(self.keyframes), "states": len(self.stamps), "landmarks": len(self._in_graph),
                 "variables": int(self.values.size()), "observed_landmarks": len(self._obs)}
+
+    # ---------------------------------------------------------------- read API (mono_init, loop/history.py)
+    @property
+    def focal_px(self) -> np.ndarray:
+        """(C,) focal length of each camera [px] (a copy)."""
+        return self._focal.copy()
+
+    @property
+    def T_SC(self) -> np.ndarray:
+        """(C,4,4) pose of each camera in the body frame S (a copy)."""
+        return self._T_SC.copy()
+
+    @property
+    def mono_pending(self) -> bool:
+        """One camera: the window has no metric scale yet (it neither stood still nor was rebuilt by mono_init)."""
+        return self._mono_pending
+
+    def observations_of(self, state: int) -> dict[int, tuple[tuple[int, np.ndarray], ...]]:
+        """landmark -> ((camera, normalised xy (2,)), ...) of the window's observations at ``state``, in the
+        order landmarks were first seen; a new dict (the xy arrays are the window's own: do not modify them)."""
+        return {lm: tuple(by[state]) for lm, by in self._obs.items() if state in by}
+
+    def landmark_in_graph(self, lm: int) -> bool:
+        """Whether landmark ``lm`` is triangulated and has factors in the window's graph (a value L(lm))."""
+        return lm in self._in_graph
+
+    def imu_factor_to(self, state: int) -> gtsam.NonlinearFactor | None:
+        """The IMU factor from the keyframe before ``state`` to ``state`` (None for the oldest state)."""
+        return self._imu_factors.get(state)
+
+    def joint_marginal(self, keys: list[int]) -> np.ndarray | None:
+        """Joint marginal covariance of gtsam ``keys`` from the last optimisation's marginals (computed at keyframes
+        or with ``compute_covariance``); None when there are none or gtsam cannot compute it."""
+        if self._marginals is None:
+            return None
+        try:
+            return self._marginals.jointMarginalCovariance(keys).fullMatrix()
+        except RuntimeError:
+            return None
+
+    # ---------------------------------------------------------------- writes (mono_init's rebuild)
+    def replace_priors(self, factors: list[gtsam.NonlinearFactor]) -> None:
+        """The window's prior factors (on its oldest state) replaced by ``factors``."""
+        self._priors = list(factors)
+
+    def forget_triangulations(self) -> None:
+        """Every landmark leaves the graph (its observations stay; it is triangulated again from the poses)."""
+        for lm in list(self._in_graph):
+            self._in_graph.discard(lm)
+            self.values.erase(L(lm))

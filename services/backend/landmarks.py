@@ -3,7 +3,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import gtsam
 import numpy as np
+from gtsam.symbol_shorthand import L
 
 
 @dataclass(frozen=True)
@@ -25,3 +27,20 @@ def select_landmarks(ids, p_W, num_observations, last_seen_ns, limit: int) -> Wi
     order = np.lexsort((ids, -nobs, -last))[:max(0, int(limit))]  # newest first, then most observed
     order = order[np.argsort(ids[order])]
     return WindowLandmarks(ids[order], p[order], nobs[order], last[order])
+
+
+def gather_landmarks(obs: dict, in_graph: set[int], values: gtsam.Values, stamps: dict[int, int],
+                     limit: int) -> WindowLandmarks:
+    """:func:`select_landmarks` of the window's triangulated landmarks with >= 2 observations, at the estimate
+    ``values``: ``obs`` landmark -> state -> [(camera, xy)], ``stamps`` state -> stamp [ns]."""
+    ids, p, nobs, last = [], [], [], []
+    for lm in in_graph:
+        by_state = obs.get(lm, {})
+        n_obs = sum(len(o) for o in by_state.values())
+        if n_obs < 2 or not values.exists(L(lm)):
+            continue
+        ids.append(lm)
+        p.append(values.atPoint3(L(lm)))
+        nobs.append(n_obs)
+        last.append(max(stamps[s] for s in by_state))
+    return select_landmarks(ids, p, nobs, last, limit)

@@ -20,9 +20,10 @@ from __future__ import annotations
 import cv2
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import B, L, V, X
+from gtsam.symbol_shorthand import B, V, X
 
 from services.backend.init import rotation_aligning
+from services.backend.priors import state_priors
 from services.backend.triangulation import triangulate
 
 
@@ -99,11 +100,11 @@ def bootstrap(est, n: int, min_features: int, min_parallax_rad: float, ransac_px
     if len(states) < 4:
         return "fewer than 4 keyframes"
     b = states[-1]
-    f_px = float(est._focal[0])
-    obs_b = {lm: o[b][0][1] for lm, o in est._obs.items() if b in o}
+    f_px = float(est.focal_px[0])
+    obs_b = {lm: o[0][1] for lm, o in est.observations_of(b).items()}
     for i in range(len(states) - 3):  # the oldest keyframe that still shares enough features with the newest
         a = states[i]
-        obs_a = {lm: o[a][0][1] for lm, o in est._obs.items() if a in o}
+        obs_a = {lm: o[0][1] for lm, o in est.observations_of(a).items()}
         common = sorted(set(obs_a) & set(obs_b))
         if len(common) >= min_features:
             states = states[i:]
@@ -133,11 +134,12 @@ def bootstrap(est, n: int, min_features: int, min_parallax_rad: float, ransac_px
         return "too few two-view points"
     T_CkCa = {a: np.eye(4), b: T_ba}
     for s in states[1:-1]:  # the keyframes in between: PnP against the two-view points
-        lms = [lm for lm in pts if s in est._obs[lm]]
+        obs_s = est.observations_of(s)
+        lms = [lm for lm in pts if lm in obs_s]
         if len(lms) < 8:
             return "too few points for PnP"
         P = np.array([pts[lm] for lm in lms])
-        xy = np.array([est._obs[lm][s][0][1] for lm in lms])
+        xy = np.array([obs_s[lm][0][1] for lm in lms])
         ok, rvec, tvec, _ = cv2.solvePnPRansac(P, xy, np.eye(3), None, reprojectionError=ransac_px / f_px,
                                                iterationsCount=100, flags=cv2.SOLVEPNP_EPNP)
         if not ok:
@@ -145,11 +147,11 @@ def bootstrap(est, n: int, min_features: int, min_parallax_rad: float, ransac_px
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
         T_CkCa[s] = T
-    T_SC = est._T_SC[0]
+    T_SC = est.T_SC[0]
     T_CaC = [np.linalg.inv(T_CkCa[s]) for s in states]
     R_0S = np.array([T[:3, :3] @ T_SC[:3, :3].T for T in T_CaC])
     c_0 = np.array([T[:3, 3] for T in T_CaC])
-    pims = [est._imu_factors[s].preintegratedMeasurements() for s in states[1:]]
+    pims = [est.imu_factor_to(s).preintegratedMeasurements() for s in states[1:]]
     res = align(R_0S, c_0, T_SC[:3, 3], np.array([p.deltaPij() for p in pims]), np.array([p.deltaVij() for p in pims]),
                 np.array([p.deltaTij() for p in pims]), est.cfg.gravity_m_s2)
     if res is None:
@@ -169,13 +171,9 @@ def bootstrap(est, n: int, min_features: int, min_parallax_rad: float, ransac_px
     c = est.cfg
     pose_sig = np.array([c.prior_sigma_tilt_moving_rad] * 2 + [c.prior_sigma_rot_rad] + [c.prior_sigma_pos_m] * 3)
     bias_sig = np.array([c.prior_sigma_acc_bias] * 3 + [c.prior_sigma_gyro_bias] * 3)
-    est._priors = [
-        gtsam.PriorFactorPose3(X(a), est.values.atPose3(X(a)), gtsam.noiseModel.Diagonal.Sigmas(pose_sig)),
-        gtsam.PriorFactorVector(V(a), est.values.atVector(V(a)), gtsam.noiseModel.Isotropic.Sigma(3, 0.1)),
-        gtsam.PriorFactorConstantBias(B(a), est.values.atConstantBias(B(a)), gtsam.noiseModel.Diagonal.Sigmas(bias_sig))]
-    for lm in list(est._in_graph):  # triangulated from the drifting poses: start again
-        est._in_graph.discard(lm)
-        est.values.erase(L(lm))
+    est.replace_priors(state_priors(a, est.values.atPose3(X(a)), est.values.atVector(V(a)),
+                                    est.values.atConstantBias(B(a)), pose_sig, 0.1, bias_sig))
+    est.forget_triangulations()  # triangulated from the drifting poses: start again
     return ""
 
 
@@ -183,4 +181,4 @@ def metric_hold(est) -> bool:
     """Whether the window of ``est`` (a WindowedVioEstimator) has a metric scale: with two or more cameras once
     initialised; with one camera once it stood still or :func:`bootstrap` rebuilt it (before that its poses come
     from the IMU alone, with an unknown initial velocity, and anything placed with them has no scale)."""
-    return bool(est.initialised) and not est._mono_pending
+    return bool(est.initialised) and not est.mono_pending

@@ -5,10 +5,12 @@ optimisation), estimator/landmarks (after each keyframe's optimisation); with lo
 in and, at the end of the stream, estimator/trajectory_final out; with occupancy-to-point factors, map/field,
 map/o2p_points and depth/stereo in.
 
-:class:`BackendNode` builds, in one place, what the back end is made of from the system config: the windowed VIO
-estimator (:class:`BackendShell`), the occupancy-to-point terms (``cfg.o2p.enabled``) and the loop closer
-(``cfg.loop.enabled``), in the order their hooks need. Run over Zenoh by ``sigmaslam backend``
-(services/backend/service.py) or in one process by :class:`shared.dataflow.InProcessRunner`.
+:class:`BackendNode` is the back end's composition root: the one place that builds what the back end is made of
+from the system config and hands each part its collaborators in its constructor (the seams are the protocols of
+services/backend/protocols.py): the windowed VIO estimator, the occupancy-to-point terms (``cfg.o2p.enabled``) and
+the loop closer (``cfg.loop.enabled``); :class:`BackendShell` runs the estimator and the terms per frame. Run over
+Zenoh by ``sigmaslam backend`` (services/backend/service.py) or in one process by
+:class:`shared.dataflow.InProcessRunner`.
 """
 
 from __future__ import annotations
@@ -19,11 +21,15 @@ import logging
 import numpy as np
 
 from services.backend.backlog import shed_backlog
+from services.backend.cameras import BackendCamera
 from services.backend.estimator import BackendInputError, WindowedVioEstimator, camera_from_calib
 from services.backend.imu_factors import ImuDataError
+from services.backend.loop.backend_loop import LoopClosingBackend, PublishedFrame
+from services.backend.loop.history import KeyframeHistory
+from services.backend.loop.loop_closer import LoopCloser, ThreadedLoopCloser
+from services.backend.o2p_terms import OccupancyTerms
 from services.backend.outputs import keyframes_message, landmarks_message, state_message
 from shared.lookup_camera import LookupCamera
-from services.backend.loop.backend_loop import LoopClosingBackend
 from shared import topics
 from shared.dataflow import Emit, Input, ProcessNode
 from shared.messages import (DepthFrame, EstimatorState, FeatureFrame, Header, ImuSample, KeyframeFeatures, Keyframes,
@@ -32,26 +38,26 @@ from shared.messages import (DepthFrame, EstimatorState, FeatureFrame, Header, I
 log = logging.getLogger("sigmaslam.backend")
 
 
-class BackendShell:
-    """Per-frame logic of the service without the transport."""
+def backend_cameras(cameras) -> list[BackendCamera]:
+    """The rig's cameras (shared.rig calibrations) as the estimator and the loop closer use them: undistortion by
+    table lookup (the exact Newton inverse costs ~10 ms per frame at 300 observations)."""
+    return [camera_from_calib(dataclasses.replace(c, camera=LookupCamera(c.camera))) for c in cameras]
 
-    def __init__(self, cfg, cameras) -> None:
-        # undistortion by table lookup (the exact Newton inverse costs ~10 ms per frame at 300 observations)
-        cams = [dataclasses.replace(c, camera=LookupCamera(c.camera)) for c in cameras]
-        self.estimator = WindowedVioEstimator(cfg, [camera_from_calib(c) for c in cams])
+
+class BackendShell:
+    """Per-frame logic of the service without the transport: ``estimator`` and, when occupancy-to-point factors are
+    on, ``o2p`` (the estimator's extra-factor source, fed here with map and depth inputs). ``restarted``: after a
+    supervisor restart, the first state says 'reset'."""
+
+    def __init__(self, estimator: WindowedVioEstimator, o2p: OccupancyTerms | None = None,
+                 restarted: bool = False) -> None:
+        self.estimator = estimator
+        self.o2p = o2p
+        self.restarted = restarted
         self.dropped = 0
         self.seq = 0
         self.newest_imu_ns = -1
-        self.restarted = False  # set by main() after a supervisor restart: the first state says 'reset'
-        self.o2p = None  # OccupancyTerms when occupancy-to-point factors are on (enable_o2p)
         self.landmarks: Landmarks | None = None  # of the last keyframe processed, until take_landmarks()
-
-    def enable_o2p(self, cfg) -> None:
-        """Occupancy-to-point factors (services/backend/o2p_terms.py) in every window optimisation."""
-        from services.backend.o2p_terms import OccupancyTerms
-
-        self.o2p = terms = OccupancyTerms(cfg)
-        self.estimator.extra_factors = terms.window_factors  # none until the window has a metric scale (mono)
 
     def add_map_input(self, msg) -> None:
         """map/field (OccupancyField), depth/stereo (DepthFrame) or map/o2p_points (SubmapPoints) for o2p."""
@@ -114,9 +120,33 @@ class BackendShell:
 
 
 
+class _LateBound:
+    """A value handed to constructors before it exists, bound once right after (the root's one cycle)."""
+
+    def __init__(self, what: str) -> None:
+        self.what, self.value = what, None
+
+    def bind(self, value):
+        self.value = value
+        return value
+
+    def __call__(self):
+        if self.value is None:
+            raise RuntimeError(f"{self.what} read before it was built")
+        return self.value
+
+
 class BackendNode(ProcessNode):
-    """The back end's process node: builds estimator, occupancy terms and loop closer from ``cfg`` (the system
-    config) and routes each input to them."""
+    """The back end's process node and composition root: builds estimator, occupancy terms and loop closer from
+    ``cfg`` (the system config), each with its collaborators in its constructor, and routes each input to them.
+
+    Who needs whom: the estimator takes the occupancy terms (extra factors) and the loop closer's keyframe history
+    (marginalisation listener); the history feeds the loop closer, which needs only the cameras; the occupancy terms
+    take the loop closer's :class:`PublishedFrame` as their submap anchoring, and that reads the estimator's window
+    when a submap is anchored. The one cycle (estimator -> terms -> anchoring -> estimator) is cut at its last link,
+    which is only used while frames and map inputs flow, never during construction: the anchoring gets a late-bound
+    provider of the estimator, bound as soon as the estimator is built. So the order is: cameras; loop closer,
+    history and published frame; occupancy terms; estimator (provider bound); shell; loop-closing back end."""
 
     name = "backend"
     stage = "optimise"
@@ -137,13 +167,21 @@ class BackendNode(ProcessNode):
                     topics.TRAJECTORY_FINAL.key: "once, after sensors/end (loop.enabled)"}
 
     def __init__(self, cfg, cameras, restarted: bool = False) -> None:
-        bc = cfg.backend
+        bc, lc = cfg.backend, cfg.loop
         self.bc, self.budget_ms, self.wait_s = bc, bc.budget_ms, bc.imu_wait_s
-        self.shell = BackendShell(bc, cameras)
-        self.shell.restarted = restarted
-        if cfg.o2p.enabled:  # before the loop closer, which hooks into the terms (anchors, correction)
-            self.shell.enable_o2p(cfg.o2p)
-        self.loop = LoopClosingBackend(self.shell, cfg.loop) if cfg.loop.enabled else None
+        cams = backend_cameras(cameras)
+        window = _LateBound("the back end's estimator")
+        history = runner = published = None
+        if lc.enabled:
+            runner = ThreadedLoopCloser(LoopCloser(lc, cams), lc.synchronous)
+            history = KeyframeHistory(listeners=[runner.submit_record])
+            published = PublishedFrame(history, window, lc.correct_state, cfg.o2p.anchor_tolerance_ms)
+        # no dense factors until the window has a metric scale (one camera: OccupancyTerms.window_factors)
+        o2p = OccupancyTerms(cfg.o2p, anchoring=published) if cfg.o2p.enabled else None
+        est = window.bind(WindowedVioEstimator(bc, cams, extra_factors=[o2p] if o2p is not None else [],
+                                               on_marginalise=[history] if history is not None else []))
+        self.shell = BackendShell(est, o2p, restarted)
+        self.loop = LoopClosingBackend(self.shell, lc, history, runner, published) if lc.enabled else None
         used = ["on_features", "on_imu"]
         if self.shell.o2p is not None:
             used.append("on_map_input")

@@ -22,8 +22,8 @@ points of finished submaps (map-to-map).
   that state is still in the window the factor acts on both poses, else the submap pose is held fixed at
   the newest T_WM received (the factor then acts like a geometric loop closure on the frame).
 * **Map-to-map**: when submap m closes (its points arrive), m and o(m) are tied to the keyframes anchoring
-  them (the keyframe nearest each submap's creation, as in the mapping service; ``anchor_of``, installed by
-  the loop-closing back end, gives its state and ``T_KM``) and a :class:`MapToMap` term is queued
+  them (the keyframe nearest each submap's creation, as in the mapping service; the ``anchoring`` given at
+  construction, the loop-closing back end's, gives its state and ``T_KM``) and a :class:`MapToMap` term is queued
   (:meth:`OccupancyTerms.pop_map_to_map`). The loop closer adds it to its pose graph between the two anchor
   keyframes once both have left the window, and to the final bundle adjustment (services/backend/loop/), so the
   submap poses are the variables, as in eq. 5. Without a loop closer there is no map-to-map term (counted).
@@ -36,7 +36,8 @@ points of finished submaps (map-to-map).
 * **Metric hold** (one camera): until the window has a metric scale (it stood still, or
   services/backend/mono_init.py rebuilt it) and ``mono_settle_s`` after, there are no dense factors, and depth
   frames and submaps begun before that are never used: their poses (and, for MVS, their depth) came from an
-  estimate without scale (:meth:`OccupancyTerms.window_factors`, the estimator's hook).
+  estimate without scale (:meth:`OccupancyTerms.window_factors`: the terms are one of the estimator's extra-factor
+  sources, services/backend/protocols.py).
 """
 
 from __future__ import annotations
@@ -44,7 +45,6 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
-from typing import Callable
 
 import gtsam
 import numpy as np
@@ -54,6 +54,7 @@ from scipy.stats import chi2
 from services.backend.o2p_config import O2PConfig
 from services.backend.mono_init import metric_hold
 from services.backend.o2p_factor import OccupancyToPoint, trilinear_derivatives
+from services.backend.protocols import SubmapAnchoring
 from shared.occupancy.message import field_of_message
 from shared.occupancy.o2p_points import select_depth_points  # noqa: F401 (also used by callers)
 from shared.occupancy.query import BlockField
@@ -158,11 +159,17 @@ class MapToMap:
 
 
 class OccupancyTerms:
-    """Keeps map and depth inputs; :meth:`factors` answers the factors of the current window."""
+    """Keeps map and depth inputs; :meth:`factors` answers the factors of the current window.
 
-    def __init__(self, cfg: O2PConfig) -> None:
+    ``anchoring`` (the loop-closing back end's, services/backend/protocols.py): the keyframe each closed submap
+    follows (map-to-map terms) and the correction T_W'W of the published frame W', where depth poses and submap
+    poses T_WM arrive, relative to the window's frame W. None without a loop closer: no map-to-map terms (counted
+    ``map_to_map_no_pose_graph``), W' = W."""
+
+    def __init__(self, cfg: O2PConfig, anchoring: SubmapAnchoring | None = None) -> None:
         cfg.check()
         self.cfg = cfg
+        self.anchoring = anchoring
         self.submaps: dict[int, _Submap] = {}
         self._frames: collections.deque[tuple[int, np.ndarray]] = collections.deque()  # (stamp, landmark ids)
         # stamp -> (p_S, sigma, T_WS estimate at the stamp or None)
@@ -170,13 +177,8 @@ class OccupancyTerms:
         # (kind, state index, submap id) -> (factor data, gtsam factor) or None when no target was found
         self._built: dict[tuple[str, int, int], tuple[OccupancyToPoint, gtsam.NonlinearFactor] | None] = {}
         self.counts = collections.Counter()
-        # (creation stamp, T_WM) -> (anchor keyframe state, T_KM) or None; set by the loop-closing back end
-        self.anchor_of: Callable[[int, np.ndarray], tuple[int, np.ndarray] | None] | None = None
         self._map_to_map: list[MapToMap] = []
         self._loop_landmarks: dict[int, np.ndarray] = {}  # keyframe stamp -> old landmark ids a verified loop matched
-        # T_W'W: the loop closer's correction of the published frame W' (where depth poses and submap poses
-        # T_WM arrive) relative to the window's frame W; set by the loop-closing back end, identity without
-        self.correction: Callable[[], np.ndarray] | None = None
         # metric hold (window_factors): None = not known (factors() called directly: no restriction); else the
         # stamp from which depth and submaps may be used, and whether factors may be made yet
         self.hold_from_ns: int | None = None
@@ -262,13 +264,13 @@ class OccupancyTerms:
     def _queue_map_to_map(self, m: _Submap) -> None:
         """m has closed (its points came after its last field): bind it to its anchor keyframe and queue its
         term against o(m), the oldest covisible closed submap with >= M_min of m's points in its field."""
-        if self.anchor_of is None:
+        if self.anchoring is None:
             self.counts["map_to_map_no_pose_graph"] += 1
             return
         if self._before_hold(m.start_ns):
             self.counts["map_to_map_before_hold"] += 1
             return
-        m.anchor = self.anchor_of(m.start_ns, m.T_WM)
+        m.anchor = self.anchoring.anchor_of(m.start_ns, m.T_WM)
         if m.anchor is None:
             self.counts["map_to_map_no_anchor"] += 1
             return
@@ -294,9 +296,14 @@ class OccupancyTerms:
         self.counts["frame_to_map_attached"] += 1
         return transform_points(inv_T(T_WA) @ T_WS, p_S)
 
+    def _correction(self) -> np.ndarray | None:
+        """T_W'W, or None when the published frame is the window's."""
+        return None if self.anchoring is None else self.anchoring.correction()
+
     def _to_window(self, T_pub: np.ndarray) -> np.ndarray:
         """A pose in the published frame W' (depth, submaps) expressed in the window's frame W."""
-        return T_pub if self.correction is None else inv_T(self.correction()) @ T_pub
+        C = self._correction()
+        return T_pub if C is None else inv_T(C) @ T_pub
 
     def note_loop(self, stamp_ns: int, old_landmark_ids: np.ndarray) -> None:
         """A verified loop: the keyframe at ``stamp_ns`` sees these landmarks of an earlier visit (PnP inliers), so
@@ -370,7 +377,7 @@ class OccupancyTerms:
                 if sm.id != exclude and np.isin(lms, sm.landmarks, assume_unique=True).sum() >= need]
 
     def window_factors(self, est) -> list[gtsam.NonlinearFactor]:
-        """The estimator's extra-factor hook (``WindowedVioEstimator.extra_factors``): :meth:`factors` of its
+        """As the estimator's extra-factor source (services/backend/protocols.py): :meth:`factors` of its
         window once it has a metric hold (:func:`services.backend.mono_init.metric_hold`) and, with one camera,
         ``mono_settle_s`` after it got one; nothing before. Depth frames and submaps older than that moment
         are never used."""
@@ -423,7 +430,8 @@ class OccupancyTerms:
                 T_WA = values.atPose3(X(n)).matrix()
                 if gap[t] > tol:
                     p_S = self._attached(p_S, T_WA, T_WS)
-                T_pub = T_WA if self.correction is None else self.correction() @ T_WA  # o(k) in the submaps' frame
+                C = self._correction()
+                T_pub = T_WA if C is None else C @ T_WA  # o(k) in the submaps' frame
                 cands = [sm for sm in self._covisible(self._landmarks_near(stamps[n])) if not self._before_hold(sm.start_ns)]
                 old = [sm for sm in cands if stamps[n] - sm.end_ns >= c.min_target_age_s * 1e9]
                 self.counts["frame_to_map_recent_targets_skipped"] += len(cands) - len(old)

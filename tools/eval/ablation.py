@@ -15,8 +15,8 @@ Rows (each a full frontend + back end + loop closure + depth + mapping run over 
 * ``mono_baseline``: as ``mono`` without the factors (the map still from MVS depth): the row ``mono`` is judged
   against.
 
-The components are the services' own: ``FrontendNode``, ``BackendShell`` wrapped in ``LoopClosingBackend``
-when ``loop.enabled`` (as the back-end service does: loop closure corrects the published poses, and at the
+The components are the services' own: ``FrontendNode``, the back end as ``BackendNode`` builds it (its shell,
+wrapped in ``LoopClosingBackend`` when ``loop.enabled``: loop closure corrects the published poses, and at the
 end the final bundle adjustment gives the non-causal trajectory), ``DepthPipeline``, ``SubmapMapper`` with
 its field messages and map-to-map point pool. Depth runs on every ``--depth-every``-th camera frame (default:
 camera rate / ``depth.rate_hz``, as the depth service); the mapping waits for nothing (a depth frame's pose
@@ -164,9 +164,8 @@ def run_row(row: str, dataset: Path, overrides: list[str], seconds: float, depth
             stereo_cache: dict, mesh: bool = True, progress: _Progress | None = None,
             out_dir: Path | None = None) -> dict:
     """One row over ``dataset``; raises on configuration or component errors (the caller records them)."""
-    from services.backend.node import BackendShell
+    from services.backend.node import BackendNode
     from services.frontend.node import FrontendNode
-    from services.backend.loop.backend_loop import LoopClosingBackend
     from services.frontend.keyframe_features import keyframe_features_message
     from services.mapping.export import field_message
     from shared.occupancy.o2p_points import SubmapPointPool
@@ -188,11 +187,9 @@ def run_row(row: str, dataset: Path, overrides: list[str], seconds: float, depth
     if not cfg.rig.calibration:
         cfg = override(cfg, {"rig.calibration": str(dataset)})
     cams = load_rig_config(cfg.rig)
-    fe, shell = FrontendNode(cfg.frontend, cams), BackendShell(cfg.backend, cams)
-    dense = row in DENSE
-    if dense:
-        shell.enable_o2p(cfg.o2p)
-    loop = LoopClosingBackend(shell, cfg.loop) if cfg.loop.enabled else None
+    dense = row in DENSE  # row_overrides: o2p.enabled exactly for these
+    fe, node = FrontendNode(cfg.frontend, cams), BackendNode(cfg, cams)  # the back end as its root builds it
+    shell, loop = node.shell, node.loop
     be = shell if loop is None else loop
     pipe = _depth_pipeline(cfg)
     dc = cfg.depth

@@ -1,12 +1,16 @@
 """Loop closure inside the back end process: wraps a ``BackendShell`` (no transport in here).
 
-* installs the estimator's marginalisation hook (keyframe history) and a :class:`ThreadedLoopCloser`; the
-  estimator's per-frame path only enqueues, so ``estimator/state`` is never delayed by verification or
+Built by the back end's composition root (services/backend/node.py) from parts made before the estimator: the
+keyframe history (the estimator's marginalisation listener), the :class:`ThreadedLoopCloser` it feeds and the
+:class:`PublishedFrame`.
+
+* the estimator's per-frame path only enqueues, so ``estimator/state`` is never delayed by verification or
   pose-graph solves;
 * corrects the published state and keyframe poses by the pose graph's latest correction ``T_W'W`` (when
   ``loop.correct_state``); after a solve the keyframes message also carries every corrected pose-graph node;
-* with occupancy-to-point factors on (the shell's ``o2p``), binds each closed submap to the keyframe anchoring
-  it (:meth:`LoopClosingBackend.anchor_of`) and passes the map-to-map terms to the pose graph;
+* with occupancy-to-point factors on (the shell's ``o2p``), the :class:`PublishedFrame` is their submap anchoring:
+  it binds each closed submap to the keyframe anchoring it (:meth:`PublishedFrame.anchor_of`); the map-to-map
+  terms go to the pose graph;
 * keeps the uncorrected causal poses, and at the end of the stream (:meth:`LoopClosingBackend.finish`) runs
   the final bundle adjustment over all keyframes with IMU, loop and map-to-map factors, giving the non-causal
   trajectory.
@@ -16,17 +20,21 @@ from __future__ import annotations
 
 import logging
 import time
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 from gtsam.symbol_shorthand import X
 
 from services.backend.loop.config import LoopConfig
 from services.backend.loop.final_ba import bundle_adjust, follow_keyframes
-from services.backend.loop.history import attach
-from services.backend.loop.loop_closer import LoopCloser, ThreadedLoopCloser
+from services.backend.loop.history import KeyframeHistory
+from services.backend.loop.loop_closer import ThreadedLoopCloser
 from services.backend.loop.verification import FeatureSet
 from shared.geometry import inv_T
 from shared.messages import EstimatorState, FinalTrajectory, Header, KeyframeFeatures, Keyframes, Landmarks
+
+if TYPE_CHECKING:
+    from services.backend.estimator import WindowedVioEstimator
 
 log = logging.getLogger("sigmaslam.loop")
 
@@ -40,39 +48,29 @@ def corrected_state(msg: EstimatorState, T: np.ndarray) -> EstimatorState:
                           acc_bias=msg.acc_bias, covariance=J @ msg.covariance @ J.T, status=msg.status)
 
 
-class LoopClosingBackend:
-    def __init__(self, shell, cfg: LoopConfig) -> None:
-        self.shell, self.cfg = shell, cfg
-        est = shell.estimator
-        self.history = attach(est)
-        self.runner = ThreadedLoopCloser(LoopCloser(cfg, est.cameras), cfg.synchronous)
-        self.history.listeners.append(self.runner.submit_record)
-        self._stamps: list[int] = []
-        self._T_raw: list[np.ndarray] = []
-        self._generation = 0
-        self.dropped_features = 0
-        self._end_ns: int | None = None
-        self._finished = False
-        self._last_process = time.monotonic()
-        self._T_last = np.eye(4)  # the correction applied to the last state
-        self._published: dict[int, np.ndarray] = {}  # keyframe state -> its pose in the last Keyframes message
-        self._attach_o2p()
+class PublishedFrame:
+    """The frame W' the back end publishes in, as the loop closer moved it: the correction T_W'W applied to the
+    last state and the keyframe poses the last ``Keyframes`` messages carried. The occupancy terms' submap
+    anchoring (services/backend/protocols.py: SubmapAnchoring), since the mapping's submap poses and the depth poses
+    live in that frame.
 
-    def _attach_o2p(self) -> None:
-        """Hooks into the shell's occupancy-to-point terms: enable them (BackendShell.enable_o2p) first."""
-        o2p = self.shell.o2p
-        if o2p is not None and o2p.anchor_of is None:
-            o2p.anchor_of = self.anchor_of
-            if self.cfg.correct_state:  # depth and submaps arrive in the corrected frame the states are published in:
-                o2p.correction = self.published_correction  # the correction published, not a newer one
+    ``window``: the estimator, read when a submap is anchored; a provider rather than the estimator itself, since
+    this is made before the estimator (whose extra factors, the occupancy terms, need this)."""
+
+    def __init__(self, history: KeyframeHistory, window: Callable[[], WindowedVioEstimator], correct_state: bool,
+                 anchor_tolerance_ms: float) -> None:
+        self.history, self.window = history, window
+        self.correct_state, self.anchor_tolerance_ms = correct_state, anchor_tolerance_ms
+        self.T_last = np.eye(4)  # the correction applied to the last state
+        self.keyframe_poses: dict[int, np.ndarray] = {}  # keyframe state -> its pose in the last Keyframes message
 
     def anchor_of(self, stamp_ns: int, T_WM: np.ndarray) -> tuple[int, np.ndarray] | None:
         """The keyframe a submap created at ``stamp_ns`` with pose ``T_WM`` (as the mapping has it now) follows:
         the keyframe nearest its creation within ``o2p.anchor_tolerance_ms`` (state index) and ``T_KM``, taken
         against that keyframe's pose as it was last published (the frame the mapping's T_WM lives in): the pose of
         the last ``Keyframes`` message that carried it, not a newer correction the mapping has not seen yet."""
-        tol = self.shell.o2p.cfg.anchor_tolerance_ms * 1e6
-        est = self.shell.estimator
+        tol = self.anchor_tolerance_ms * 1e6
+        est = self.window()
         best: tuple[float, int, np.ndarray] | None = None
         for n in est.keyframes:  # still in the window
             if est.values.exists(X(n)) and abs(est.stamps[n] - stamp_ns) <= tol:
@@ -86,18 +84,35 @@ class LoopClosingBackend:
         if best is None:
             return None
         _, n, T_WK = best
-        if self.cfg.correct_state:  # as published; never published (yet): moved by the last state's correction
-            T_WK = self._published.get(n, self._T_last @ T_WK)
+        if self.correct_state:  # as published; never published (yet): moved by the last state's correction
+            T_WK = self.keyframe_poses.get(n, self.T_last @ T_WK)
         return n, inv_T(T_WK) @ np.asarray(T_WM, float)
 
-    def published_correction(self) -> np.ndarray:
-        """T_W'W applied to the last published state."""
-        return self._T_last.copy()
+    def correction(self) -> np.ndarray | None:
+        """T_W'W applied to the last published state (None without ``loop.correct_state``: W' = W)."""
+        return self.T_last.copy() if self.correct_state else None
 
     def note_published(self, kfs: Keyframes) -> None:
         """Remember the keyframe poses a ``Keyframes`` message carries (:meth:`anchor_of` reads them)."""
         for n, T in zip(np.asarray(kfs.ids), np.asarray(kfs.T_WS)):
-            self._published[int(n)] = T
+            self.keyframe_poses[int(n)] = T
+
+
+class LoopClosingBackend:
+    """``shell`` (services/backend/node.py: BackendShell) with loop closure: ``history`` is the shell's estimator's
+    marginalisation listener and feeds ``runner``; ``published`` is the shell's occupancy terms' anchoring."""
+
+    def __init__(self, shell, cfg: LoopConfig, history: KeyframeHistory, runner: ThreadedLoopCloser,
+                 published: PublishedFrame) -> None:
+        self.shell, self.cfg = shell, cfg
+        self.history, self.runner, self.published = history, runner, published
+        self._stamps: list[int] = []
+        self._T_raw: list[np.ndarray] = []
+        self._generation = 0
+        self.dropped_features = 0
+        self._end_ns: int | None = None
+        self._finished = False
+        self._last_process = time.monotonic()
 
     @property
     def counts(self) -> dict[str, int]:
@@ -131,7 +146,7 @@ class LoopClosingBackend:
         if not self.cfg.correct_state:
             return msgs
         T, gen, (g_ids, g_stamps, g_T) = self.runner.snapshot()  # state and keyframes from the same solve
-        self._T_last = T
+        self.published.T_last = T
         state = corrected_state(state, T)
         if kfs is not None:
             ids, stamps, poses = kfs.ids, kfs.stamps_ns, np.einsum("ij,njk->nik", T, kfs.T_WS)
@@ -142,7 +157,7 @@ class LoopClosingBackend:
                 poses = np.concatenate([g_T[keep], poses])
             kfs = Keyframes(header=kfs.header, ids=np.asarray(ids, np.int64), stamps_ns=np.asarray(stamps, np.int64),
                             T_WS=np.ascontiguousarray(poses, np.float64))
-            self.note_published(kfs)
+            self.published.note_published(kfs)
         return state, kfs
 
     def take_landmarks(self) -> Landmarks | None:
@@ -150,7 +165,7 @@ class LoopClosingBackend:
         msg = self.shell.take_landmarks()
         if msg is None or not self.cfg.correct_state:
             return msg
-        T = self._T_last
+        T = self.published.T_last
         return Landmarks(header=msg.header, ids=msg.ids, p_W=msg.p_W @ T[:3, :3].T + T[:3, 3],
                          num_observations=msg.num_observations, last_seen_ns=msg.last_seen_ns)
 

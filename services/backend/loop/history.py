@@ -1,17 +1,19 @@
 """Keyframes that leave the estimator's window, kept for the pose graph, loop verification and final BA.
 
-:func:`attach` installs :meth:`KeyframeHistory.capture` as the estimator's ``on_marginalise`` hook (called
-just before the oldest keyframe is marginalised, while the window's marginals still hold it). Each record
-keeps the keyframe's state, its observations (normalised coordinates per camera), the positions of the
-landmarks it observed, the IMU factor to the next keyframe and the covariance of the relative pose to the
-next keyframe from the window's joint marginal covariance. :meth:`KeyframeHistory.capture_window` adds the
-keyframes still in the window at the end of a run.
+A :class:`KeyframeHistory` is one of the estimator's marginalisation listeners (``WindowedVioEstimator(...,
+on_marginalise=[history])``, services/backend/protocols.py): :meth:`KeyframeHistory.on_marginalise` is called
+just before the oldest keyframe is marginalised, while the window's marginals still hold it, and hands each new
+record to the history's ``listeners`` (the loop closer), given at construction. It reads the window through the
+estimator's read API. Each record keeps the keyframe's state, its observations (normalised coordinates per
+camera), the positions of the landmarks it observed, the IMU factor to the next keyframe and the covariance of the
+relative pose to the next keyframe from the window's joint marginal covariance.
+:meth:`KeyframeHistory.capture_window` adds the keyframes still in the window at the end of a run.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Callable
+from dataclasses import dataclass
+from typing import Callable, Sequence
 
 import gtsam
 import numpy as np
@@ -35,34 +37,31 @@ class KeyframeRecord:
     T_WS_next: np.ndarray | None = None
 
 
-@dataclass
 class KeyframeHistory:
-    records: list[KeyframeRecord] = field(default_factory=list)
-    listeners: list[Callable[[KeyframeRecord], None]] = field(default_factory=list)
-    fallback_covariances: int = 0  # relative covariances that could not be taken from the marginals
+    """The records of the keyframes that left the window, oldest first; ``listeners`` get each new record."""
+
+    def __init__(self, listeners: Sequence[Callable[[KeyframeRecord], None]] = ()) -> None:
+        self.records: list[KeyframeRecord] = []
+        self.listeners = tuple(listeners)
+        self.fallback_covariances = 0  # relative covariances that could not be taken from the marginals
 
     def by_stamp(self) -> dict[int, KeyframeRecord]:
         return {r.stamp_ns: r for r in self.records}
 
     def _record(self, est, n: int) -> KeyframeRecord:
         vals = est.values
-        obs = {lm: [(c, np.array(xy)) for c, xy in by[n]] for lm, by in est._obs.items() if n in by}
-        lms = {lm: np.asarray(vals.atPoint3(L(lm))) for lm in obs if lm in est._in_graph}
+        obs = {lm: [(c, np.array(xy)) for c, xy in o] for lm, o in est.observations_of(n).items()}
+        lms = {lm: np.asarray(vals.atPoint3(L(lm))) for lm in obs if est.landmark_in_graph(lm)}
         return KeyframeRecord(n, int(est.stamps[n]), vals.atPose3(X(n)).matrix(), np.asarray(vals.atVector(V(n))),
                               vals.atConstantBias(B(n)), obs, lms)
 
-    def capture(self, est, old: int, new: int) -> None:
-        """Hook: ``old`` leaves the window, ``new`` becomes the oldest keyframe."""
+    def on_marginalise(self, est, old: int, new: int) -> None:
+        """``old`` leaves the window of ``est``, ``new`` becomes its oldest keyframe (a MarginalisationListener)."""
         rec = self._record(est, old)
         rec.next_state = new
-        rec.imu_to_next = est._imu_factors.get(new)
+        rec.imu_to_next = est.imu_factor_to(new)
         rec.T_WS_next = est.values.atPose3(X(new)).matrix()
-        cov = None
-        if est._marginals is not None:
-            try:
-                cov = est._marginals.jointMarginalCovariance([X(old), X(new)]).fullMatrix()
-            except RuntimeError:
-                cov = None
+        cov = est.joint_marginal([X(old), X(new)])
         if cov is None or not np.all(np.isfinite(cov)):
             self.fallback_covariances += 1
             cov = np.diag([1e-4] * 3 + [1e-2] * 3 + [1e-4] * 3 + [1e-2] * 3)  # loose: 1 cm / 0.6 deg per keyframe
@@ -79,13 +78,6 @@ class KeyframeHistory:
             rec = self._record(est, n)
             if i + 1 < len(kfs):
                 rec.next_state = kfs[i + 1]
-                rec.imu_to_next = est._imu_factors.get(kfs[i + 1])
+                rec.imu_to_next = est.imu_factor_to(kfs[i + 1])
             out.append(rec)
         return out
-
-
-def attach(estimator) -> KeyframeHistory:
-    """A history fed by ``estimator``'s marginalisation hook."""
-    h = KeyframeHistory()
-    estimator.on_marginalise = h.capture
-    return h
