@@ -25,7 +25,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install -q --upgrade pip
 	@# pip says nothing while it unpacks (torch alone takes ~30 s): a line every 15 s shows it is alive
 	@( while sleep 15; do echo "[setup] still installing ($$SECONDS s)"; done ) & beat=$$!; \
-	$(BIN)/pip install --progress-bar off -e '.[dev]' \
+	PYTHONUNBUFFERED=1 $(BIN)/pip install --progress-bar off -e '.[dev]' \
 	  | awk '/^(Collecting|Installing|Successfully)/ { print substr($$0, 1, 160); fflush() }'; \
 	rc=$$?; kill $$beat; exit $$rc
 	touch $(STAMP)
