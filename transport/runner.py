@@ -67,7 +67,7 @@ def run_node(node: ProcessNode, cfg: TransportConfig, stopped=None, ready=None) 
     with Node(node.name, cfg, declared=node) as tn:
         node.timer_factory = lambda stage, budget_ms: tn.timer(stage, budget_ms=budget_ms)
         w = _Wiring(node, tn)
-        timer = tn.timer(node.stage, budget_ms=node.budget_ms)
+        timer = tn.timer(node.stage, budget_ms=node.budget_ms) if trigger is not None else None  # times the trigger
         if ready is not None:
             ready()
         done = (lambda: tn.stopped) if stopped is None else (lambda: tn.stopped or stopped())
