@@ -21,25 +21,14 @@ from __future__ import annotations
 
 import argparse
 import itertools
-from pathlib import Path
 
 import numpy as np
 
+from services.app.synth.api import dataset_or_replica
 from shared.camera import load_rig
 from shared.euroc import read_trajectory
 from shared.euroc_reader import EurocDataset
 from shared.messages import ImuSample, MultiCameraFrame
-
-
-def replica_path(args: argparse.Namespace) -> Path:
-    """The folder to read: given, or a replica from services.app.synth.api (rendered on first use, then cached)."""
-    if args.replica:
-        return Path(args.replica)
-    from services.app.synth.api import ensure_default_replica, ensure_replica
-
-    if args.seconds:
-        return ensure_replica("V1_02", "vicon-a", imu="real", duration_s=args.seconds)
-    return ensure_default_replica()
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -47,7 +36,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--replica", metavar="PATH", help="EuRoC ASL folder (default: the default replica)")
     ap.add_argument("--seconds", type=float, default=0.0, help="use a replica of the first S seconds of V1_02")
     args = ap.parse_args(argv)
-    path = replica_path(args)
+    path = dataset_or_replica(args.replica, args.seconds)  # rendered on first use, then cached
     print(f"dataset: {path}")
 
     # 1. Open the folder. The reader checks every sensor.yaml and data.csv now, and synchronises the cameras by

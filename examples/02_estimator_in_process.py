@@ -25,16 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-
-def replica_path(args: argparse.Namespace) -> Path:
-    """The folder to run on: given, or a replica from services.app.synth.api (rendered on first use, then cached)."""
-    if args.replica:
-        return Path(args.replica)
-    from services.app.synth.api import ensure_default_replica, ensure_replica
-
-    if args.seconds:
-        return ensure_replica("V1_02", "vicon-a", imu="real", duration_s=args.seconds)
-    return ensure_default_replica()
+from services.app.synth.api import dataset_or_replica
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -46,7 +37,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config field")
     ap.add_argument("--out", metavar="DIR", help="write the causal trajectory (TUM) here")
     args = ap.parse_args(argv)
-    dataset = replica_path(args)
+    dataset = dataset_or_replica(args.replica, args.seconds)  # rendered on first use, then cached
 
     # 1. Run frontend + back end on the dataset. run() loads the system config (file + --set overrides, the same
     #    loader every service uses), takes the rig calibration from the dataset's sensor.yaml files, and returns

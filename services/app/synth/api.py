@@ -64,6 +64,16 @@ def ensure_replica(sequence: str = "V1_02", scene: str = "vicon-a", imu: str = "
     return ensure_spec(spec, root, progress)
 
 
+def dataset_or_replica(path: str | Path | None = None, seconds: float = 0.0) -> Path:
+    """``path`` when given; else a replica of the first ``seconds`` of V1_02 in 'vicon-a' (real IMU), or the bundled
+    default when ``seconds`` is 0: generated on first use, then cached."""
+    if path:
+        return Path(path)
+    if seconds:
+        return ensure_replica("V1_02", "vicon-a", imu="real", duration_s=seconds)
+    return ensure_default_replica()
+
+
 def replica_exists(root: Path | None = None, **spec) -> bool:
     """Whether the replica of ``spec`` (default: the bundled default) is already generated and cached."""
     spec = ReplicaSpec(**{**DEFAULT, **spec})
