@@ -6,7 +6,8 @@ To add one, add a line to :data:`BENCHES`; the module provides ``add_arguments(p
 from __future__ import annotations
 
 import argparse
-import importlib
+
+from services.app.cli import add_module_commands, run_module_command
 
 # name -> (module, one-line help)
 BENCHES: dict[str, tuple[str, str]] = {
@@ -19,12 +20,8 @@ BENCHES: dict[str, tuple[str, str]] = {
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    sub = p.add_subparsers(dest="bench", metavar="BENCH", required=True)
-    for name, (module, help_text) in BENCHES.items():
-        q = sub.add_parser(name, help=help_text, description=help_text)
-        q.set_defaults(_bench_module=module)
-        importlib.import_module(module).add_arguments(q)
+    add_module_commands(p, BENCHES, dest="bench", metavar="BENCH")
 
 
 def main(args: argparse.Namespace) -> int:
-    return int(importlib.import_module(args._bench_module).main(args) or 0)
+    return run_module_command(args)

@@ -15,7 +15,7 @@ import sys
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "config": ("services.app.config_cmd", "print the resolved config or the documented defaults"),
     "router": ("services.app.router", "run the Zenoh router that services connect to"),
-    "bench": ("tools.bench_cmd", "benchmarks: transport latency and throughput"),
+    "bench": ("tools.bench_cmd", "benchmarks: transport, netns, mapping, mapping-ablation, pipeline (live budgets)"),
     "up": ("services.app.up_cmd", "run the router and all configured services, restarting failed ones"),
     "health": ("services.app.health_cmd", "exit 0 when a service's heartbeat (or the router) is seen on the bus"),
     "record": ("services.recorder.service", "record topics to MCAP (with Foxglove mirrors); --recover a cut file"),
@@ -29,8 +29,23 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "viewer": ("services.viewer.service", "web viewer (viser): submap meshes, trajectories, live images, stats"),
     "depth": ("services.depth.service", "stereo + MVS depth with learned sigma, fused: sensors/frame -> depth/stereo, depth/fused"),
     "mapping": ("services.mapping.service", "occupancy submapping: depth + estimator poses -> map/submap meshes"),
-    "eval": ("services.app.eval_cmd", "evaluation: mesh accuracy/completeness"),
+    "eval": ("services.app.eval_cmd", "evaluations against ground truth: ate, mesh, depth, hilti, ablation (Table IV), suite"),
 }
+
+
+def add_module_commands(p: argparse.ArgumentParser, table: dict[str, tuple[str, str]], dest: str,
+                        metavar: str) -> None:
+    """Sub-subcommands of ``p`` from a table name -> (module, help), as ``eval`` and ``bench`` have; each module
+    provides ``add_arguments(parser)`` and ``main(args)``. :func:`run_module_command` calls the chosen one."""
+    sub = p.add_subparsers(dest=dest, metavar=metavar, required=True)
+    for name, (module, help_text) in table.items():
+        q = sub.add_parser(name, help=help_text, description=help_text)
+        q.set_defaults(_sub_module=module)
+        importlib.import_module(module).add_arguments(q)
+
+
+def run_module_command(args: argparse.Namespace) -> int:
+    return int(importlib.import_module(args._sub_module).main(args) or 0)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -4,7 +4,8 @@ the module provides ``add_arguments(parser)`` and ``main(args) -> int``."""
 from __future__ import annotations
 
 import argparse
-import importlib
+
+from services.app.cli import add_module_commands, run_module_command
 
 # name -> (module, one-line help)
 EVALS: dict[str, tuple[str, str]] = {
@@ -18,12 +19,8 @@ EVALS: dict[str, tuple[str, str]] = {
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    sub = p.add_subparsers(dest="eval", metavar="WHAT", required=True)
-    for name, (module, help_text) in EVALS.items():
-        q = sub.add_parser(name, help=help_text, description=help_text)
-        q.set_defaults(_eval_module=module)
-        importlib.import_module(module).add_arguments(q)
+    add_module_commands(p, EVALS, dest="eval", metavar="WHAT")
 
 
 def main(args: argparse.Namespace) -> int:
-    return int(importlib.import_module(args._eval_module).main(args) or 0)
+    return run_module_command(args)
