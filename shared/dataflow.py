@@ -28,10 +28,12 @@ from __future__ import annotations
 import dataclasses
 import heapq
 import itertools
+import logging
 import time
 from typing import Any, ClassVar, Iterable, Literal
 
 from shared.codec import Message
+from shared.ratelimit import RateLimitedLog
 from shared.topics import Topic
 
 
@@ -70,6 +72,11 @@ class StageClock:
 
     def __exit__(self, *exc) -> None:
         self.durations_s.append(time.perf_counter() - self._t0)
+
+
+class RejectedMessage(ValueError):
+    """Raised by a handler for a message it cannot use: the runner counts it as a drop of that input (stats) and
+    logs it (rate-limited); the node goes on."""
 
 
 class UndeclaredTopic(ValueError):
@@ -173,12 +180,19 @@ class InProcessRunner:
         self._last_trigger: dict[int, int] = {}
         self._newest: dict[tuple[int, int], int] = {}  # (id(node), id(input)) -> newest stamp handled
         self.emitted: dict[str, int] = {}
+        self.rejected: dict[tuple[str, str], int] = {}  # (node name, topic key) -> messages its handler refused
+        self._bad_log = RateLimitedLog(logging.getLogger(__name__))
         # (node name, handler) -> [(wall s, thread CPU s)] of every call: the per-stage times of an in-process run
         self.times: dict[tuple[str, str], list[tuple[float, float]]] = {}
 
     def _handle(self, node: ProcessNode, inp: Input, msg: Message) -> None:
         t0, c0 = time.perf_counter(), time.thread_time()
-        out = node.handle(inp, msg)
+        try:
+            out = node.handle(inp, msg)
+        except RejectedMessage as exc:
+            self.rejected[(node.name, inp.topic.key)] = self.rejected.get((node.name, inp.topic.key), 0) + 1
+            self._bad_log.warning("%s: %s dropped: %s", node.name, inp.topic.key, exc)
+            out = []
         self.times.setdefault((node.name, inp.handler), []).append((time.perf_counter() - t0, time.thread_time() - c0))
         key = (id(node), id(inp))
         self._newest[key] = max(self._newest.get(key, -1), int(msg.header.stamp_ns))

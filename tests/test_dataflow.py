@@ -104,3 +104,28 @@ def test_graph_of_declarations():
     g = graph([Poser, Waiter])
     assert g["sensors/frame"] == {"publishers": [], "subscribers": ["poser", "waiter"]}
     assert g["estimator/state"] == {"publishers": ["poser"], "subscribers": ["waiter"]}
+
+
+class Picky(ProcessNode):
+    """Refuses frames of an odd second: a counted, logged drop, and the node goes on."""
+
+    name = "picky"
+    inputs = (Input(topics.FRAME, "on_frame", role="trigger"),)
+    outputs = ()
+
+    def __init__(self) -> None:
+        self.seen = []
+
+    def on_frame(self, f):
+        from shared.dataflow import RejectedMessage
+
+        if (f.header.stamp_ns // 50_000_000) % 2:
+            raise RejectedMessage("odd")
+        self.seen.append(f.header.stamp_ns)
+
+
+def test_a_rejected_message_is_counted_and_the_node_goes_on():
+    picky = Picky()
+    runner = InProcessRunner([picky])
+    runner.run(_source(6))
+    assert len(picky.seen) == 3 and runner.rejected == {("picky", "sensors/frame"): 3}

@@ -28,6 +28,7 @@ import zenoh
 
 from shared import codec
 from shared.codec import DecodeError, Message, MessageError
+from shared.ratelimit import RateLimitedLog
 from transport.config import TransportConfig
 from transport.queues import BoundedQueue, Empty
 
@@ -69,28 +70,6 @@ def _prefault(provider, pool_bytes: int, block: int = 1 << 20) -> None:
         pass  # pool exhausted (alignment overhead): what was touched is enough
     del held
     provider.garbage_collect()
-
-
-class RateLimitedLog:
-    """Log a recurring problem at most once per ``period_s``, with the number suppressed in between."""
-
-    def __init__(self, logger: logging.Logger, period_s: float = 5.0) -> None:
-        self._log = logger
-        self._period = period_s
-        self._last = -float("inf")
-        self._suppressed = 0
-        self._lock = threading.Lock()
-
-    def warning(self, msg: str, *args: object) -> None:
-        now = time.monotonic()
-        with self._lock:
-            if now - self._last < self._period:
-                self._suppressed += 1
-                return
-            suppressed, self._suppressed, self._last = self._suppressed, 0, now
-        if suppressed:
-            msg += f" ({suppressed} similar suppressed)"
-        self._log.warning(msg, *args)
 
 
 class Publisher:

@@ -22,7 +22,8 @@ import logging
 import time
 from collections import deque
 
-from shared.dataflow import Emit, Input, ProcessNode
+from shared.dataflow import Emit, Input, ProcessNode, RejectedMessage
+from shared.ratelimit import RateLimitedLog
 from transport.config import TransportConfig
 from transport.node import Node
 from transport.queues import Empty
@@ -42,16 +43,26 @@ class _Wiring:
             tn.stats.add_queue(name, fn)
         self.pubs = {t: tn.publisher(t) for t in node.outputs}
         self.newest = {inp: -1 for inp in node.inputs}
+        self.bad_log = RateLimitedLog(log)
 
     def publish(self, emits: list[Emit]) -> None:
         for e in emits:
             self.pubs[e.topic].publish(e.msg)
 
+    def handle(self, inp: Input, msg) -> list[Emit]:
+        """The node's handler; a message it rejects is counted as a drop of that input and logged (rate-limited)."""
+        try:
+            return self.node.handle(inp, msg)
+        except RejectedMessage as exc:
+            self.subs[inp].queue.count_drop()
+            self.bad_log.warning("%s: %s dropped: %s", self.node.name, inp.topic.key, exc)
+            return []
+
     def drain(self, inputs: list[Input]) -> None:
         for inp in inputs:
             for msg in self.subs[inp].drain():
                 self.newest[inp] = max(self.newest[inp], int(msg.header.stamp_ns))
-                self.publish(self.node.handle(inp, msg))
+                self.publish(self.handle(inp, msg))
 
 
 def run_node(node: ProcessNode, cfg: TransportConfig, stopped=None, ready=None) -> None:
@@ -107,7 +118,7 @@ def run_node(node: ProcessNode, cfg: TransportConfig, stopped=None, ready=None) 
                 w.drain(waited)
             w.drain(side)
             with timer:
-                emits = node.handle(trigger, msg)
+                emits = w.handle(trigger, msg)
             w.publish(emits)
         w.drain([*waited, *side, *idle])  # what arrived before the stop is handled before the node closes
         w.publish(node.close())
