@@ -54,7 +54,7 @@ class Input:
 
 @dataclasses.dataclass(frozen=True)
 class Emit:
-    """A message a handler wants published on ``topic`` (``key``: per-service key, else the topic's)."""
+    """A message a handler wants published on ``topic`` (one of the node's declared outputs)."""
 
     topic: Topic
     msg: Message
@@ -130,19 +130,13 @@ class ProcessNode:
         return {}
 
     def tick(self) -> list[Emit]:
-        """Periodic work, called by the Zenoh runner while no trigger message is pending; may emit."""
+        """Periodic work: called by the Zenoh runner while no trigger message is pending, by the in-process runner
+        after each source message's messages; may emit."""
         return []
 
     def close(self) -> list[Emit]:
         """Called once when the runner stops (after the stream); may emit last messages."""
         return []
-
-    @classmethod
-    def input_for(cls, topic: Topic) -> Input:
-        for inp in cls.inputs:
-            if inp.topic == topic:
-                return inp
-        raise UndeclaredTopic(f"{cls.name} does not read {topic.key!r}")
 
 
 def graph(nodes: Iterable[type[ProcessNode]]) -> dict[str, dict[str, list[str]]]:
