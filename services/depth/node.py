@@ -14,7 +14,6 @@ subscription) for the keyframe views.
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from collections import OrderedDict
 
@@ -49,24 +48,21 @@ def depth_message(res: DepthResult, which: str, pipe: DepthPipeline, stamp_ns: i
 
 
 class PoseBook:
-    """T_WS of recent estimator states by stamp."""
+    """T_WS of recent estimator states by stamp (the node's handlers all run in one thread: no lock)."""
 
     def __init__(self, size: int = 256) -> None:
         self._poses: OrderedDict[int, np.ndarray] = OrderedDict()
-        self._lock = threading.Lock()
         self._size = size
 
     def add(self, msg) -> None:
         if msg.status in ("initialising", "lost", "reset"):
             return
-        with self._lock:
-            self._poses[int(msg.header.stamp_ns)] = np.asarray(msg.T_WS)
-            while len(self._poses) > self._size:
-                self._poses.popitem(last=False)
+        self._poses[int(msg.header.stamp_ns)] = np.asarray(msg.T_WS)
+        while len(self._poses) > self._size:
+            self._poses.popitem(last=False)
 
     def get(self, stamp_ns: int) -> np.ndarray | None:
-        with self._lock:
-            return self._poses.get(int(stamp_ns))
+        return self._poses.get(int(stamp_ns))
 
 
 
