@@ -34,13 +34,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="seconds the set-up before this command took, to print among the phases (`make demo` passes it)")
 
 
-def _run_pipeline(dataset: Path, args: argparse.Namespace, viewer_overrides: list[str]) -> int:
+def _run_pipeline(dataset: Path, args: argparse.Namespace) -> int:
+    """``sigmaslam run`` on the replica (which finds its ground truth, overlays it in the viewer and prints the
+    viewer's address)."""
     from services.app import run_cmd
 
     parser = argparse.ArgumentParser(prog="sigmaslam run")
     run_cmd.add_arguments(parser)
     argv = [str(dataset), args.config, "--out", args.out]
-    for s in [*viewer_overrides, *args.set]:
+    for s in args.set:
         argv += ["--set", s]
     if args.max_frames > 0:
         argv.append(f"--player-arg=--max-frames={args.max_frames}")
@@ -135,10 +137,9 @@ def main(args: argparse.Namespace) -> int:
     gt = dataset / "mav0" / "state_groundtruth_estimate0" / "data.csv"
     cfg = load_system_config(args.config, args.set)
     url = f"http://{cfg.viewer.host}:{cfg.viewer.port}"
-    _say(f"viewer at {url} while the pipeline runs")
     out = Path(args.out)
     t = time.monotonic()
-    rc = _run_pipeline(dataset, args, [f"viewer.ground_truth={gt}"])
+    rc = _run_pipeline(dataset, args)
     phases["run"] = time.monotonic() - t
     t = time.monotonic()
     _say("evaluating the mesh against the scene (paper sec. V: 1 cm grid, point-to-plane ICP)")

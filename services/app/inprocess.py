@@ -15,6 +15,7 @@ need the pipeline without processes (offline VIO, loop evaluation) use this inst
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 from typing import Iterator
 
 from services.backend.node import BackendNode
@@ -51,7 +52,7 @@ class InProcessRun:
     states: list[EstimatorState]
     final: FinalTrajectory | None
     frames: int
-    groundtruth_path: object  # the dataset's ground truth file, or None
+    groundtruth_path: Path | None  # the dataset's ground truth file
 
 
 def run_in_process(dataset: str, cfg, max_frames: int = 0) -> InProcessRun:

@@ -211,12 +211,11 @@ def evaluate_points(est: np.ndarray, gt: np.ndarray | GroundTruthCloud, voxel_m:
             o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=50))
         T = np.asarray(reg.transformation)
         pe.transform(T)
-        # fitness over every estimated point, as before the subset
-        fitness = float(np.mean(g.tree.query(np.asarray(pe.points), workers=-1,
-                                             distance_upper_bound=icp_max_distance_m)[0] < icp_max_distance_m))
     say("distances estimate -> ground truth and back")
     e = np.asarray(pe.points)
     d_eg = g.distances(e)
+    if icp:  # ICP fitness over every estimated point, not only the subset it was estimated from
+        fitness = float(np.mean(d_eg < icp_max_distance_m))
     d_ge, _ = cKDTree(e).query(g.points, workers=-1, distance_upper_bound=max(completeness_threshold_m, 0.05) * 1.01)
     return MeshEvalResult(float(d_eg.mean()), float(np.mean(d_ge <= completeness_threshold_m)), float(np.mean(d_ge <= 0.05)),
                           completeness_threshold_m, float(np.median(d_eg)), len(e), len(g.points), fitness, T)
