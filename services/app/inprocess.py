@@ -7,7 +7,8 @@
     run.final             # estimator/trajectory_final (loop closure on), else None
     run.runner.times      # per (node, handler): wall and CPU time of every call
 
-The nodes are the services' own (services/frontend/node.py, services/backend/node.py), driven by
+The nodes are the services' own (services/frontend/node.py, services/backend/odometry_node.py,
+services/backend/node.py), driven by
 :class:`shared.dataflow.InProcessRunner` in stamp order, the order a lockstep run over Zenoh gives: tools that
 need the pipeline without processes (offline VIO, loop evaluation) use this instead of wiring the algorithms by hand.
 """
@@ -19,6 +20,7 @@ from pathlib import Path
 from typing import Iterator
 
 from services.backend.node import BackendNode
+from services.backend.odometry_node import OdometryNode
 from services.frontend.node import FrontendNode
 from shared import topics
 from shared.config import override
@@ -55,12 +57,15 @@ class InProcessRun:
     groundtruth_path: Path | None  # the dataset's ground truth file
 
 
-def run_in_process(dataset: str, cfg, max_frames: int = 0) -> InProcessRun:
-    """Frontend and back end (with whatever ``cfg`` enables: loop closure) on ``dataset``, in this process."""
+def run_in_process(dataset: str, cfg, max_frames: int = 0, taps=()) -> InProcessRun:
+    """Frontend, fast path and back end (with whatever ``cfg`` enables: loop closure) on ``dataset``, in this
+    process; ``taps`` are called with every (topic, message) delivered."""
     if not cfg.rig.calibration:
         cfg = override(cfg, {"rig.calibration": str(dataset)})
     cams = load_rig_config(cfg.rig)
-    nodes = {"frontend": FrontendNode(cfg.frontend, cams), "backend": BackendNode(cfg, cams)}
+    # the fast path before the back end: a keyframe's state comes from the previous window, as in a live run
+    nodes = {"frontend": FrontendNode(cfg.frontend, cams), "odometry": OdometryNode(cfg, cams),
+             "backend": BackendNode(cfg, cams)}
     states: list[EstimatorState] = []
     final: list[FinalTrajectory] = []
 
@@ -70,7 +75,7 @@ def run_in_process(dataset: str, cfg, max_frames: int = 0) -> InProcessRun:
         elif topic == topics.TRAJECTORY_FINAL:
             final.append(msg)
 
-    runner = InProcessRunner(list(nodes.values()), taps=[tap])
+    runner = InProcessRunner(list(nodes.values()), taps=[tap, *taps])
     ds = EurocDataset(dataset)
     runner.run(dataset_source(ds, max_frames, cfg.player.imu_margin_s))
     frames = len(runner.times.get(("frontend", "on_frame"), []))

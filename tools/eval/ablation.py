@@ -231,6 +231,8 @@ def run_row(row: str, dataset: Path, overrides: list[str], seconds: float, depth
             if out is None or out[0].status in ("initialising", "reset"):
                 continue
             state, kfs = out
+            if loop is not None:  # the published state, as the back end reads estimator/state for the final trajectory
+                loop.record_state(state)
             fe.gyro_bias = np.asarray(state.gyro_bias, float)
             stamps.append(stamp)
             T_pub.append(np.array(state.T_WS))
