@@ -232,9 +232,9 @@ def stats_summary(col: _Collector) -> dict:
     published = first_arrivals(*col.arrivals.get("frame"))
     lat = matched_latencies(published, *col.arrivals.get("state"))
     out["state_latency_ms"] = summary(lat["latency_ms"])  # sensor publication -> estimator/state, per frame
-    posed = {int(s.header.stamp_ns) for s in col.states if s.status not in ("initialising", "reset")}
+    answered = {int(s.header.stamp_ns) for s in col.states}  # any status: the estimator answered the frame
     out["frames_without_state"] = (None if out["frames_sent"] is None
-                                   else max(0, out["frames_sent"] - len(posed)))
+                                   else max(0, out["frames_sent"] - len(answered)))
     out["drops"] = {f"{svc}:{q}": v["dropped"] for svc, d in out["services"].items()
                     for q, v in d["queues"].items() if v["dropped"]}
     return out

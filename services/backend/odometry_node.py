@@ -58,7 +58,7 @@ class OdometryNode(ProcessNode):
         return trigger_stamp_ns
 
     def shed(self, pending) -> tuple[list, int]:
-        return shed_backlog(pending, self.bc.max_backlog_frames, is_keyframe=lambda f: False)
+        return shed_backlog(pending, self.bc.fast_path_max_backlog_frames, is_keyframe=lambda f: False)
 
     def on_imu(self, sample: ImuSample) -> None:
         self.tracker.add_imu(int(sample.header.stamp_ns), sample.omega_S, sample.acc_S)
