@@ -30,3 +30,11 @@ def test_shed_items_count_as_drops_not_as_new_arrivals():
     kept, skipped = shed_backlog(q.drain(), 2)
     q.count_shed(skipped)
     assert q.counters()[:2] == (6, 4)
+
+
+def test_a_backlog_of_keyframes_keeps_only_the_newest():
+    frames = [F(i, is_keyframe=i % 2 == 0) for i in range(12)]  # keyframes 0, 2, ..., 10
+    kept, skipped = shed_backlog(frames, 3, max_keyframes=3)
+    # the newest 3 frames (9, 10, 11) hold keyframe 10; of the older keyframes the newest 2 stay: 3 in all
+    assert [f.seq for f in kept] == [6, 8, 9, 10, 11] and skipped == 7
+    assert shed_backlog(frames, 3)[0][:6] == [frames[i] for i in (0, 2, 4, 6, 8, 9)]  # without the bound: all kept

@@ -79,6 +79,9 @@ class BackendConfig:
     imu_wait_s: float = param(0.5, "how long a feature frame waits for the IMU samples up to its time", "s")
     max_backlog_frames: int = param(4, "back end: when more feature frames than this wait, the oldest non-keyframes "
                                     "are skipped (it needs only keyframes; counted as drops); 0: never skip")
+    max_backlog_keyframes: int = param(3, "back end: when more keyframes than this wait (its window optimisation "
+                                       "slower than the keyframe rate for a while), the oldest are skipped too "
+                                       "(counted as drops), so the fast path's window stays current; 0: never")
     fast_path_max_backlog_frames: int = param(20, "fast path: when more feature frames than this wait, the oldest are "
                                               "skipped (counted as drops): a stall of the process loses no frame up "
                                               "to this many (a frame costs it ~6 ms CPU, so it catches up fast)")

@@ -122,13 +122,24 @@ class ImuBuffer:
     def preintegrate(self, params: gtsam.PreintegrationCombinedParams, bias: gtsam.imuBias.ConstantBias,
                      t0_ns: int, t1_ns: int) -> gtsam.PreintegratedCombinedMeasurements:
         pim = gtsam.PreintegratedCombinedMeasurements(params, bias)
+        self.integrate_into(pim, bias, t0_ns, t1_ns)
+        return pim
+
+    def integrate_into(self, pim: gtsam.PreintegratedCombinedMeasurements, bias: gtsam.imuBias.ConstantBias,
+                       t0_ns: int, t1_ns: int) -> None:
+        """Extend ``pim`` (integrated up to ``t0_ns`` with ``bias``) to ``t1_ns``. Split at a sample's stamp, two
+        calls give the pre-integration of one (the pieces between samples are the same)."""
         bg, ba = np.asarray(bias.gyroscope()), np.asarray(bias.accelerometer())
         for dt, w, a in self.segments(t0_ns, t1_ns):
             # gtsam rotates the step's acceleration by the attitude at the step start; rotating it by half the
             # step's own rotation first makes the velocity update midpoint-accurate (second order in dt)
             a_mid = gtsam.Rot3.Expmap((w - bg) * (0.5 * dt)).rotate(a - ba) + ba  # gtsam subtracts ba again
             pim.integrateMeasurement(a_mid, w, dt)
-        return pim
+
+    def last_stamp_at_or_before(self, t_ns: int) -> int | None:
+        """Stamp of the newest sample at or before ``t_ns`` (None when there is none)."""
+        i = bisect.bisect_right(self.stamps_ns, t_ns) - 1
+        return self.stamps_ns[i] if i >= 0 else None
 
 
 def predict(pim: gtsam.PreintegratedCombinedMeasurements, T_WS: np.ndarray, v_W: np.ndarray,

@@ -222,7 +222,7 @@ class BackendNode(ProcessNode):
         return self.shell.estimator
 
     def shed(self, pending) -> tuple[list, int]:
-        return shed_backlog(pending, self.bc.max_backlog_frames)
+        return shed_backlog(pending, self.bc.max_backlog_frames, max_keyframes=self.bc.max_backlog_keyframes)
 
     def on_imu(self, sample: ImuSample) -> None:
         self.shell.add_imu(sample)

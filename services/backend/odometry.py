@@ -13,6 +13,7 @@ after the keyframe; in stamp order, before the next frame). Covariance is not co
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 
 import gtsam
@@ -60,6 +61,10 @@ class FrameTracker:
         self.window: EstimatorWindow | None = None
         self._points: dict[int, np.ndarray] = {}
         self.failed_solves = 0
+        # the anchor's pre-integration, extended frame by frame up to the last IMU sample used (a frame integrates
+        # only the samples since the previous one, however old the anchor)
+        self._pim: gtsam.PreintegratedCombinedMeasurements | None = None
+        self._pim_end_ns = -1
 
     def add_imu(self, stamp_ns: int, omega_S: np.ndarray, acc_S: np.ndarray) -> None:
         self.imu.add(stamp_ns, omega_S, acc_S)
@@ -71,11 +76,26 @@ class FrameTracker:
         self.window = msg
         self._points = {int(i): p for i, p in zip(np.asarray(msg.landmark_ids), np.asarray(msg.p_W, float))}
         self.imu.prune_before(int(msg.header.stamp_ns))
+        self._pim, self._pim_end_ns = None, -1
         return True
 
     def reset(self) -> None:
         """Forget the window (the back end restarted: its next windows start a new history)."""
         self.window, self._points = None, {}
+        self._pim, self._pim_end_ns = None, -1
+
+    def _preintegrate(self, bias, k_ns: int, stamp_ns: int) -> gtsam.PreintegratedCombinedMeasurements:
+        """Pre-integration from the anchor ``k_ns`` to ``stamp_ns``, from the running one when it can be extended."""
+        last = self.imu.last_stamp_at_or_before(stamp_ns)
+        if self._pim is None or self._pim_end_ns > stamp_ns:  # a new anchor (or a frame before the running end)
+            self._pim, self._pim_end_ns = gtsam.PreintegratedCombinedMeasurements(self.params, bias), k_ns
+        if last is not None and last > self._pim_end_ns:
+            self.imu.integrate_into(self._pim, bias, self._pim_end_ns, last)
+            self._pim_end_ns = last
+        pim = copy.copy(self._pim)
+        if stamp_ns > self._pim_end_ns:  # the piece after the last sample (none when the frame has a sample's stamp)
+            self.imu.integrate_into(pim, bias, self._pim_end_ns, stamp_ns)
+        return pim
 
     @property
     def anchor_stamp_ns(self) -> int | None:
@@ -102,7 +122,7 @@ class FrameTracker:
             return TrackedState(stamp_ns, np.asarray(w.T_WS, float), np.asarray(w.v_W, float),
                                 np.asarray(w.gyro_bias, float), np.asarray(w.acc_bias, float), status, len(lms), True)
         bias = make_bias(w.gyro_bias, w.acc_bias)
-        pim = self.imu.preintegrate(self.params, bias, k_ns, stamp_ns)
+        pim = self._preintegrate(bias, k_ns, stamp_ns)
         T, v = predict(pim, np.asarray(w.T_WS, float), np.asarray(w.v_W, float), bias)
         values = gtsam.Values()
         values.insert(X(KEYFRAME), gtsam.Pose3(np.asarray(w.T_WS, float)))
