@@ -15,7 +15,7 @@ How a node's inputs are drained (``Input.role``) is part of the declaration, so 
   on its own, after the side inputs have been drained; its handler is timed as the node's stage;
 - ``"side"``: drained (every message handled, in arrival order) before each trigger message; with
   ``wait_until_trigger_stamp`` the Zenoh runner first waits up to ``wait_s`` for a message stamped at or after
-  the trigger's (IMU up to the frame's time);
+  the trigger's (IMU up to the frame's time; :meth:`ProcessNode.wait_stamp` may name an earlier stamp);
 - ``"idle"``: handled only when no trigger message is pending (the end of a stream: after the last frame).
 
 Queue behaviour (``policy``/``depth``: keep all or keep the newest N) and shedding (``shed``: the name of a
@@ -105,6 +105,12 @@ class ProcessNode:
                 raise UndeclaredTopic(f"{self.name}: emitted {e.topic.key!r}, not among its outputs "
                                       f"{[t.key for t in self.outputs]}")
         return out
+
+    def wait_stamp(self, inp: Input, trigger_stamp_ns: int) -> int:
+        """The stamp the ``wait_until_trigger_stamp`` input ``inp`` must have reached before the trigger message
+        stamped ``trigger_stamp_ns`` is handled: by default the trigger's own; a node may ask for an earlier one
+        (-1: do not wait)."""
+        return trigger_stamp_ns
 
     def use_inputs(self, handlers: Iterable[str]) -> None:
         """Read only the declared inputs with these handlers (e.g. no loop-closure inputs when loop closure is
@@ -206,7 +212,8 @@ class InProcessRunner:
         return False
 
     def _waited_reached(self, node: ProcessNode, stamp: int) -> bool:
-        return all(self._newest.get((id(node), id(i)), -1) >= stamp for i in node.inputs if i.wait_until_trigger_stamp)
+        return all(self._newest.get((id(node), id(i)), -1) >= node.wait_stamp(i, stamp)
+                   for i in node.inputs if i.wait_until_trigger_stamp)
 
     def _release(self, node: ProcessNode | None = None) -> None:
         """Handle held triggers (of ``node`` whose waited inputs have caught up; with None, all: the time-out)."""

@@ -17,7 +17,7 @@ from shared.codec import Header, Message, array_field, register, scalar_field
 __all__ = [
     "Header", "ImuSample", "MultiCameraFrame", "FeatureFrame", "EstimatorState", "Keyframes",
     "DepthFrame", "SubmapMesh", "ServiceStats", "Heartbeat", "Control", "StreamEnd",
-    "KeyframeFeatures", "FinalTrajectory", "OccupancyField", "SubmapPoints", "Landmarks",
+    "KeyframeFeatures", "FinalTrajectory", "OccupancyField", "SubmapPoints", "Landmarks", "EstimatorWindow",
 ]
 
 
@@ -230,3 +230,22 @@ class Landmarks(Message):
     p_W: object = array_field("landmark positions in world [m]", "float64", ("N", 3))
     num_observations: object = array_field("observations of the landmark in the window", "int32", ("N",))
     last_seen_ns: object = array_field("time of the newest window keyframe observing the landmark [ns]", "int64", ("N",))
+
+
+@register(101)
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class EstimatorWindow(Message):
+    """What the per-frame fast path (services/backend/odometry.py) needs of the back end's window after a keyframe's
+    optimisation: the newest keyframe's state and the window's triangulated landmarks, both in the estimator's own
+    frame W (header.frame_id = 'W', header.stamp_ns = that keyframe's time), and the loop closer's correction
+    T_W'W into the frame states are published in (identity without loop closure)."""
+
+    T_WS: object = array_field("newest keyframe's body pose in W", "float64", (4, 4))
+    v_W: object = array_field("its velocity in W [m/s]", "float64", (3,))
+    gyro_bias: object = array_field("its gyroscope bias [rad/s]", "float64", (3,))
+    acc_bias: object = array_field("its accelerometer bias [m/s^2]", "float64", (3,))
+    T_corr: object = array_field("correction T_W'W from W into the published frame W'", "float64", (4, 4))
+    landmark_ids: object = array_field("ids of the window's triangulated landmarks (the frontend's)", "int64", ("N",))
+    p_W: object = array_field("their positions in W [m]", "float64", ("N", 3))
+    status: str = scalar_field("'tracking' or 'imu_only' (the keyframe's), 'initialising' (no state yet) or 'reset' "
+                               "(a restarted back end: forget the old window; no state)", default="tracking")

@@ -46,10 +46,12 @@ MAP_O2P_POINTS = Topic("map/o2p_points", m.SubmapPoints, "all", 64,
                        "lowest-sigma fused-depth points of a closed submap (map-to-map occupancy-to-point factors)")
 LANDMARKS = Topic("estimator/landmarks", m.Landmarks, "latest", 4,
                   "well-constrained window landmarks after each keyframe optimisation (MVS prior, viewer)")
+WINDOW = Topic("estimator/window", m.EstimatorWindow, "latest", 4,
+               "newest keyframe state and window landmarks after each keyframe optimisation (the per-frame fast path)")
 
 ALL: tuple[Topic, ...] = (IMU, FRAME, FEATURES, STATE, KEYFRAMES, DEPTH_STEREO, DEPTH_FUSED, SUBMAP,
                           STATS, HEARTBEAT, CONTROL, STREAM_END, KEYFRAME_FEATURES, TRAJECTORY_FINAL, MAP_FIELD,
-                          MAP_O2P_POINTS, LANDMARKS)
+                          MAP_O2P_POINTS, LANDMARKS, WINDOW)
 
 
 def per_service(topic: Topic, service: str) -> str:

@@ -130,8 +130,9 @@ def _unit_tier_guard(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyP
 # ----------------------------------------------------------------------------- clocks
 
 class FakeClock:
-    """A clock that moves only when told: ``monotonic``, ``perf_counter``, ``time``, ``time_ns`` and ``sleep``
-    (which advances it), standing in for the ``time`` module of the code under test (``fake_clock.install``)."""
+    """A clock that moves only when told: ``monotonic``, ``perf_counter``, ``time``, ``time_ns``, ``thread_time``
+    (as if the code under test used the CPU all the time) and ``sleep`` (which advances it), standing in for the
+    ``time`` module of the code under test (``fake_clock.install``)."""
 
     def __init__(self, start_s: float = 1000.0) -> None:
         self.now_s = start_s
@@ -145,6 +146,7 @@ class FakeClock:
 
     perf_counter = monotonic
     time = monotonic
+    thread_time = monotonic
 
     def monotonic_ns(self) -> int:
         return round(self.now_s * 1e9)

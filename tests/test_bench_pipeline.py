@@ -14,7 +14,8 @@ import pytest
 from shared.messages import Header, StreamEnd
 from tools.bench_budgets import Budgets, check_budgets, format_table, load_budgets
 from tools.bench_pipeline import frames_within, next_rate, stage_summary
-from tools.pipeline_probe import ArrivalLog, map_latencies, matched_latencies, service_name, summary
+from services.app.metrics.latency import ArrivalLog, map_latencies, matched_latencies, summary
+from tools.pipeline_probe import service_name
 from tools.eval.suite_report import ate_table, mean_std, mesh_table, timing_table
 from transport.stats import STAGE_LOG_DTYPE, STAGE_LOG_ENV, StageTimer, StatsCollector, read_stage_log
 
@@ -39,7 +40,7 @@ def test_arrival_log_and_matched_latencies():
     hs = log.handler("state", clock=clock)
     hs(StreamEnd(header=Header(stamp_ns=1), source="x", frames_sent=0))  # 1070 - 1000 = 70 ms
     hs(StreamEnd(header=Header(stamp_ns=9), source="x", frames_sent=0))  # never published: unmatched
-    from tools.pipeline_probe import first_arrivals
+    from services.app.metrics.latency import first_arrivals
 
     pub = first_arrivals(*log.get("frame"))
     assert pub == {1: 1000 * MS, 2: 1050 * MS}
@@ -84,13 +85,15 @@ def test_stage_log_records_every_item(tmp_path, monkeypatch):
     monkeypatch.setenv(STAGE_LOG_ENV, str(tmp_path / "log"))
     col = StatsCollector("svc")
     t = col.add_stage(StageTimer("work", budget_ms=10.0))
-    for s in (0.005, 0.020, 0.001):
-        t.record(s)
+    for s, cpu in ((0.005, 0.004), (0.020, 0.002), (0.001, 0.001)):  # wall, CPU: the 20 ms item waited for a core
+        t.record(s, cpu)
     rec = read_stage_log(tmp_path / "log" / "svc.work.bin")
     assert rec.dtype == STAGE_LOG_DTYPE and rec["seconds"].tolist() == [0.005, 0.020, 0.001]
+    assert rec["cpu_seconds"].tolist() == [0.004, 0.002, 0.001]
     assert np.all(np.diff(rec["end_ns"]) >= 0)
     s = stage_summary(rec, budget_ms=4.0)
     assert s["n"] == 3 and s["median_ms"] == pytest.approx(5.0) and s["over_budget"] == 2
+    assert s["cpu_median_ms"] == pytest.approx(2.0)
 
 
 def test_frames_within(tmp_path):

@@ -20,13 +20,23 @@ import numpy as np
 
 from services.app.inprocess import run_in_process
 from services.system_config import load_system_config
+from shared import topics
 from shared.euroc import series_from_matrices, read_trajectory, write_tum
 
 
 def run(dataset: str, overrides: list[str], max_frames: int = 0, loop: bool = True) -> tuple[dict, dict]:
     """Frontend and back end (loop closure as ``loop`` says, no occupancy terms) on the in-process runner."""
     cfg = load_system_config(None, ["o2p.enabled=false", *overrides, f"loop.enabled={str(loop).lower()}"])
-    run = run_in_process(dataset, cfg, max_frames)
+    raw: list = []  # the published states without the loop correction the fast path applied (its latest window's)
+    T_corr = [np.eye(4)]
+
+    def uncorrected(topic, msg) -> None:
+        if topic == topics.WINDOW and msg.status not in ("initialising",):
+            T_corr[0] = np.asarray(msg.T_corr)
+        elif topic == topics.STATE and msg.status not in ("initialising", "reset"):
+            raw.append((msg.header.stamp_ns, np.linalg.inv(T_corr[0]) @ msg.T_WS))
+
+    run = run_in_process(dataset, cfg, max_frames, taps=[uncorrected])
     times = np.array(run.runner.times.get(("backend", "on_features"), [(np.nan, np.nan)]))
     t_be, c_be = times[:, 0], times[:, 1]
     published = [s for s in run.states if s.status not in ("initialising", "reset")]
@@ -40,7 +50,7 @@ def run(dataset: str, overrides: list[str], max_frames: int = 0, loop: bool = Tr
         res["final_ba_s"] = float(sum(t for t, _ in run.runner.times.get(("backend", "on_stream_end"), [])))
         res["loops"] = lb.counts
         res["pose_graph_solve_ms"] = [round(x, 1) for x in lb.runner.closer.solve_ms]
-        trajs["raw"] = series_from_matrices(lb._stamps, lb._T_raw)
+        trajs["raw"] = series_from_matrices([s for s, _ in raw], [T for _, T in raw])
         if run.final is not None:
             trajs["final"] = series_from_matrices(run.final.stamps_ns, run.final.T_WS)
             res["final_keyframes"] = run.final.keyframes

@@ -38,6 +38,7 @@ PUBLISHES: dict[str, tuple[str, ...]] = {
     "player": ("sensors/**",),
     "frontend": ("frontend/**",),
     "backend": ("estimator/**",),
+    "odometry": ("estimator/state",),
     "depth": ("depth/**",),
     "mapping": ("map/**",),
     "viewer": ("control",),

@@ -113,7 +113,8 @@ def run_node(node: ProcessNode, cfg: TransportConfig, stopped=None, ready=None) 
             stamp = int(msg.header.stamp_ns)
             w.drain(waited)
             deadline = time.monotonic() + node.wait_s
-            while any(w.newest[i] < stamp for i in waited) and time.monotonic() < deadline and not done():
+            while (any(w.newest[i] < node.wait_stamp(i, stamp) for i in waited) and time.monotonic() < deadline
+                   and not done()):
                 time.sleep(0.002)
                 w.drain(waited)
             w.drain(side)

@@ -6,7 +6,8 @@ counts items over budget since start. A :class:`StatsCollector` turns a service'
 subscription queues into one :class:`shared.messages.ServiceStats` message.
 
 Per-item log (opt-in, for benchmarks): with ``$SIGMASLAM_STAGE_LOG`` naming a folder, every stage of every
-service appends one record per item (:data:`STAGE_LOG_DTYPE`: wall time of the item's end [ns], duration [s])
+service appends one record per item (:data:`STAGE_LOG_DTYPE`: wall time of the item's end [ns], duration [s],
+CPU time of the timing thread over the item [s]: on a shared machine the steadier figure)
 to ``<folder>/<service>.<stage>.bin``; :func:`read_stage_log` reads it back.
 """
 
@@ -25,7 +26,7 @@ import numpy as np
 from shared.messages import Header, Heartbeat, ServiceStats
 
 STAGE_LOG_ENV = "SIGMASLAM_STAGE_LOG"
-STAGE_LOG_DTYPE = np.dtype([("end_ns", "<i8"), ("seconds", "<f8")])
+STAGE_LOG_DTYPE = np.dtype([("end_ns", "<i8"), ("seconds", "<f8"), ("cpu_seconds", "<f8")])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -63,14 +64,15 @@ class StageTimer:
         self._log_fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
 
     def __enter__(self) -> StageTimer:
-        self._local.t0 = time.perf_counter()
+        self._local.t0, self._local.c0 = time.perf_counter(), time.thread_time()
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self.record(time.perf_counter() - self._local.t0)
+        self.record(time.perf_counter() - self._local.t0, time.thread_time() - self._local.c0)
 
-    def record(self, seconds: float) -> bool:
-        """Record one item that took ``seconds``; returns True if it overran the budget."""
+    def record(self, seconds: float, cpu_seconds: float = math.nan) -> bool:
+        """Record one item that took ``seconds`` (wall; ``cpu_seconds`` of the thread's CPU time, when known);
+        returns True if it overran the budget (wall)."""
         over = self.budget_ms is not None and seconds * 1e3 > self.budget_ms
         with self._lock:
             self.count += 1
@@ -78,7 +80,7 @@ class StageTimer:
             self._window.append((time.monotonic(), seconds))
         if self._log_fd is not None:
             try:
-                os.write(self._log_fd, np.array([(time.time_ns(), seconds)], STAGE_LOG_DTYPE).tobytes())
+                os.write(self._log_fd, np.array([(time.time_ns(), seconds, cpu_seconds)], STAGE_LOG_DTYPE).tobytes())
             except OSError:
                 self._log_fd = None  # a full disk must not stop the service
         return over

@@ -11,7 +11,7 @@
     run.nodes["mapping"].loop.mapper                                 # the map as the mapping node holds it
     run.mesh_causal       # the map's vertices in W just before it followed the final trajectory
 
-The nodes are the services' own (services/<process>/node.py), built from the system config in one place,
+The nodes are the services' own (services/<process>/node.py, the fast path services/backend/odometry_node.py), built from the system config in one place,
 :func:`pipeline_nodes`, and driven by :class:`shared.dataflow.InProcessRunner` in stamp order, the order a
 lockstep run over Zenoh gives: tools that need the pipeline without processes (offline VIO, loop evaluation, the
 ablation table) use this instead of wiring the algorithms by hand. Pacing is by stamps: the depth node handles a
@@ -28,6 +28,7 @@ from typing import Callable, Iterable, Iterator
 import numpy as np
 
 from services.backend.node import BackendNode
+from services.backend.odometry_node import OdometryNode
 from services.frontend.node import FrontendNode
 from shared import topics
 from shared.config import override
@@ -72,10 +73,12 @@ def depth_pipeline(cfg, cams):
 def pipeline_nodes(cfg, cams, depth: bool = False, mapping: bool = False,
                    clock: Callable[[], float] | None = None) -> dict[str, ProcessNode]:
     """The pipeline's nodes as the services build them from the system config ``cfg`` and the rig ``cams``:
-    frontend and back end, with ``depth`` the depth node, with ``mapping`` the mapping node (no output folder;
+    frontend, fast path (odometry: every frame's state) and back end (keyframe window), with ``depth`` the depth node, with ``mapping`` the mapping node (no output folder;
     ``clock`` [s] paces its meshes and fields, the wall clock when None). The one place that says what the
     in-process pipeline is made of."""
-    nodes: dict[str, ProcessNode] = {"frontend": FrontendNode(cfg.frontend, cams), "backend": BackendNode(cfg, cams)}
+    # the fast path before the back end: a keyframe's state comes from the previous window, as in a live run
+    nodes: dict[str, ProcessNode] = {"frontend": FrontendNode(cfg.frontend, cams), "odometry": OdometryNode(cfg, cams),
+                                     "backend": BackendNode(cfg, cams)}
     if depth:
         from services.depth.node import DepthNode
 
@@ -146,7 +149,7 @@ class _Collector:
 
 def run_in_process(dataset: str, cfg, max_frames: int = 0, depth: bool = False, mapping: bool = False,
                    seconds: float = 0.0, taps: Iterable[Callable] = ()) -> InProcessRun:
-    """The pipeline of :func:`pipeline_nodes` (frontend and back end with whatever ``cfg`` enables: loop closure,
+    """The pipeline of :func:`pipeline_nodes` (frontend, fast path and back end with whatever ``cfg`` enables: loop closure,
     occupancy-to-point factors; the depth and mapping nodes when asked) on ``dataset``, in this process; ``taps``
     see every (topic, message) delivered, after the run's own."""
     if not cfg.rig.calibration:

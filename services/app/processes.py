@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 from services.backend.node import BackendNode
+from services.backend.odometry_node import OdometryNode
 from services.depth.node import DepthNode
 from services.frontend.node import FrontendNode
 from services.mapping.node import MappingNode
@@ -25,7 +26,7 @@ from services.viewer.node import ViewerNode
 from shared import topics
 from shared.dataflow import ProcessNode
 
-PROCESS_NODES: tuple[type[ProcessNode], ...] = (PlayerNode, FrontendNode, BackendNode, DepthNode, MappingNode,
+PROCESS_NODES: tuple[type[ProcessNode], ...] = (PlayerNode, FrontendNode, OdometryNode, BackendNode, DepthNode, MappingNode,
                                                 ViewerNode, RecorderNode)
 EVERY_TOPIC_READER = RecorderNode  # reads every topic: left out of the drawing, said once
 DOC = Path(__file__).resolve().parents[2] / "docs" / "architecture.md"

@@ -47,6 +47,7 @@ from shared import topics
 from shared.config import override, to_yaml
 from shared.euroc import series_from_matrices, PoseSeries, read_trajectory, write_euroc_csv, write_tum
 from transport.node import Node
+from services.app.metrics.latency import ArrivalLog, first_arrivals, matched_latencies, summary
 from transport.queues import Empty
 from transport.session import free_local_port
 
@@ -54,10 +55,12 @@ log = logging.getLogger("sigmaslam.run")
 
 # used when the config lists no pipeline service (besides player and recorder)
 MAPPING_STOP_TIMEOUT_S = 60.0  # SIGKILL a mapping service still writing its map only after this long
-DEFAULT_PIPELINE = (ServiceSpec(name="frontend", argv=["frontend"]), ServiceSpec(name="backend", argv=["backend"]))
+DEFAULT_PIPELINE = (ServiceSpec(name="frontend", argv=["frontend"]), ServiceSpec(name="backend", argv=["backend"]),
+                    ServiceSpec(name="odometry", argv=["odometry"]))
 
-# per-frame stages whose medians add up to the estimator's cost per camera frame
-FRAME_STAGES = (("frontend", "track"), ("backend", "optimise"))
+# per-frame stages whose medians add up to the estimator's cost per camera frame (the back end's window
+# optimisation runs beside them, at keyframes: reported on its own)
+FRAME_STAGES = (("frontend", "track"), ("odometry", "track"))
 
 # where a dataset folder (the one holding mav0/, or mav0 itself) keeps its ground truth, in the order looked for:
 # the ASL layout's own file, then a TUM or CSV file at the folder's top (what trimmed or converted folders carry)
@@ -136,6 +139,7 @@ class _Collector:
     window_p50: dict = dataclasses.field(default_factory=dict)  # (service, stage) -> [p50 per stats message]
     end: object | None = None
     last_state_time: float = 0.0
+    arrivals: ArrivalLog = dataclasses.field(default_factory=ArrivalLog)  # frame and state arrival times
 
 
 PROGRESS_EVERY_S = 10.0  # wall time between two progress lines of a run [s]
@@ -153,6 +157,9 @@ def progress_line(col: _Collector, elapsed_s: float) -> str:
 
 def _collect(node: Node, col: _Collector, sup_thread: threading.Thread, settle_s: float, timeout_s: float) -> str:
     states = node.subscriber(topics.STATE, policy="all", depth=1_000_000)
+    # arrival times for the pose latency (sensor publication -> estimator/state), in the Zenoh threads
+    node.subscriber(topics.FRAME, policy="latest", depth=1, handler=col.arrivals.handler("frame"))
+    node.subscriber(topics.STATE, policy="latest", depth=1, handler=col.arrivals.handler("state"))
     stats = node.subscriber(topics.STATS, policy="all", depth=10_000)
     ends = node.subscriber(topics.STREAM_END)
     t0 = next_report = time.monotonic()
@@ -222,6 +229,14 @@ def stats_summary(col: _Collector) -> dict:
     status = [s.status for s in col.states]
     out["states"] = {k: status.count(k) for k in sorted(set(status))}
     out["frames_sent"] = int(col.end.frames_sent) if col.end is not None else None
+    published = first_arrivals(*col.arrivals.get("frame"))
+    lat = matched_latencies(published, *col.arrivals.get("state"))
+    out["state_latency_ms"] = summary(lat["latency_ms"])  # sensor publication -> estimator/state, per frame
+    posed = {int(s.header.stamp_ns) for s in col.states if s.status not in ("initialising", "reset")}
+    out["frames_without_state"] = (None if out["frames_sent"] is None
+                                   else max(0, out["frames_sent"] - len(posed)))
+    out["drops"] = {f"{svc}:{q}": v["dropped"] for svc, d in out["services"].items()
+                    for q, v in d["queues"].items() if v["dropped"]}
     return out
 
 
@@ -271,6 +286,8 @@ def main(args: argparse.Namespace) -> int:
                      "supervisor.start_router": True}
     if not cfg.rig.calibration:
         changes["rig.calibration"] = dataset
+    if not (args.realtime or getattr(args, "rate", 0.0) > 0):  # lockstep: reproducible, the fast path waits for windows
+        changes["backend.fast_path_waits_for_window"] = True
     if gt is not None and not cfg.viewer.ground_truth:
         changes["viewer.ground_truth"] = str(gt)  # the viewer overlays it (green)
     cfg = override(cfg, changes)  # a changed copy: the loaded config is frozen
@@ -311,8 +328,12 @@ def main(args: argparse.Namespace) -> int:
         summary["loops"] = loop_summary(final)
         print(f"[sigmaslam run] final trajectory: {summary['loops']}", flush=True)
     (out / "stats.json").write_text(json.dumps(summary, indent=2))
-    print(f"[sigmaslam run] {why}: {len(traj.stamps_ns)} poses in {wall:.1f} s; frontend+backend median "
-          f"{summary['frontend_backend_median_ms']} ms per frame; states {summary['states']}", flush=True)
+    lat = summary["state_latency_ms"]
+    lat_text = f"pose latency p50 {lat['median']:.0f} ms, p99 {lat['p99']:.0f} ms" if lat.get("n") else "no latency"
+    print(f"[sigmaslam run] {why}: {len(traj.stamps_ns)} poses in {wall:.1f} s "
+          f"({summary['frames_without_state']} of {summary['frames_sent']} frames without a state); "
+          f"frontend + fast path median {summary['frontend_backend_median_ms']} ms per frame; {lat_text}; "
+          f"states {summary['states']}", flush=True)
     rc = 0 if why == "done" else 1
     if len(traj.stamps_ns) < 3:
         rc = 1

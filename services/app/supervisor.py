@@ -95,6 +95,11 @@ def validate(cfg: SupervisorConfig, known_commands: dict[str, object] | None = N
             raise ConfigError(f"{where}.stop_timeout_s: must be >= 0 s, got {spec.stop_timeout_s}")
         if spec.max_restarts < 0 or spec.window_s <= 0 or spec.backoff_s < 0:
             raise ConfigError(f"{where}: max_restarts >= 0, window_s > 0 and backoff_s >= 0 required")
+    commands = {s.argv[0] for s in cfg.services if s.enabled and s.argv}
+    if "backend" in commands and "odometry" not in commands:  # configs written before the split
+        raise ConfigError("supervisor.services: 'backend' without 'odometry': the back end publishes windows, not "
+                          "states; add {name: odometry, argv: [odometry]} (the per-frame fast path, "
+                          "docs/estimator.md)")
 
 
 # ----------------------------------------------------------------------------- processes

@@ -70,7 +70,12 @@ class BackendConfig:
     motion_only_between_keyframes: bool = param(True, "non-keyframe frames solve only their own state against the "
                                                 "fixed window (ignored when compute_covariance is on)")
     # --- service ---
-    budget_ms: float = param(18.0, "per-frame budget of the optimisation stage (stats topic)", "ms")
+    budget_ms: float = param(18.0, "per-keyframe budget of the back end's window optimisation (stats topic)", "ms")
+    fast_path_budget_ms: float = param(8.0, "per-frame budget of the fast path's motion-only solve (the odometry "
+                                       "process, services/backend/odometry.py; stats topic)", "ms")
+    fast_path_waits_for_window: bool = param(False, "the fast path waits (up to imu_wait_s) for the window of the "
+                                             "keyframe before each frame: reproducible lockstep runs (sigmaslam run "
+                                             "sets it without --realtime/--rate); off live, where no frame may wait")
     imu_wait_s: float = param(0.5, "how long a feature frame waits for the IMU samples up to its time", "s")
     max_backlog_frames: int = param(4, "when more feature frames than this wait, the oldest non-keyframes are "
                                     "skipped (counted as drops) so the causal pose stays current; 0: never skip")

@@ -51,6 +51,7 @@ from services.backend.landmarks import WindowLandmarks, gather_landmarks
 from services.backend.mono_init import bootstrap as mono_bootstrap
 from services.backend.still import mono_frame_factors
 from services.backend.triangulation import triangulate_checked
+from services.backend.vision_factors import ProjectionModel
 
 
 class BackendInputError(ValueError):
@@ -79,13 +80,9 @@ class WindowedVioEstimator:
                                                      "gyro_random_walk", "accel_random_walk")}
         self.params = make_params(cfg, **kw)
         self.imu = ImuBuffer()
-        self._cal = gtsam.Cal3_S2(1.0, 1.0, 0.0, 0.0, 0.0)
-        self._body_P_cam = [gtsam.Pose3(c.T_SC) for c in self.cameras]
+        self._vision = ProjectionModel(self.cameras, cfg.sigma_px, cfg.cauchy_k)
         self._T_SC = np.array([c.T_SC for c in self.cameras])
         self._focal = np.array([c.focal_px for c in self.cameras])
-        self._noise = [gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.cauchy_k),
-                                                      gtsam.noiseModel.Isotropic.Sigma(2, cfg.sigma_px / c.focal_px))
-                       for c in self.cameras]
         self.values = gtsam.Values()
         self.keyframes: list[int] = []        # state indices of the window's keyframes, oldest first
         self.stamps: dict[int, int] = {}
@@ -152,6 +149,13 @@ class WindowedVioEstimator:
         return n
 
     # ---------------------------------------------------------------- per frame
+    def wants_frame(self, stamp_ns: int, is_keyframe: bool) -> bool:
+        """Whether :meth:`process_frame` would make this frame a keyframe (or needs it to initialise): the frames the
+        back-end service gives it; the others only the per-frame fast path tracks (services/backend/odometry.py)."""
+        if not self.initialised or self._first_frame_pending or is_keyframe:
+            return True
+        return stamp_ns - self.stamps[self.keyframes[-1]] >= self.cfg.max_keyframe_interval_s * 1e9
+
     def process_frame(self, stamp_ns: int, landmark_ids: np.ndarray, camera_index: np.ndarray, uv: np.ndarray,
                       is_keyframe: bool = False) -> FrameResult | None:
         """Add one frame's observations, optimise the window, return the causal estimate (None before init)."""
@@ -271,8 +275,7 @@ class WindowedVioEstimator:
     def _add_observations(self, n: int, ids, cams, uv) -> None:
         for c in np.unique(cams):
             m = cams == c
-            xy = self.cameras[c].undistort(uv[m])
-            for lm, p in zip(ids[m], xy):
+            for lm, p in zip(ids[m], self._vision.undistort(cams[m], uv[m])):
                 self._obs.setdefault(int(lm), {}).setdefault(n, []).append((int(c), np.asarray(p, float)))
 
     def _add_still(self, n: int, k: int) -> None:
@@ -317,8 +320,7 @@ class WindowedVioEstimator:
         key = (lm, n, j)
         f = self._proj_cache.get(key)
         if f is None:
-            f = gtsam.GenericProjectionFactorCal3_S2(xy, self._noise[c], X(n), L(lm), self._cal, False, False,
-                                                    self._body_P_cam[c])
+            f = self._vision.factor(xy, c, X(n), L(lm))
             self._proj_cache[key] = f
         return f
 
@@ -465,6 +467,12 @@ class WindowedVioEstimator:
         """landmark -> ((camera, normalised xy (2,)), ...) of the window's observations at ``state``, in the
         order landmarks were first seen; a new dict (the xy arrays are the window's own: do not modify them)."""
         return {lm: tuple(by[state]) for lm, by in self._obs.items() if state in by}
+
+    def window_points(self) -> tuple[np.ndarray, np.ndarray]:
+        """(ids (N,), p_W (N,3)) of every triangulated landmark with factors in the window, at the current estimate."""
+        ids = np.array(sorted(self._in_graph), np.int64)
+        p = np.array([self.values.atPoint3(L(int(lm))) for lm in ids], float).reshape(-1, 3)
+        return ids, p
 
     def landmark_in_graph(self, lm: int) -> bool:
         """Whether landmark ``lm`` is triangulated and has factors in the window's graph (a value L(lm))."""

@@ -1,9 +1,13 @@
 """The back end as a transport-free process node, and its composition root.
 
-sensors/imu (keep-all) + frontend/frame -> estimator/state (every frame), estimator/keyframes (after each
-optimisation), estimator/landmarks (after each keyframe's optimisation); with loop closure, frontend/keyframe_features
-in and, at the end of the stream, estimator/trajectory_final out; with occupancy-to-point factors, map/field,
+sensors/imu (keep-all) + frontend/frame -> estimator/window, estimator/keyframes and estimator/landmarks after each
+keyframe's window optimisation; with loop closure, frontend/keyframe_features and estimator/state (the published
+poses) in and, at the end of the stream, estimator/trajectory_final out; with occupancy-to-point factors, map/field,
 map/o2p_points and depth/stereo in.
+
+The back end handles only the frames its estimator makes keyframes of (``WindowedVioEstimator.wants_frame``): the
+state of every frame is published by the per-frame fast path, another process (services/backend/odometry_node.py),
+from the window this node publishes, so no frame waits for a window optimisation.
 
 :class:`BackendNode` is the back end's composition root: the one place that builds what the back end is made of
 from the system config and hands each part its collaborators in its constructor (the seams are the protocols of
@@ -23,6 +27,7 @@ import numpy as np
 from services.backend.backlog import shed_backlog
 from services.backend.cameras import BackendCamera
 from services.backend.estimator import BackendInputError, WindowedVioEstimator, camera_from_calib
+from services.backend.frame_result import FrameResult
 from services.backend.imu_factors import ImuDataError
 from services.backend.loop.backend_loop import LoopClosingBackend, PublishedFrame
 from services.backend.loop.history import KeyframeHistory
@@ -32,8 +37,8 @@ from services.backend.outputs import keyframes_message, landmarks_message, state
 from shared.lookup_camera import LookupCamera
 from shared import topics
 from shared.dataflow import Emit, Input, ProcessNode
-from shared.messages import (DepthFrame, EstimatorState, FeatureFrame, Header, ImuSample, KeyframeFeatures, Keyframes,
-                             Landmarks, OccupancyField, StreamEnd)
+from shared.messages import (DepthFrame, EstimatorState, EstimatorWindow, FeatureFrame, Header, ImuSample,
+                             KeyframeFeatures, Keyframes, Landmarks, OccupancyField, StreamEnd)
 
 log = logging.getLogger("sigmaslam.backend")
 
@@ -58,6 +63,7 @@ class BackendShell:
         self.seq = 0
         self.newest_imu_ns = -1
         self.landmarks: Landmarks | None = None  # of the last keyframe processed, until take_landmarks()
+        self.last_result: FrameResult | None = None  # the estimator's raw result of the last frame processed
 
     def add_map_input(self, msg) -> None:
         """map/field (OccupancyField), depth/stereo (DepthFrame) or map/o2p_points (SubmapPoints) for o2p."""
@@ -108,6 +114,7 @@ class BackendShell:
                                  covariance=np.full((15, 15), np.nan), status="initialising")
             self.seq += 1
             return msg, None
+        self.last_result = res
         msgs = state_message(res, self.seq), keyframes_message(res, self.seq)
         self.landmarks = landmarks_message(res, self.seq)
         self.seq += 1
@@ -117,6 +124,22 @@ class BackendShell:
         """estimator/landmarks of the last frame processed if it was a keyframe (once)."""
         msg, self.landmarks = self.landmarks, None
         return msg
+
+    def window_message(self, state: EstimatorState, T_corr: np.ndarray | None) -> EstimatorWindow:
+        """estimator/window after the frame that gave ``state`` (its status; the pose from the estimator's own
+        result, in W): the newest keyframe and the window's landmarks for the fast path."""
+        res = self.last_result
+        if state.status in ("initialising", "reset") or res is None:  # no state to anchor to: status alone
+            return EstimatorWindow(header=state.header, T_WS=np.eye(4), v_W=np.zeros(3), gyro_bias=np.zeros(3),
+                                   acc_bias=np.zeros(3), T_corr=np.eye(4), landmark_ids=np.zeros(0, np.int64),
+                                   p_W=np.zeros((0, 3)),
+                                   status="reset" if state.status == "reset" else "initialising")
+        ids, p_W = self.estimator.window_points()
+        return EstimatorWindow(header=state.header, T_WS=np.ascontiguousarray(res.T_WS, np.float64),
+                               v_W=np.asarray(res.v_W, np.float64), gyro_bias=np.asarray(res.gyro_bias, np.float64),
+                               acc_bias=np.asarray(res.acc_bias, np.float64),
+                               T_corr=np.eye(4) if T_corr is None else np.ascontiguousarray(T_corr, np.float64),
+                               landmark_ids=ids, p_W=np.ascontiguousarray(p_W, np.float64), status=state.status)
 
 
 
@@ -158,11 +181,14 @@ class BackendNode(ProcessNode):
         Input(topics.MAP_O2P_POINTS, "on_map_input", when="o2p.enabled", note="map-to-map points"),
         Input(topics.DEPTH_STEREO, "on_map_input", depth=8, when="o2p.enabled", note="frame-to-map points"),
         Input(topics.KEYFRAME_FEATURES, "on_keyframe_features", when="loop.enabled", note="loop detection"),
+        Input(topics.STATE, "on_state", policy="all", depth=256, when="loop.enabled",
+              note="the fast path's published poses: the frames of the final trajectory"),
         Input(topics.STREAM_END, "on_stream_end", role="idle", when="loop.enabled",
               note="the final bundle adjustment after the last frame"),
     )
-    outputs = (topics.STATE, topics.KEYFRAMES, topics.LANDMARKS, topics.TRAJECTORY_FINAL)
-    output_notes = {topics.STATE.key: "every frame", topics.KEYFRAMES.key: "after each optimisation",
+    outputs = (topics.WINDOW, topics.KEYFRAMES, topics.LANDMARKS, topics.TRAJECTORY_FINAL)
+    output_notes = {topics.WINDOW.key: "after each keyframe's optimisation",
+                    topics.KEYFRAMES.key: "after each keyframe's optimisation",
                     topics.LANDMARKS.key: "after each keyframe's optimisation",
                     topics.TRAJECTORY_FINAL.key: "once, after sensors/end (loop.enabled)"}
 
@@ -186,9 +212,10 @@ class BackendNode(ProcessNode):
         if self.shell.o2p is not None:
             used.append("on_map_input")
         if self.loop is not None:
-            used += ["on_keyframe_features", "on_stream_end"]
+            used += ["on_keyframe_features", "on_state", "on_stream_end"]
         self.use_inputs(used)
         self.final_seq = 0
+        self.skipped_frames = 0  # frames the estimator did not want (no keyframe): the fast path's alone
 
     @property
     def estimator(self) -> WindowedVioEstimator:
@@ -206,11 +233,21 @@ class BackendNode(ProcessNode):
     def on_keyframe_features(self, msg: KeyframeFeatures) -> None:
         self.loop.add_keyframe_features(msg)
 
+    def on_state(self, msg: EstimatorState) -> None:
+        self.loop.record_state(msg)
+
     def on_features(self, frame: FeatureFrame) -> list[Emit]:
+        stamp = int(frame.header.stamp_ns)
+        if not self.estimator.wants_frame(stamp, bool(frame.is_keyframe)):
+            if self.shell.o2p is not None:
+                self.shell.o2p.note_frame(stamp, frame.landmark_ids)
+            self.skipped_frames += 1
+            return []
         msgs = self.shell.process(frame) if self.loop is None else self.loop.process(frame)
         out = []
         if msgs is not None:
-            out.append(Emit(topics.STATE, msgs[0]))
+            T_corr = self.loop.published.correction() if self.loop is not None else None
+            out.append(Emit(topics.WINDOW, self.shell.window_message(msgs[0], T_corr)))
             if msgs[1] is not None:
                 out.append(Emit(topics.KEYFRAMES, msgs[1]))
         if (lms := (self.shell if self.loop is None else self.loop).take_landmarks()) is not None:

@@ -1,7 +1,8 @@
 """``sigmaslam backend [CONFIG]``: the back-end node (services/backend/node.py) as a process over Zenoh.
 
-sensors/imu + frontend/frame (+ frontend/keyframe_features, map/field, map/o2p_points, depth/stereo,
-sensors/end) -> estimator/state, estimator/keyframes, estimator/landmarks, estimator/trajectory_final. A feature
+sensors/imu + frontend/frame (+ frontend/keyframe_features, estimator/state, map/field, map/o2p_points,
+depth/stereo, sensors/end) -> estimator/window, estimator/keyframes, estimator/landmarks,
+estimator/trajectory_final; ``sigmaslam odometry`` publishes estimator/state from its windows. A feature
 frame waits up to ``backend.imu_wait_s`` for the IMU samples up to its time; a frame the estimator refuses (bad
 arrays, time going backwards, IMU gap) is dropped, counted and logged, never fatal.
 """

@@ -61,7 +61,8 @@ class MappingConfig:
     state_buffer: int = param(2000, "estimator states kept for pose look-up by stamp")
     pose_tolerance_ms: float = param(1.0, "a state this close to the depth stamp is used as is; otherwise the pose is interpolated", "ms")
     max_interp_gap_ms: float = param(250.0, "largest gap between two states to interpolate across", "ms")
-    pose_wait_s: float = param(1.0, "a depth frame waits this long for its state, then is dropped (counted)", "s")
+    pose_wait_s: float = param(3.0, "a depth frame waits this long for its state, then is dropped (counted): long "
+                               "enough for a live run on a loaded machine, where states can lag by a second", "s")
     integrate_budget_ms: float = param(50.0, "integration budget per depth frame (reported in stats)", "ms")
     mesh_period_s: float = param(1.0, "changed submaps are re-meshed and published at most this often", "s")
     mesh_budget_ms: float = param(40.0, "meshing work per loop iteration (the rest waits for the next one)", "ms")

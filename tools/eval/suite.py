@@ -2,7 +2,8 @@
 
 For each sequence (default V1_02, V2_01, MH_04, real IMU; scene vicon-a / machinehall-a) the replica is generated
 once (cached, services/app/synth/api.py; ``--duration S`` for a short one), the pipeline runs on it through the pipeline
-bench's runner (tools/bench_pipeline.run_once: ``sigmaslam run`` with frontend, backend, depth, mapping; lockstep
+bench's runner (tools/bench_pipeline.run_once: ``sigmaslam run`` with frontend, backend, odometry, depth, mapping, or
+the services of ``--config`` with ``--services config``; lockstep
 by default so that a loaded machine does not change accuracy, ``--rate R`` for R x sensor rate; final bundle
 adjustment on), and the outputs are evaluated:
 
@@ -39,7 +40,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="out/suite", help="output folder (default out/suite)")
     p.add_argument("--rate", type=float, default=0.0, help="playback rate factor (0: lockstep)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config field")
-    p.add_argument("--services", default="frontend,backend,depth,mapping", help="pipeline services")
+    p.add_argument("--services", default="frontend,backend,odometry,depth,mapping",
+                   help="pipeline services (comma-separated; 'config': those of --config)")
+    p.add_argument("--config", help="YAML system config of the runs (default: built-in defaults), e.g. configs/demo.yaml")
     p.add_argument("--hilti-points", type=int, default=12, help="control points per sequence for the Hilti score")
     p.add_argument("--skip-run", action="store_true", help="use the run folders already under --out")
     p.add_argument("--timeout-s", type=float, default=1800.0, help="give up a run after this long [s]")
@@ -187,7 +190,7 @@ def main(args: argparse.Namespace) -> int:
         replica = ensure_replica(seq, scenes[seq], imu="real", duration_s=args.duration, progress=False)
         print(f"[eval suite] {seq}: replica {replica}", flush=True)
         if not args.skip_run:
-            raw = run_once(replica, seq_out, args.rate, 0.0, args.services, None,
+            raw = run_once(replica, seq_out, args.rate, 0.0, args.services, args.config,
                            ["loop.final_ba=true", *args.set], args.timeout_s)
             if raw["rc"] != 0:
                 rc = 1

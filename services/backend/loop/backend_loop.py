@@ -11,7 +11,7 @@ keyframe history (the estimator's marginalisation listener), the :class:`Threade
 * with occupancy-to-point factors on (the shell's ``o2p``), the :class:`PublishedFrame` is their submap anchoring:
   it binds each closed submap to the keyframe anchoring it (:meth:`PublishedFrame.anchor_of`); the map-to-map
   terms go to the pose graph;
-* keeps the uncorrected causal poses, and at the end of the stream (:meth:`LoopClosingBackend.finish`) runs
+* keeps the published causal poses (:meth:`LoopClosingBackend.record_state`), and at the end of the stream (:meth:`LoopClosingBackend.finish`) runs
   the final bundle adjustment over all keyframes with IMU, loop and map-to-map factors, giving the non-causal
   trajectory.
 """
@@ -107,7 +107,7 @@ class LoopClosingBackend:
         self.shell, self.cfg = shell, cfg
         self.history, self.runner, self.published = history, runner, published
         self._stamps: list[int] = []
-        self._T_raw: list[np.ndarray] = []
+        self._T_pub: list[np.ndarray] = []
         self._generation = 0
         self.dropped_features = 0
         self._end_ns: int | None = None
@@ -128,7 +128,8 @@ class LoopClosingBackend:
             np.asarray(msg.uv, float), np.asarray(msg.descriptors, np.uint8)))
 
     def process(self, frame):
-        """As ``BackendShell.process``, with corrected poses."""
+        """As ``BackendShell.process`` (a frame the estimator wants: services/backend/node.py), with corrected
+        poses. The published states of all frames come in through :meth:`record_state`."""
         self._last_process = time.monotonic()
         if self.shell.o2p is not None:  # map-to-map terms of submaps closed since the last frame
             for term in self.shell.o2p.pop_map_to_map():
@@ -140,9 +141,6 @@ class LoopClosingBackend:
         if msgs is None or msgs[0].status in ("initialising", "reset"):
             return msgs
         state, kfs = msgs
-        self._stamps.append(int(state.header.stamp_ns))
-        self._T_raw.append(np.array(state.T_WS))
-        self.runner.submit_status(int(state.header.stamp_ns), state.status)
         if not self.cfg.correct_state:
             return msgs
         T, gen, (g_ids, g_stamps, g_T) = self.runner.snapshot()  # state and keyframes from the same solve
@@ -159,6 +157,18 @@ class LoopClosingBackend:
                             T_WS=np.ascontiguousarray(poses, np.float64))
             self.published.note_published(kfs)
         return state, kfs
+
+    def record_state(self, state: EstimatorState) -> None:
+        """A published causal state (estimator/state, in W'): the frames the final trajectory is given for, and
+        the tracking status the loop closer follows."""
+        if state.status in ("initialising", "reset"):
+            return
+        stamp = int(state.header.stamp_ns)
+        if self._stamps and stamp <= self._stamps[-1]:
+            return
+        self._stamps.append(stamp)
+        self._T_pub.append(np.array(state.T_WS))
+        self.runner.submit_status(stamp, state.status)
 
     def take_landmarks(self) -> Landmarks | None:
         """As ``BackendShell.take_landmarks``, moved by the correction applied to the last state."""
@@ -181,18 +191,18 @@ class LoopClosingBackend:
         if len(records) < 2 or len(self._stamps) < 2:
             return None
         stamps = np.array(self._stamps, np.int64)
-        T_raw = np.array(self._T_raw)
+        T_pub = np.array(self._T_pub)
         if self.cfg.final_ba:
             res = bundle_adjust(records, est.cameras, est.cfg.sigma_px, est.cfg.cauchy_k, closer.loops + late_loops,
                                 self.cfg.final_ba_iterations, loop_observations=closer.loop_observations + late_obs,
                                 map_to_map=closer.map_to_map_for_final())
-            T_final = follow_keyframes(stamps, T_raw, res.stamps_ns, res.T_WS)
+            T_final = follow_keyframes(stamps, T_pub, res.stamps_ns, res.T_WS)
             n_kf = len(res.stamps_ns)
             log.info("final BA: %d keyframes, %d landmarks, %d observations, %d map-to-map, error %.1f -> %.1f", n_kf,
                      res.landmarks, res.observations, res.map_to_map, res.initial_error, res.final_error)
         else:  # the pose graph alone
             g_ids, g_stamps, g_T = closer.corrected_keyframes()
-            T_final = follow_keyframes(stamps, T_raw, g_stamps, g_T) if len(g_ids) else T_raw
+            T_final = follow_keyframes(stamps, T_pub, g_stamps, g_T) if len(g_ids) else T_pub
             n_kf = len(g_ids)
         return FinalTrajectory(header=Header(stamp_ns=int(stamps[-1]), seq=seq, frame_id="W"), stamps_ns=stamps,
                                T_WS=np.ascontiguousarray(T_final, np.float64), keyframes=int(n_kf),

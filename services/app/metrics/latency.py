@@ -1,0 +1,99 @@
+"""Latency of a live run from arrival times: the wall time [ns] at which each message of a topic arrived at one
+subscriber, keyed by its header stamp. The first arrival of a sensor stamp on ``sensors/frame`` stands for the
+moment the player published it (one host, one clock; the ~1 ms transport to the subscriber is included in neither
+end nor subtracted), so latency(stamp) = arrival(topic, stamp) - arrival(sensors/frame, stamp).
+
+- :class:`ArrivalLog`: (stamp, arrival) per topic name, filled by subscriber callbacks;
+- :func:`matched_latencies`: latency per stamp of a topic whose messages carry the sensor stamp
+  (estimator/state, depth/fused);
+- :func:`map_latencies`: sensor stamp -> first ``map/submap`` message that arrived after that stamp's depth frame
+  (submap meshes carry the submap's anchor stamp, not the frame's; the mapper publishes changed submaps every
+  ``mapping.mesh_period_s``, so this includes that period). A lower bound when the mapper runs behind its input;
+- :func:`summary`: n, mean, median, p90, p99, max of a sample.
+
+Used by ``sigmaslam run`` (pose latency of every run) and ``sigmaslam bench pipeline``.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+
+
+def summary(values, unit_scale: float = 1.0) -> dict:
+    """n, mean, median, p90, p99, max of ``values * unit_scale`` (NaN-free; empty -> n=0 only)."""
+    v = np.asarray(values, float).ravel() * unit_scale
+    v = v[np.isfinite(v)]
+    if len(v) == 0:
+        return {"n": 0}
+    return {"n": int(len(v)), "mean": float(v.mean()), "median": float(np.median(v)),
+            "p90": float(np.percentile(v, 90)), "p99": float(np.percentile(v, 99)), "max": float(v.max())}
+
+
+class ArrivalLog:
+    """Thread-safe record of (header stamp, arrival wall time) per topic name."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._data: dict[str, list[tuple[int, int]]] = {}
+
+    def handler(self, name: str, clock=time.time_ns):
+        """A subscriber callback that logs each message's header stamp under ``name``."""
+        rows = self._data.setdefault(name, [])
+
+        def on_msg(msg) -> None:
+            t = clock()
+            with self._lock:
+                rows.append((int(msg.header.stamp_ns), t))
+        return on_msg
+
+    def add(self, name: str, stamp_ns: int, arrival_ns: int) -> None:
+        with self._lock:
+            self._data.setdefault(name, []).append((int(stamp_ns), int(arrival_ns)))
+
+    def get(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """(stamps_ns, arrivals_ns) in arrival order."""
+        with self._lock:
+            rows = list(self._data.get(name, []))
+        if not rows:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        a = np.array(rows, np.int64)
+        return a[:, 0], a[:, 1]
+
+
+def first_arrivals(stamps_ns: np.ndarray, arrivals_ns: np.ndarray) -> dict[int, int]:
+    """Earliest arrival per stamp."""
+    out: dict[int, int] = {}
+    for s, t in zip(stamps_ns.tolist(), arrivals_ns.tolist()):
+        if s not in out or t < out[s]:
+            out[s] = t
+    return out
+
+
+def matched_latencies(published: dict[int, int], stamps_ns: np.ndarray, arrivals_ns: np.ndarray) -> dict:
+    """Per message whose stamp was published: ``stamp_ns``, ``arrival_ns`` and ``latency_ms``; ``unmatched`` counts
+    the messages whose stamp the bench never saw published (e.g. published before it subscribed)."""
+    keep = np.array([s in published for s in stamps_ns.tolist()], bool)
+    s, a = stamps_ns[keep], arrivals_ns[keep]
+    pub = np.array([published[x] for x in s.tolist()], np.int64)
+    return {"stamp_ns": s, "arrival_ns": a, "latency_ms": (a - pub) / 1e6, "unmatched": int((~keep).sum())}
+
+
+def map_latencies(published: dict[int, int], depth_stamps_ns: np.ndarray, depth_arrivals_ns: np.ndarray,
+                  submap_arrivals_ns: np.ndarray) -> dict:
+    """Sensor stamp -> the first submap message after the stamp's depth frame arrived (see the module doc)."""
+    first_depth = first_arrivals(depth_stamps_ns, depth_arrivals_ns)
+    sub = np.sort(np.asarray(submap_arrivals_ns, np.int64))
+    stamps, arrivals = [], []
+    for s, t in sorted(first_depth.items()):
+        if s not in published:
+            continue
+        k = np.searchsorted(sub, t, side="left")
+        if k < len(sub):
+            stamps.append(s)
+            arrivals.append(sub[k])
+    s, a = np.array(stamps, np.int64), np.array(arrivals, np.int64)
+    pub = np.array([published[x] for x in s.tolist()], np.int64)
+    return {"stamp_ns": s, "arrival_ns": a, "latency_ms": (a - pub) / 1e6, "unmatched": 0}

@@ -1,0 +1,127 @@
+"""The per-frame fast path: every camera frame's state from the IMU and its tracks, against the back end's latest
+window held fixed, so that no frame waits for a keyframe's window optimisation.
+
+The back end (services/backend/estimator.py) optimises its keyframe window only at keyframes; after each it
+publishes the newest keyframe's state and the window's landmarks (``estimator/window``). For every frame, this
+tracker pre-integrates the IMU from that keyframe to the frame, predicts the state, and solves the frame's pose,
+velocity and bias alone against the IMU factor from the keyframe and the reprojection factors of the landmarks the
+window has triangulated, keyframe and landmarks pinned at the window's estimate (services/backend/motion_only.py,
+the solve the estimator uses between keyframes). A keyframe's own state therefore comes from this solve too, before
+the window is optimised; later frames use the new window as soon as it arrives (in a live run a frame or two
+after the keyframe; in stamp order, before the next frame). Covariance is not computed here (NaN).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import B, L, V, X
+
+from services.backend.cameras import BackendCamera
+from services.backend.config import BackendConfig
+from services.backend.imu_factors import ImuBuffer, imu_factor, make_bias, make_params, predict
+from services.backend.motion_only import optimise_latest
+from services.backend.vision_factors import ProjectionModel
+from shared.messages import EstimatorWindow
+
+KEYFRAME, FRAME = 0, 1  # state indices of the pinned keyframe and the frame being solved
+
+
+class StaleFrame(ValueError):
+    """A frame older than the window's newest keyframe (it cannot be predicted forward from it)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackedState:
+    """One frame's state in the estimator's frame W (before any loop correction)."""
+
+    stamp_ns: int
+    T_WS: np.ndarray
+    v_W: np.ndarray
+    gyro_bias: np.ndarray
+    acc_bias: np.ndarray
+    status: str  # 'tracking' or 'imu_only'
+    landmarks: int  # window landmarks observed in the frame
+    solved: bool  # False: the solve failed and the IMU prediction is reported
+
+
+class FrameTracker:
+    """Feed IMU with :meth:`add_imu`, the back end's windows with :meth:`set_window`, frames with :meth:`track`."""
+
+    def __init__(self, cfg: BackendConfig, cameras: list[BackendCamera]) -> None:
+        if not cameras:
+            raise ValueError("the fast path needs at least one camera")
+        self.cfg = cfg
+        self.params = make_params(cfg)
+        self.imu = ImuBuffer()
+        self.vision = ProjectionModel(cameras, cfg.sigma_px, cfg.cauchy_k)
+        self.window: EstimatorWindow | None = None
+        self._points: dict[int, np.ndarray] = {}
+        self.failed_solves = 0
+
+    def add_imu(self, stamp_ns: int, omega_S: np.ndarray, acc_S: np.ndarray) -> None:
+        self.imu.add(stamp_ns, omega_S, acc_S)
+
+    def set_window(self, msg: EstimatorWindow) -> bool:
+        """Use ``msg`` as the anchor of the next frames; False (ignored) for one older than the current anchor."""
+        if self.window is not None and msg.header.stamp_ns < self.window.header.stamp_ns:
+            return False
+        self.window = msg
+        self._points = {int(i): p for i, p in zip(np.asarray(msg.landmark_ids), np.asarray(msg.p_W, float))}
+        self.imu.prune_before(int(msg.header.stamp_ns))
+        return True
+
+    def reset(self) -> None:
+        """Forget the window (the back end restarted: its next windows start a new history)."""
+        self.window, self._points = None, {}
+
+    @property
+    def anchor_stamp_ns(self) -> int | None:
+        return None if self.window is None else int(self.window.header.stamp_ns)
+
+    def track(self, stamp_ns: int, landmark_ids: np.ndarray, camera_index: np.ndarray, uv: np.ndarray
+              ) -> TrackedState | None:
+        """The frame's state (None while no window has come); raises :class:`StaleFrame` for a frame before the
+        anchor and ``ImuDataError`` when the IMU does not cover the interval."""
+        w = self.window
+        if w is None:
+            return None
+        k_ns = int(w.header.stamp_ns)
+        if stamp_ns < k_ns:
+            raise StaleFrame(f"frame {stamp_ns} ns is older than the window's newest keyframe {k_ns} ns")
+        ids = np.asarray(landmark_ids, np.int64).reshape(-1)
+        cams = np.asarray(camera_index, np.int64).reshape(-1)
+        uv = np.asarray(uv, float).reshape(-1, 2)
+        known = np.array([int(i) in self._points for i in ids], bool) if len(ids) else np.zeros(0, bool)
+        known &= (cams >= 0) & (cams < len(self.vision.cameras)) & np.all(np.isfinite(uv), axis=1)
+        lms = sorted({int(i) for i in ids[known]})
+        status = "tracking" if len(lms) >= self.cfg.min_landmarks_tracking else "imu_only"
+        if stamp_ns == k_ns:  # the keyframe itself: the window's estimate
+            return TrackedState(stamp_ns, np.asarray(w.T_WS, float), np.asarray(w.v_W, float),
+                                np.asarray(w.gyro_bias, float), np.asarray(w.acc_bias, float), status, len(lms), True)
+        bias = make_bias(w.gyro_bias, w.acc_bias)
+        pim = self.imu.preintegrate(self.params, bias, k_ns, stamp_ns)
+        T, v = predict(pim, np.asarray(w.T_WS, float), np.asarray(w.v_W, float), bias)
+        values = gtsam.Values()
+        values.insert(X(KEYFRAME), gtsam.Pose3(np.asarray(w.T_WS, float)))
+        values.insert(V(KEYFRAME), np.asarray(w.v_W, float))
+        values.insert(B(KEYFRAME), bias)
+        values.insert(X(FRAME), gtsam.Pose3(T))
+        values.insert(V(FRAME), np.asarray(v, float))
+        values.insert(B(FRAME), bias)
+        for lm in lms:
+            values.insert(L(lm), self._points[lm])
+        xy = self.vision.undistort(cams[known], uv[known])
+        proj = [self.vision.factor(p, int(c), X(FRAME), L(int(i))) for i, c, p in zip(ids[known], cams[known], xy)]
+        factor = imu_factor(pim, (X(KEYFRAME), V(KEYFRAME), B(KEYFRAME)), (X(FRAME), V(FRAME), B(FRAME)))
+        solved = True
+        try:
+            values.update(optimise_latest(values, KEYFRAME, FRAME, factor, proj, lms, self.cfg.lm_max_iterations))
+        except RuntimeError:  # keep the IMU prediction
+            self.failed_solves += 1
+            solved = False
+        b = values.atConstantBias(B(FRAME))
+        return TrackedState(stamp_ns, values.atPose3(X(FRAME)).matrix(), np.asarray(values.atVector(V(FRAME))),
+                            np.asarray(b.gyroscope()), np.asarray(b.accelerometer()), status, len(lms), solved)

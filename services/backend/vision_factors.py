@@ -1,0 +1,38 @@
+"""Reprojection factors of the rig's cameras, as both the window estimator and the per-frame fast path build them.
+
+Observations (distorted pixels) are undistorted by the camera model to normalised coordinates and enter
+``GenericProjectionFactorCal3_S2`` with an identity calibration and ``body_P_sensor = T_SC_i``, noise
+sigma_px / f_i, wrapped in a Cauchy robust model (k in units of sigma).
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from services.backend.cameras import BackendCamera
+
+
+class ProjectionModel:
+    """Factor maker for one rig: ``factor(xy, camera, pose_key, landmark_key)``."""
+
+    def __init__(self, cameras: list[BackendCamera], sigma_px: float, cauchy_k: float) -> None:
+        self.cameras = list(cameras)
+        self._cal = gtsam.Cal3_S2(1.0, 1.0, 0.0, 0.0, 0.0)
+        self._body_P_cam = [gtsam.Pose3(c.T_SC) for c in self.cameras]
+        self._noise = [gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(cauchy_k),
+                                                      gtsam.noiseModel.Isotropic.Sigma(2, sigma_px / c.focal_px))
+                       for c in self.cameras]
+
+    def factor(self, xy: np.ndarray, camera: int, pose_key: int, landmark_key: int) -> gtsam.NonlinearFactor:
+        """Reprojection factor of normalised coordinates ``xy`` (2,) seen by ``camera`` from pose ``pose_key``."""
+        return gtsam.GenericProjectionFactorCal3_S2(xy, self._noise[camera], pose_key, landmark_key, self._cal,
+                                                    False, False, self._body_P_cam[camera])
+
+    def undistort(self, camera_index: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        """(M,2) normalised coordinates of distorted pixels ``uv`` (M,2), each by its camera."""
+        xy = np.empty((len(uv), 2))
+        for c in np.unique(camera_index):
+            m = camera_index == c
+            xy[m] = self.cameras[c].undistort(uv[m])
+        return xy
