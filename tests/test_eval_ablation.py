@@ -33,9 +33,10 @@ def test_short_ablation_writes_results_and_resume_skips_finished_rows(tmp_path, 
             assert math.isfinite(r[key]) and r[key] >= 0, (row, key, r[key])
         assert r["ate_causal_m"] < 0.05 and r["ate_noncausal_m"] < 0.05, r  # a 4 s stretch tracks to cm
         assert 0 < r["completeness_5cm"] <= r["completeness"] <= 1
-        # the depth node paces itself by stamps: 4 s at 2.5 Hz, every depth frame integrated by the mapping node
+        # the depth node paces itself by stamps: 4 s at 2.5 Hz, every posed depth frame integrated by the mapping node
         assert 8 <= r["depth_frames"] <= 11 and r["depth_rate_hz"] == 2.5, r["depth_frames"]
-        assert r["mapping_counts"]["integrated"] == r["depth_frames"], r["mapping_counts"]
+        # (the first depth frame may come before the fast path has a pose: not mapped)
+        assert r["depth_frames"] - 1 <= r["mapping_counts"]["integrated"] <= r["depth_frames"], r["mapping_counts"]
         assert r["mapping_counts"]["final_trajectories"] == 1  # the submaps followed the final trajectory
         assert (out / label / row / "trajectory_causal.txt").is_file()
         assert (out / label / row / "trajectory_final.txt").is_file()

@@ -1,5 +1,5 @@
 """The whole pipeline in one process (services/app/inprocess.py with depth and mapping: what ``sigmaslam eval
-ablation`` runs per row): the services' four nodes on the in-process runner over 2 s of the default replica, depth
+ablation`` runs per row): the services' nodes (with the fast path) on the in-process runner over 2 s of the default replica, depth
 paced by its own rate on sensor time, the mapping integrating every posed depth frame and feeding its fields back to
 the back end's occupancy-to-point terms, and the heuristic stereo sigma of ``depth.stereo_sigma`` on the wire."""
 
@@ -10,6 +10,7 @@ import pytest
 
 from services.app.inprocess import run_in_process
 from services.backend.node import BackendNode
+from services.backend.odometry_node import OdometryNode
 from services.depth.node import DepthNode
 from services.frontend.node import FrontendNode
 from services.mapping.node import MappingNode
@@ -26,7 +27,7 @@ def test_short_row_runs_the_four_nodes_with_depth_and_mapping(default_replica):
     run = run_in_process(str(default_replica), cfg, depth=True, mapping=True, seconds=2.0,
                          taps=[lambda topic, msg: stereo.append(msg) if topic == topics.DEPTH_STEREO else None])
     nodes = run.nodes
-    assert [type(n) for n in nodes.values()] == [FrontendNode, BackendNode, DepthNode, MappingNode]
+    assert [type(n) for n in nodes.values()] == [FrontendNode, OdometryNode, BackendNode, DepthNode, MappingNode]
     assert 35 <= run.frames <= 41 and run.final is not None
 
     # the depth node's own pacing: at most one frame per 1 / depth.rate_hz of sensor time
