@@ -1,6 +1,7 @@
 """``sigmaslam eval ablation`` (tools/eval/ablation.py): a short real run through the CLI entry (4 s of the 25 s
-V1_02 replica, baseline + learned rows, depth on every 8th frame, mesh on), --resume, a rerun that gives the same
-trajectories, and the table."""
+V1_02 replica, baseline + learned rows, depth at 2.5 Hz, mesh on), --resume, a rerun that gives the same
+trajectories, and the table; each row is the pipeline's nodes on the in-process runner, and what makes a row is
+config."""
 
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ from tools.eval.ablation_table import table_markdown
 def test_short_ablation_writes_results_and_resume_skips_finished_rows(tmp_path, default_replica, capsys):
     out = tmp_path / "abl"
     argv = ["eval", "ablation", str(default_replica), "--rows", "baseline,learned", "--seconds", "4",
-            "--depth-every", "8", "--out", str(out)]
+            "--set", "depth.rate_hz=2.5", "--out", str(out)]
     assert main(argv) == 0
     printed = capsys.readouterr().out
     label = default_replica.name
@@ -32,7 +33,11 @@ def test_short_ablation_writes_results_and_resume_skips_finished_rows(tmp_path, 
             assert math.isfinite(r[key]) and r[key] >= 0, (row, key, r[key])
         assert r["ate_causal_m"] < 0.05 and r["ate_noncausal_m"] < 0.05, r  # a 4 s stretch tracks to cm
         assert 0 < r["completeness_5cm"] <= r["completeness"] <= 1
-        assert r["depth_frames"] >= 8 and r["depth_every"] == 8
+        # the depth node paces itself by stamps: 4 s at 2.5 Hz, every posed depth frame integrated by the mapping node
+        assert 8 <= r["depth_frames"] <= 11 and r["depth_rate_hz"] == 2.5, r["depth_frames"]
+        # (the first depth frame may come before the fast path has a pose: not mapped)
+        assert r["depth_frames"] - 1 <= r["mapping_counts"]["integrated"] <= r["depth_frames"], r["mapping_counts"]
+        assert r["mapping_counts"]["final_trajectories"] == 1  # the submaps followed the final trajectory
         assert (out / label / row / "trajectory_causal.txt").is_file()
         assert (out / label / row / "trajectory_final.txt").is_file()
         assert (out / label / f"{row}.log").is_file()
@@ -55,8 +60,8 @@ def test_short_ablation_writes_results_and_resume_skips_finished_rows(tmp_path, 
     # a second run of the same row (not resumed) gives the same trajectories to the bit: loop.synchronous (set by
     # eval ablation) takes the loop thread's timing out of the result
     rerun = tmp_path / "rerun"
-    assert main(["eval", "ablation", str(default_replica), "--rows", "learned", "--seconds", "4", "--depth-every", "8",
-                 "--no-mesh", "--out", str(rerun)]) == 0
+    assert main(["eval", "ablation", str(default_replica), "--rows", "learned", "--seconds", "4", "--set",
+                 "depth.rate_hz=2.5", "--no-mesh", "--out", str(rerun)]) == 0
     assert json.loads((rerun / label / "learned.json").read_text())["overrides"][0] == "loop.synchronous=true"
     for name in ("trajectory_causal.txt", "trajectory_final.txt"):
         assert (rerun / label / "learned" / name).read_bytes() == (out / label / "learned" / name).read_bytes(), name
@@ -68,7 +73,7 @@ def test_mono_row_runs_on_mvs_depth_or_fails_clearly_without_depth_mono(tmp_path
 
     out = tmp_path / "abl"
     # 6 s: MVS alone has no depth until keyframes with enough baseline are posed (the first ~3 s here)
-    argv = ["eval", "ablation", str(default_replica), "--rows", "mono", "--seconds", "6", "--depth-every", "8",
+    argv = ["eval", "ablation", str(default_replica), "--rows", "mono", "--seconds", "6", "--set", "depth.rate_hz=2.5",
             "--no-mesh", "--out", str(out)]
     if "mono" not in {f.name for f in dataclasses.fields(DepthConfig)}:
         assert main(argv) == 1
@@ -105,6 +110,24 @@ def test_table_marks_failed_rows_and_says_which_dense_rows_beat_the_baseline():
 def test_unknown_row_is_refused(tmp_path, capsys):
     assert main(["eval", "ablation", "V1_02", "--rows", "baseline,nope", "--out", str(tmp_path)]) == 2
     assert "unknown rows ['nope']" in capsys.readouterr().err
+
+
+def test_rows_differ_by_config_alone():
+    """Every row's keys load into the system config; the heuristic row asks the depth service for the heuristic
+    stereo sigma of --heuristic-px pixels, the fused row maps the fused depth."""
+    from services.system_config import load_system_config
+    from tools.eval.ablation import EVAL_DEFAULTS, row_overrides
+    from tools.eval.ablation_table import ROWS
+
+    for row in ROWS:
+        cfg = load_system_config(None, [*EVAL_DEFAULTS, *row_overrides(row, 2.5)])
+        assert cfg.loop.synchronous
+        assert cfg.o2p.enabled == (row in ("heuristic", "learned", "fused", "mono")), row
+        assert cfg.depth.use_mvs == (row in ("fused", "mono", "mono_baseline")), row
+        assert cfg.depth.stereo_sigma == ("heuristic" if row == "heuristic" else "network"), row
+        assert cfg.mapping.depth_topic == ("depth/fused" if row == "fused" else "depth/stereo"), row
+    heur = load_system_config(None, row_overrides("heuristic", 2.5)).depth
+    assert heur.heuristic_sigma_model == "quadratic" and heur.heuristic_sigma_coeff == 2.5
 
 
 def test_mono_row_is_judged_against_the_mono_baseline():

@@ -47,6 +47,11 @@ class DepthConfig:
     heuristic_sigma_model: Literal["quadratic", "linear"] = param("quadratic", "SGBM sigma model: 'quadratic' (constant "
                                                                   "disparity sigma, eq. 11) or 'linear' (relative depth sigma)")
     heuristic_sigma_coeff: float = param(1.0, "disparity sigma [px] for 'quadratic'; relative sigma [-] for 'linear'")
+    stereo_sigma: Literal["network", "heuristic"] = param("network", "sigma of the stereo network's depth: 'network' "
+                                                          "(its learned disparity sigma times the calibration gain, "
+                                                          "eq. 11) or 'heuristic' (heuristic_sigma_model with "
+                                                          "heuristic_sigma_coeff, as SGBM's: the paper's heuristic-"
+                                                          "sigma row, Table IV); published on depth/stereo and fused")
     device: Literal["auto", "cpu", "cuda"] = param("auto", "where the networks run ('auto': CUDA when present)")
     threads: int = param(2, "CPU threads of the networks")
     budget_ms: float = param(100.0, "budget of one depth frame (networks + fusion), reported in stats", "ms")

@@ -32,7 +32,7 @@ import numpy as np
 from services.depth.config import DepthConfig
 from services.depth.coverage import covered, stereo_valid, valid_region
 from services.depth.prior import landmark_prior
-from services.depth.sgbm import SgbmParams, sgbm_depth
+from services.depth.sgbm import SgbmParams, sgbm_depth, stereo_heuristic_sigma
 from services.depth.uncertainty import disparity_to_depth, fuse, logdepth_to_depth
 from services.depth.views import select_sources
 from shared.camera import CameraCalib, rectified_intrinsics, stereo_rectification
@@ -179,7 +179,12 @@ class DepthPipeline:
         with torch.inference_mode():
             t = lambda a: torch.from_numpy(a).float()[None, None].to(self.device)
             u, su = self.stereo_net(t(left), t(right))
-        return disparity_to_depth(u[0].cpu().numpy(), su[0].cpu().numpy() * self.stereo_gain, self.f_px, self.baseline_m)
+        depth, sigma = disparity_to_depth(u[0].cpu().numpy(), su[0].cpu().numpy() * self.stereo_gain, self.f_px,
+                                          self.baseline_m)
+        if self.cfg.stereo_sigma == "heuristic":  # the network's depth with SGBM's sigma model (depth.stereo_sigma)
+            sigma = stereo_heuristic_sigma(depth, self.f_px, self.baseline_m, self.cfg.heuristic_sigma_model,
+                                           self.cfg.heuristic_sigma_coeff)
+        return depth, sigma
 
     def warm_up(self) -> None:
         """One inference on a blank image, so that the first real frame does not also pay for the networks' lazy

@@ -45,8 +45,15 @@ def sgbm_depth(left: np.ndarray, right: np.ndarray, f_px: float, baseline_m: flo
     the relative depth sigma k [-] for 'linear'."""
     disp = sgbm_disparity(left, right, params)
     depth, _ = disparity_to_depth(disp, np.zeros_like(disp), f_px, baseline_m)
+    return depth, stereo_heuristic_sigma(depth, f_px, baseline_m, sigma_model, sigma_coeff)
+
+
+def stereo_heuristic_sigma(depth: np.ndarray, f_px: float, baseline_m: float, sigma_model: str = "quadratic",
+                           sigma_coeff: float = 1.0) -> np.ndarray:
+    """Heuristic sigma [m] (H,W) float32 of a stereo depth map [m], NaN where the depth is: 'quadratic' with a
+    disparity sigma of ``sigma_coeff`` px (sigma_d = d^2 sigma_u / (f b)), 'linear' sigma_d = ``sigma_coeff`` d."""
     if sigma_model == "quadratic":
         sigma = heuristic_sigma(depth, "quadratic", sigma_coeff / (f_px * baseline_m))
     else:
         sigma = heuristic_sigma(depth, sigma_model, sigma_coeff)
-    return depth, np.where(np.isfinite(depth), sigma, np.nan).astype(np.float32)
+    return np.where(np.isfinite(depth), sigma, np.nan).astype(np.float32)

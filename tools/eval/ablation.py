@@ -1,41 +1,50 @@
 """``sigmaslam eval ablation``: the paper's Table IV (occupancy-to-point factors, depth sigma, depth fusion) and
 the mono-inertial variant of Table II, as one command over several replicas, in one process per run (no
-transport).
+transport). Also ``python -m tools.eval.ablation REPLICA ... [options]``.
 
-Rows (each a full frontend + back end + loop closure + depth + mapping run over the same frames):
+Rows (each a full frontend + back end + loop closure + depth + mapping run over the same frames); what makes a
+row is config alone (:func:`row_overrides`, applied after the user's ``--set``):
 
-* ``baseline``: no dense terms; the map is built from stereo-network depth at the estimated poses.
-* ``heuristic``: frame-to-map and map-to-map factors on; stereo-network depth with a heuristic sigma (a
-  disparity sigma of ``--heuristic-px`` pixels: sigma_d = d^2 sigma_u / (f b)) for the factors and the map.
-* ``learned``: as ``heuristic`` with the network's learned sigma.
-* ``fused``: as ``learned``, but the map (and its map-to-map points) integrates the fused stereo + MVS depth;
-  the frame-to-map points stay stereo, as the back-end service reads ``depth/stereo``.
+* ``baseline``: no dense terms; the map is built from stereo-network depth at the estimated poses
+  (``o2p.enabled=false``, ``depth.use_mvs=false``).
+* ``heuristic``: frame-to-map (and, with ``o2p.map_to_map``, map-to-map) factors on; the depth service publishes
+  the stereo network's depth with a heuristic sigma, a disparity sigma of ``--heuristic-px`` pixels
+  (sigma_d = d^2 sigma_u / (f b): ``depth.stereo_sigma=heuristic``, ``depth.heuristic_sigma_model=quadratic``,
+  ``depth.heuristic_sigma_coeff=PX``), used by the factors and the map alike.
+* ``learned``: as ``heuristic`` with the network's learned sigma (``depth.stereo_sigma`` left at ``network``).
+* ``fused``: as ``learned`` with ``depth.use_mvs=true`` and ``mapping.depth_topic=depth/fused``: the map
+  integrates the fused stereo + MVS depth, the frame-to-map points stay stereo (the back end reads
+  ``depth/stereo``).
 * ``mono``: the paper's Ours-Mono: ``rig.cameras=[cam0]``, ``depth.mono=true``, factors on; the depth
-  pipeline's MVS-only depth feeds both the map and the frame-to-map points.
+  service's MVS-only depth feeds both the map and the frame-to-map points.
 * ``mono_baseline``: as ``mono`` without the factors (the map still from MVS depth): the row ``mono`` is judged
   against.
 
-The components are the services' own: ``FrontendNode``, the back end as ``BackendNode`` builds it (its shell,
-wrapped in ``LoopClosingBackend`` when ``loop.enabled``: loop closure corrects the published poses, and at the
-end the final bundle adjustment gives the non-causal trajectory), ``DepthPipeline``, ``SubmapMapper`` with
-its field messages and map-to-map point pool. Depth runs on every ``--depth-every``-th camera frame (default:
-camera rate / ``depth.rate_hz``, as the depth service); the mapping waits for nothing (a depth frame's pose
-is the estimate just published for it). Stereo depth does not depend on the pose, so it is computed once
-per replica and shared by the rows; MVS (fused, mono) runs per row.
+Each row runs the pipeline's own process nodes (frontend, back end with loop closure, depth, mapping) on the
+in-process runner (services/app/inprocess.py: ``run_in_process(..., depth=True, mapping=True)``), deterministically
+in stamp order, as a lockstep ``sigmaslam run`` would: the depth node takes a frame at most every 1 /
+``depth.rate_hz`` of sensor time and waits for the frame's state; the mapping node integrates at the state's pose,
+publishes the near-surface fields (and, with ``mapping.o2p_points`` > 0, map-to-map points) to the back end, and
+moves its submaps onto the final trajectory after the stream (``mapping.follow_final``). Nothing is shared between
+rows: stereo depth is computed again for each row. Two options of the hand-wired version are gone:
+``--depth-every N`` (use ``--set depth.rate_hz=HZ``: the depth node paces itself by stamps, EuRoC cameras run at
+20 Hz, so HZ = 20 / N) and the stereo cache across rows (each row now pays its own stereo network time, about
+as long as the back end's share of a row on a CPU).
 
 Per row: causal ATE (published states) and non-causal ATE (final bundle adjustment) [m] after SE(3)
 alignment, mesh accuracy and completeness at 0.2 m and 0.05 m against the replica's scene mesh
-(services/app/metrics/mesh.py) of the map as built (submaps at the causal keyframe poses), and accuracy and completeness
-of the final map (submaps moved onto the final bundle adjustment's trajectory, as the mapping service writes it
-with ``mapping.follow_final``), the back end's per-frame wall time (median, p99; without the loop closer's work,
-which ``loop.synchronous`` runs inside the frame's call but the back-end service runs in its own thread: reported
-as its total and largest per-frame time), the o2p factor counts, the row's
-wall time. A row that fails is recorded as ``failed: why`` and the others still run.
+(services/app/metrics/mesh.py) of the map as built (submaps at the causal keyframe poses, taken just before the
+mapping follows the final trajectory), and accuracy and completeness of the final map (the mapping node's submaps
+on the final bundle adjustment's trajectory), the back end's per-frame wall time (median, p99 of the runner's
+times of its frame handler, without the loop closer's work, which ``loop.synchronous`` runs inside the frame's call
+but the back-end service runs in its own thread: reported as its total and largest per-frame time), the o2p factor
+counts, the depth frames published, the mapping's counts, the row's wall time. A row that fails is recorded as
+``failed: why`` and the others still run.
 
 Writes ``--out``/ablation.json, table.md and, per replica and row, ``<replica>/<row>.json`` (the result),
 ``<row>.log`` (that row's log) and ``<row>/trajectory_{causal,final}.txt`` (TUM). ``--resume`` skips rows whose
-result json holds a finished (not failed) result of the same settings (--seconds, --depth-every, --heuristic-px,
-mesh, overrides).
+result json holds a finished (not failed) result of the same settings (--seconds, --heuristic-px, mesh,
+overrides).
 """
 
 from __future__ import annotations
@@ -49,10 +58,9 @@ from pathlib import Path
 
 import numpy as np
 
-from tools.eval.ablation_table import DENSE, MONO, ROWS, table_markdown
+from tools.eval.ablation_table import MONO, ROWS, table_markdown
 
 DEFAULT_REPLICAS = ("V1_02", "V2_01", "MH_04")
-CAMERA_RATE_HZ = 20.0  # EuRoC camera rate, for the default --depth-every
 
 log = logging.getLogger("sigmaslam.ablation")
 row_log = logging.getLogger("sigmaslam.ablation.row")  # failures: to the row's log file alone
@@ -68,11 +76,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="replica length for sequence names (0: whole sequence) [s]")
     p.add_argument("--rows", default=",".join(ROWS), help=f"comma-separated rows out of {','.join(ROWS)}")
     p.add_argument("--seconds", type=float, default=0.0, help="first S seconds of each replica (0: all) [s]")
-    p.add_argument("--depth-every", type=int, default=0,
-                   help="depth on every N-th camera frame (0: camera rate / depth.rate_hz, as the depth service)")
     p.add_argument("--heuristic-px", type=float, default=1.0, help="disparity sigma of the heuristic row [px]")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="config override applied to every row (the row's own keys win)")
+                   help="config override applied to every row (the row's own keys win); the depth rate is "
+                        "depth.rate_hz (--depth-every N of earlier versions: depth.rate_hz=20/N)")
     p.add_argument("--no-mesh", action="store_true", help="skip the mesh evaluation")
     p.add_argument("--out", default="out/ablation", help="output folder (default out/ablation)")
     p.add_argument("--resume", action="store_true", help="skip rows whose result json holds a finished result of the same settings")
@@ -97,25 +104,19 @@ def resolve_replica(name: str, duration_s: float) -> tuple[str, Path]:
 EVAL_DEFAULTS = ("loop.synchronous=true",)
 
 
-def row_overrides(row: str) -> list[str]:
-    """The config keys that make a row what it is (applied after the user's ``--set``)."""
+def row_overrides(row: str, heuristic_px: float = 1.0) -> list[str]:
+    """The config keys that make a row what it is (applied after the user's ``--set``); ``heuristic_px``: the
+    heuristic row's disparity sigma [px]."""
     if row == "baseline":
         return ["o2p.enabled=false", "depth.use_mvs=false"]
     if row in MONO:
         return ["rig.cameras=[cam0]", "depth.mono=true", "depth.use_mvs=true", f"o2p.enabled={str(row == 'mono').lower()}"]
-    return ["o2p.enabled=true", f"depth.use_mvs={'true' if row == 'fused' else 'false'}"]
-
-
-def _frames(dataset: Path, seconds: float):
-    from shared.euroc_reader import EurocDataset
-
-    t0 = None
-    for msg in EurocDataset(dataset).messages():
-        t = int(msg.header.stamp_ns)
-        t0 = t if t0 is None else t0
-        if seconds > 0 and t - t0 > seconds * 1e9:
-            return
-        yield msg
+    if row == "heuristic":
+        return ["o2p.enabled=true", "depth.use_mvs=false", "depth.stereo_sigma=heuristic",
+                "depth.heuristic_sigma_model=quadratic", f"depth.heuristic_sigma_coeff={heuristic_px:g}"]
+    if row == "fused":
+        return ["o2p.enabled=true", "depth.use_mvs=true", "mapping.depth_topic=depth/fused"]
+    return ["o2p.enabled=true", "depth.use_mvs=false"]
 
 
 _GT_POINTS: dict = {}
@@ -129,188 +130,97 @@ def _gt_points(path: Path) -> np.ndarray:
     return _GT_POINTS[path]
 
 
-def _depth_pipeline(cfg):
-    """The depth service's pipeline: the left camera alone with ``depth.mono``, else the stereo pair."""
-    from services.depth.pipeline import DepthPipeline
-    from shared.rig import load_rig_config
-
-    cams = {c.name: c for c in load_rig_config(cfg.rig)}
-    dc = cfg.depth
-    mono = bool(getattr(dc, "mono", False))
-    missing = [n for n in (dc.left_camera, *(() if mono else (dc.right_camera,))) if n not in cams]
-    if missing:
-        raise ValueError(f"depth cameras {missing} not in the rig ({sorted(cams)})")
-    if mono:
-        return DepthPipeline(dc, cams[dc.left_camera], None)
-    return DepthPipeline(dc, cams[dc.left_camera], cams[dc.right_camera])
-
-
 # ---------------------------------------------------------------------------------------------- one row
 class _Progress:
-    """A line now and then so that a user sees a long row is alive."""
+    """A line now and then so that a user sees a long row is alive (a tap on the run's camera frames)."""
 
     def __init__(self, prefix: str, period_s: float = 30.0) -> None:
         self.prefix, self.period_s = prefix, period_s
         self.t0 = self.last = time.monotonic()
+        self.frames, self.first_ns = 0, None
 
-    def tick(self, frames: int, sensor_s: float) -> None:
+    def __call__(self, topic, msg) -> None:
+        from shared import topics
+
+        if topic != topics.FRAME:
+            return
+        self.frames += 1
+        stamp = int(msg.header.stamp_ns)
+        self.first_ns = stamp if self.first_ns is None else self.first_ns
         now = time.monotonic()
         if now - self.last >= self.period_s:
             self.last = now
-            print(f"{self.prefix}: {frames} frames ({sensor_s:.1f} s of data), {now - self.t0:.0f} s", flush=True)
+            print(f"{self.prefix}: {self.frames} frames ({(stamp - self.first_ns) * 1e-9:.1f} s of data), "
+                  f"{now - self.t0:.0f} s", flush=True)
 
 
-def run_row(row: str, dataset: Path, overrides: list[str], seconds: float, depth_every: int, heuristic_px: float,
-            stereo_cache: dict, mesh: bool = True, progress: _Progress | None = None,
-            out_dir: Path | None = None) -> dict:
-    """One row over ``dataset``; raises on configuration or component errors (the caller records them)."""
-    from services.backend.node import BackendNode
-    from services.frontend.node import FrontendNode
-    from services.frontend.keyframe_features import keyframe_features_message
-    from services.mapping.export import field_message
-    from shared.occupancy.o2p_points import SubmapPointPool
-    from services.mapping.submaps import SubmapMapper
+def row_config(row: str, dataset: Path, overrides: list[str], heuristic_px: float = 1.0):
+    """The system config of a row: the evaluation defaults, the user's ``--set``, then the row's own keys."""
     from services.system_config import load_system_config
     from shared.config import ConfigError, override
-    from shared.messages import ImuSample
-    from shared.rig import load_rig_config
 
     if row not in ROWS:
         raise ValueError(f"unknown row {row!r} (rows: {', '.join(ROWS)})")
-    mono = row in MONO
     try:
-        cfg = load_system_config(None, [*EVAL_DEFAULTS, *overrides, *row_overrides(row)])
+        cfg = load_system_config(None, [*EVAL_DEFAULTS, *overrides, *row_overrides(row, heuristic_px)])
     except ConfigError as exc:
-        if mono and "mono" in str(exc):
+        if row in MONO and "mono" in str(exc):
             raise ValueError("this build has no monocular depth (the config has no depth.mono)") from None
         raise
     if not cfg.rig.calibration:
         cfg = override(cfg, {"rig.calibration": str(dataset)})
-    cams = load_rig_config(cfg.rig)
-    dense = row in DENSE  # row_overrides: o2p.enabled exactly for these
-    fe, node = FrontendNode(cfg.frontend, cams), BackendNode(cfg, cams)  # the back end as its root builds it
-    shell, loop = node.shell, node.loop
-    be = shell if loop is None else loop
-    pipe = _depth_pipeline(cfg)
-    dc = cfg.depth
-    every = depth_every if depth_every > 0 else max(1, round(CAMERA_RATE_HZ / dc.rate_hz))
-    mapper = SubmapMapper(cfg.mapping.sensor, cfg.mapping.submaps)
-    # map-to-map points pooled per submap as the mapping service does with mapping.o2p_points (its default 0
-    # switches the pool off there; the dense rows always pool, o2p.max_points_map then)
-    pool = SubmapPointPool(cfg.mapping.o2p_points if cfg.mapping.o2p_points > 0 else cfg.o2p.max_points_map)
-    t_be, t_loop, stamps, T_pub, n_frames, n_depth, no_depth = [], [], [], [], 0, 0, 0
-    last_field_ns, t_first = 0, None
-    try:
-        for msg in _frames(dataset, seconds):
-            if isinstance(msg, ImuSample):
-                fe.gyro.add(int(msg.header.stamp_ns), msg.omega_S)
-                shell.add_imu(msg)
-                continue
-            n_frames += 1
-            stamp = int(msg.header.stamp_ns)
-            t_first = stamp if t_first is None else t_first
-            if progress is not None:
-                progress.tick(n_frames, (stamp - t_first) * 1e-9)
-            names = list(msg.camera_names)
-            left = msg.images[names.index(dc.left_camera)]
-            right = None if mono else msg.images[names.index(dc.right_camera)]
-            pipe.remember_frame(stamp, left)
-            ff = fe.process(msg)
-            if ff is None:
-                continue
-            if loop is not None and ff.is_keyframe:  # descriptors before the frame, as the frontend sends them
-                kff = keyframe_features_message(fe.tracker, stamp, ff.header.seq)
-                if kff is not None:
-                    loop.add_keyframe_features(kff)
-            t0, busy0 = time.perf_counter(), (loop.runner.busy_s if loop is not None else 0.0)
-            out = be.process(ff)
-            # loop.synchronous: the loop closer's work happened inside process(); the back-end service does it
-            # in its own thread, so the per-frame figure leaves it out and it is reported on its own
-            t_loop.append(loop.runner.busy_s - busy0 if loop is not None else 0.0)
-            t_be.append(time.perf_counter() - t0 - t_loop[-1])
-            if out is None or out[0].status in ("initialising", "reset"):
-                continue
-            state, kfs = out
-            if loop is not None:  # the published state, as the back end reads estimator/state for the final trajectory
-                loop.record_state(state)
-            fe.gyro_bias = np.asarray(state.gyro_bias, float)
-            stamps.append(stamp)
-            T_pub.append(np.array(state.T_WS))
-            if kfs is not None:
-                mapper.update_keyframes(kfs.ids, kfs.stamps_ns, kfs.T_WS)
-                pipe.update_keyframes(kfs.stamps_ns, kfs.T_WS)
-            lms = be.take_landmarks()  # estimator/landmarks: the MVS prior, as the depth service keeps the latest
-            if lms is not None and pipe.mvs_net is not None:
-                pipe.update_landmarks(lms.p_W, lms.last_seen_ns, lms.num_observations)
-            if n_frames % every:
-                continue
-            T_WC = state.T_WS @ pipe.T_SC
-            if mono:  # the pipeline's monocular mode: MVS depth for the map and the factor points alike
-                res = pipe.process(stamp, left, None, state.T_WS)
-                if res.fused is None:  # no pose or no MVS source views yet: the depth service publishes nothing
-                    no_depth += 1
-                    continue
-                d_s, s_s = d_m, s_m = res.fused
-            else:
-                if stamp not in stereo_cache:
-                    stereo_cache[stamp] = pipe.stereo(*pipe.rect.rectify(left, right))
-                d_s, s_s = stereo_cache[stamp]
-                if row == "heuristic":
-                    s_s = (d_s**2 * heuristic_px / (pipe.f_px * pipe.baseline_m)).astype(np.float32)
-                d_m, s_m = d_s, s_s
-                if row == "fused":  # as DepthPipeline.process, with the stereo from the cache
-                    mvs, _ = pipe.mvs(pipe.rect.rectify(left, right)[0], T_WC, pipe.mvs_prior(stamp, T_WC))
-                    if mvs is not None:
-                        from services.depth.uncertainty import fuse
+    return cfg
 
-                        d_m, s_m = fuse(d_s, s_s, *mvs)
-            n_depth += 1
-            if dense:  # as the back-end service feeds depth/stereo: the published pose at the depth's stamp
-                est = shell.estimator
-                shell.o2p.add_depth(stamp, d_s, s_s, pipe.K, pipe.T_SC, state.T_WS, est.stamps, est.values)
-            rep = mapper.integrate(d_m, s_m, pipe.K, T_WC, pipe.T_SC, stamp)
-            sm = mapper.submaps[rep.submap_id]
-            pool.add(rep.submap_id, d_m, s_m, pipe.K, np.linalg.inv(sm.T_WM) @ T_WC)
-            if dense and rep.new_submap and rep.submap_id > 0:  # the closed submap: its field, then its points
-                old = mapper.submaps[rep.submap_id - 1]
-                shell.o2p.add_field(field_message(old, cfg.mapping.sensor.l_min))
-                got = pool.pop(old.id)
-                if got is not None:
-                    shell.o2p.add_submap_points(old.id, *got)
-            if dense and stamp - last_field_ns > cfg.mapping.field_period_s * 1e9:  # the growing one, now and then
-                last_field_ns = stamp
-                shell.o2p.add_field(field_message(sm, cfg.mapping.sensor.l_min))
-        final = None
-        if loop is not None:
-            try:
-                final = loop.finish()
-            except (RuntimeError, ValueError) as exc:
-                log.warning("final trajectory not computed: %s", exc)
-            loops = loop.counts
-    finally:
-        if loop is not None:
-            loop.close()
-    if not t_be:
-        raise RuntimeError(f"no frame reached the back end ({n_frames} camera frames)")
-    res = {"row": row, "frames": n_frames, "states": len(stamps), "depth_frames": n_depth, "depth_every": every,
-           "submaps": len(mapper.submaps), "backend_median_ms": 1e3 * float(np.median(t_be)),
+
+def run_row(row: str, dataset: Path, overrides: list[str], seconds: float, heuristic_px: float,
+            mesh: bool = True, progress: _Progress | None = None, out_dir: Path | None = None) -> dict:
+    """One row over ``dataset``: the pipeline's nodes (frontend, back end, depth, mapping) on the in-process
+    runner (services/app/inprocess.py) with the row's config; raises on configuration or component errors (the
+    caller records them)."""
+    from services.app.inprocess import run_in_process
+
+    cfg = row_config(row, dataset, overrides, heuristic_px)
+    run = run_in_process(str(dataset), cfg, depth=True, mapping=True, seconds=seconds,
+                         taps=() if progress is None else (progress,))
+    t_call = np.array([t for t, _ in run.runner.times.get(("backend", "on_features"), [])])
+    if not len(t_call):
+        raise RuntimeError(f"no frame reached the back end ({run.frames} camera frames)")
+    t_loop = np.array(run.loop_s) if len(run.loop_s) == len(t_call) else np.zeros_like(t_call)
+    t_be = t_call - t_loop  # the back end's own per-frame time, without the loop closer's work
+    depth, mapping = run.nodes["depth"], run.nodes["mapping"].loop
+    pipe, dc = depth.pipe, cfg.depth
+    published = [s for s in run.states if s.status not in ("initialising", "reset")]
+    res = {"row": row, "frames": run.frames, "states": len(published),
+           "depth_frames": run.runner.emitted.get("depth/stereo", 0), "depth_rate_hz": dc.rate_hz,
+           "submaps": len(mapping.mapper.submaps), "backend_median_ms": 1e3 * float(np.median(t_be)),
            "backend_p99_ms": 1e3 * float(np.percentile(t_be, 99)),
            "loop_closer_total_s": float(np.sum(t_loop)), "loop_closer_max_ms": 1e3 * float(np.max(t_loop)),
-           "depth": {"method": pipe.method,
+           "depth": {"method": pipe.method, "stereo_sigma": dc.stereo_sigma if pipe.stereo_net is not None else "-",
                      "stereo_weights": (dc.stereo_weights or "(shipped)") if pipe.stereo_net is not None else "-",
-                     "mvs_weights": (dc.mvs_weights or "(shipped)") if pipe.mvs_net is not None else "-"}}
-    if no_depth:
-        res["depth_frames_without_mvs"] = no_depth
-    if dense:
-        res["o2p_counts"] = dict(shell.o2p.counts)
-    if loop is not None:
-        res["loop"] = {k: int(v) for k, v in loops.items()}
-    res.update(_evaluate(dataset, stamps, T_pub, final, mapper if mesh else None, out_dir))
+                     "mvs_weights": (dc.mvs_weights or "(shipped)") if pipe.mvs_net is not None else "-"},
+           "mapping_counts": dict(mapping.counts)}
+    t_odo = [t for t, _ in run.runner.times.get(("odometry", "on_features"), [])]
+    if t_odo:  # the per-frame fast path (every frame's state); the back end's figures are its window's work
+        res["odometry_median_ms"] = 1e3 * float(np.median(t_odo))
+        res["odometry_p99_ms"] = 1e3 * float(np.percentile(t_odo, 99))
+    if run.runner.rejected:
+        res["rejected"] = {f"{n} {k}": v for (n, k), v in run.runner.rejected.items()}
+    if depth.no_mvs:
+        res["depth_frames_without_mvs"] = depth.no_mvs
+    be = run.nodes["backend"]
+    if cfg.o2p.enabled:
+        res["o2p_counts"] = dict(be.shell.o2p.counts)
+    if be.loop is not None:
+        res["loop"] = {k: int(v) for k, v in be.loop.counts.items()}
+    stamps = [int(s.header.stamp_ns) for s in published]
+    T_pub = [np.asarray(s.T_WS) for s in published]
+    res.update(_evaluate(dataset, stamps, T_pub, run.final, mapping.mapper if mesh else None, run.mesh_causal, out_dir))
     return res
 
 
-def _evaluate(dataset: Path, stamps, T_pub, final, mapper, out_dir: Path | None) -> dict:
-    """ATE of the causal and final trajectories, mesh metrics of the mapper's world mesh."""
+def _evaluate(dataset: Path, stamps, T_pub, final, mapper, mesh_causal, out_dir: Path | None) -> dict:
+    """ATE of the causal and final trajectories; mesh metrics of the map as built (``mesh_causal``: world
+    vertices at the causal poses) and of the mapping's final map (``mapper``, its submaps on the final trajectory)."""
     from shared.euroc import read_trajectory, series_from_matrices, write_tum
     from shared.euroc_reader import EurocDataset
     from shared.metrics.ate import compute_ate
@@ -338,21 +248,19 @@ def _evaluate(dataset: Path, stamps, T_pub, final, mapper, out_dir: Path | None)
             res[f"ate_{key}_m"] = ate.rmse_m
             align[key] = ate.alignment
     scene = sorted(Path(dataset).glob("mav0/scene/*.ply"))
-    if mapper is not None and scene:
+    if mapper is not None and mesh_causal is not None and scene:
         from services.app.metrics.mesh import evaluate_points
 
         t0 = time.perf_counter()
-        mapper.remesh(None)
-        v, _ = mapper.world_mesh()
+        v = mesh_causal
         if len(v) and "causal" in align:  # the estimate's W into the ground truth's frame (the causal alignment)
             ev = evaluate_points(align["causal"].apply(np.asarray(v, float)), _gt_points(scene[0]))
             res.update(accuracy_m=ev.accuracy_m, completeness=ev.completeness, completeness_5cm=ev.completeness_5cm,
                        mesh_points=ev.n_est, mesh_eval_s=round(time.perf_counter() - t0, 1))
         else:
             res["error_mesh"] = "no mesh vertices" if not len(v) else "no trajectory alignment"
-        if len(v) and final is not None and "noncausal" in align:  # the map the mapping service writes at the end
-            mapper.follow_trajectory(final.stamps_ns, final.T_WS)  # (mapping.follow_final)
-            v, _ = mapper.world_mesh()
+        if len(v) and final is not None and "noncausal" in align:  # the map the mapping wrote at the end
+            v, _ = mapper.world_mesh()  # (its submaps moved onto the final trajectory: mapping.follow_final)
             ev = evaluate_points(align["noncausal"].apply(np.asarray(v, float)), _gt_points(scene[0]))
             res.update(accuracy_final_m=ev.accuracy_m, completeness_final=ev.completeness)
     return res
@@ -372,8 +280,8 @@ def main(args: argparse.Namespace) -> int:
     if bad or not rows:
         print(f"eval ablation: unknown rows {bad} (rows: {','.join(ROWS)})", file=sys.stderr)
         return 2
-    if args.seconds < 0 or args.depth_every < 0 or args.heuristic_px <= 0:
-        print("eval ablation: --seconds and --depth-every must be >= 0, --heuristic-px > 0", file=sys.stderr)
+    if args.seconds < 0 or args.heuristic_px <= 0:
+        print("eval ablation: --seconds must be >= 0, --heuristic-px > 0", file=sys.stderr)
         return 2
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -388,11 +296,10 @@ def main(args: argparse.Namespace) -> int:
         rep_out = out / label
         rep_out.mkdir(parents=True, exist_ok=True)
         results[label] = {}
-        stereo_cache: dict = {}  # per replica: stereo depth does not depend on the row
         for row in rows:
             path = rep_out / f"{row}.json"
-            settings = {"seconds": args.seconds, "depth_every_arg": args.depth_every, "heuristic_px": args.heuristic_px,
-                        "mesh": not args.no_mesh, "overrides": [*EVAL_DEFAULTS, *args.set, *row_overrides(row)]}
+            settings = {"seconds": args.seconds, "heuristic_px": args.heuristic_px, "mesh": not args.no_mesh,
+                        "overrides": [*EVAL_DEFAULTS, *args.set, *row_overrides(row, args.heuristic_px)]}
             if args.resume and path.is_file():
                 old = json.loads(path.read_text())
                 same = all(old.get(k) == v for k, v in settings.items())
@@ -412,8 +319,8 @@ def main(args: argparse.Namespace) -> int:
             root.setLevel(min(level, logging.INFO) if level else logging.INFO)
             t0 = time.perf_counter()
             try:
-                r = run_row(row, dataset, args.set, args.seconds, args.depth_every, args.heuristic_px,
-                            stereo_cache, not args.no_mesh, _Progress(prefix), rep_out / row)
+                r = run_row(row, dataset, args.set, args.seconds, args.heuristic_px, not args.no_mesh,
+                            _Progress(prefix), rep_out / row)
             except Exception as exc:  # noqa: BLE001 - a failed row is recorded; the others still run
                 row_log.exception("row %s failed", row)  # the traceback goes to the row's log only
                 r = {"row": row, "error": f"{type(exc).__name__}: {exc}"}
@@ -435,10 +342,16 @@ def main(args: argparse.Namespace) -> int:
             print(f"{prefix}: {'failed' if 'error' in r else 'done'} in {r['wall_s']:.0f} s "
                   f"(total {time.monotonic() - t_all:.0f} s): {json.dumps(brief, default=float)}", flush=True)
     (out / "ablation.json").write_text(json.dumps({"replicas": results, "rows": rows, "seconds": args.seconds,
-                                                   "depth_every": args.depth_every, "set": args.set,
+                                                   "set": args.set,
                                                    "heuristic_px": args.heuristic_px}, indent=1, default=float))
     table = table_markdown(results)
     (out / "table.md").write_text(table)
     print(table, flush=True)
     print(f"[eval ablation] wrote {out / 'table.md'} and {out / 'ablation.json'}", flush=True)
     return rc
+
+
+if __name__ == "__main__":
+    _parser = argparse.ArgumentParser(prog="python -m tools.eval.ablation", description=__doc__.splitlines()[0])
+    add_arguments(_parser)
+    sys.exit(main(_parser.parse_args()))
