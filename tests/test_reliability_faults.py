@@ -53,7 +53,9 @@ def test_sigkill_each_service_is_restarted_and_the_estimator_keeps_its_rate(tmp_
         # against its last window)
         down = by[name]["while_down"]
         assert down["rate_hz"] >= 0.6 * base, (name, down, base)
-        assert down["statuses"] == ["tracking"], down
+        # a back end restarted within the window already said 'reset' and re-initialised in it
+        allowed = {"tracking", "reset", "initialising"} if name == "backend" else {"tracking"}
+        assert "tracking" in down["statuses"] and set(down["statuses"]) <= allowed, down
     # the mapper resumed from its checkpoint rather than starting an empty map
     assert "mapping: resumed" in text
     be = by["backend"]
