@@ -58,18 +58,6 @@ def dataset_source(ds: EurocDataset, max_frames: int = 0, imu_margin_s: float = 
                                        frames_sent=frames)
 
 
-def depth_pipeline(cfg, cams):
-    """The depth service's pipeline: the left camera alone with ``depth.mono``, else the stereo pair."""
-    from services.depth.pipeline import DepthPipeline
-
-    by_name = {c.name: c for c in cams}
-    dc = cfg.depth
-    missing = [n for n in (dc.left_camera, *(() if dc.mono else (dc.right_camera,))) if n not in by_name]
-    if missing:
-        raise ValueError(f"depth cameras {missing} not in the rig ({sorted(by_name)}; depth.mono=true for one camera)")
-    return DepthPipeline(dc, by_name[dc.left_camera], None if dc.mono else by_name[dc.right_camera])
-
-
 def pipeline_nodes(cfg, cams, depth: bool = False, mapping: bool = False,
                    clock: Callable[[], float] | None = None) -> dict[str, ProcessNode]:
     """The pipeline's nodes as the services build them from the system config ``cfg`` and the rig ``cams``:
@@ -81,8 +69,9 @@ def pipeline_nodes(cfg, cams, depth: bool = False, mapping: bool = False,
                                      "backend": BackendNode(cfg, cams)}
     if depth:
         from services.depth.node import DepthNode
+        from services.depth.pipeline import pipeline_for_rig
 
-        nodes["depth"] = DepthNode(cfg.depth, depth_pipeline(cfg, cams))
+        nodes["depth"] = DepthNode(cfg.depth, pipeline_for_rig(cfg.depth, cams))
     if mapping:
         from services.mapping.node import MappingNode
 

@@ -52,6 +52,7 @@ from services.backend.mono_init import bootstrap as mono_bootstrap
 from services.backend.still import mono_frame_factors
 from services.backend.triangulation import triangulate_checked
 from services.backend.vision_factors import ProjectionModel
+from services.backend.window_rules import keyframe_due, reprojection_outliers
 
 
 class BackendInputError(ValueError):
@@ -152,9 +153,8 @@ class WindowedVioEstimator:
     def wants_frame(self, stamp_ns: int, is_keyframe: bool) -> bool:
         """Whether :meth:`process_frame` would make this frame a keyframe (or needs it to initialise): the frames the
         back-end service gives it; the others only the per-frame fast path tracks (services/backend/odometry.py)."""
-        if not self.initialised or self._first_frame_pending or is_keyframe:
-            return True
-        return stamp_ns - self.stamps[self.keyframes[-1]] >= self.cfg.max_keyframe_interval_s * 1e9
+        last = self.stamps[self.keyframes[-1]] if self.initialised else None
+        return self._first_frame_pending or keyframe_due(stamp_ns, is_keyframe, last, self.cfg.max_keyframe_interval_s)
 
     def process_frame(self, stamp_ns: int, landmark_ids: np.ndarray, camera_index: np.ndarray, uv: np.ndarray,
                       is_keyframe: bool = False) -> FrameResult | None:
@@ -172,8 +172,8 @@ class WindowedVioEstimator:
         self._add_observations(n, ids, cams, uv)
         last_kf = self.keyframes[-1]
         self._add_still(n, last_kf)
-        keyframe = (n == last_kf or is_keyframe
-                    or stamp_ns - self.stamps[last_kf] >= self.cfg.max_keyframe_interval_s * 1e9)
+        keyframe = n == last_kf or keyframe_due(stamp_ns, is_keyframe, self.stamps[last_kf],
+                                                self.cfg.max_keyframe_interval_s)
         if not keyframe and self.cfg.motion_only_between_keyframes and not self.cfg.compute_covariance:
             return self._motion_only_frame(n, last_kf)
         if self._mono_pending and keyframe:
@@ -273,10 +273,10 @@ class WindowedVioEstimator:
         return n
 
     def _add_observations(self, n: int, ids, cams, uv) -> None:
-        for c in np.unique(cams):
+        for c in np.unique(cams):  # camera by camera, as the factors' observation indices j count them
             m = cams == c
             for lm, p in zip(ids[m], self._vision.undistort(cams[m], uv[m])):
-                self._obs.setdefault(int(lm), {}).setdefault(n, []).append((int(c), np.asarray(p, float)))
+                self._obs.setdefault(int(lm), {}).setdefault(n, []).append((int(c), p))
 
     def _add_still(self, n: int, k: int) -> None:
         """One camera: relative-pose and zero-velocity factors keyframe k -> state n when the image stands still."""
@@ -357,29 +357,10 @@ class WindowedVioEstimator:
         """Remove observations whose reprojection error exceeds the bound; drop landmarks left with < 2.
 
         Returns True when anything was removed."""
-        c = self.cfg
         if not self._in_graph:
             return False
-        T_CW = {s: np.linalg.inv(self.values.atPose3(X(s)).matrix()[None] @ self._T_SC) for s in self.stamps}
-        rows, Ts, ps, xys, cams = [], [], [], [], []
-        for lm in self._in_graph:
-            p = self.values.atPoint3(L(lm))
-            for s, obs in self._obs[lm].items():
-                for j, (cam, xy) in enumerate(obs):
-                    rows.append((lm, s, j))
-                    Ts.append(T_CW[s][cam])
-                    ps.append(p)
-                    xys.append(xy)
-                    cams.append(cam)
-        Ts, ps = np.array(Ts), np.array(ps)
-        p_C = np.einsum("nij,nj->ni", Ts[:, :3, :3], ps) + Ts[:, :3, 3]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            err = np.linalg.norm(p_C[:, :2] / p_C[:, 2:3] - np.array(xys), axis=1) * self._focal[np.array(cams)]
-        bad = ~((p_C[:, 2] > c.min_depth_m) & (err <= c.max_reproj_error_px))
-        touched: dict[tuple[int, int], set[int]] = {}
-        for k in np.flatnonzero(bad):
-            lm, s, j = rows[k]
-            touched.setdefault((lm, s), set()).add(j)
+        touched = reprojection_outliers(self.values, self._obs, self._in_graph, self.stamps, self._T_SC, self._focal,
+                                        self.cfg.min_depth_m, self.cfg.max_reproj_error_px)
         for (lm, s), drop in touched.items():
             self._set_obs(lm, s, [o for j, o in enumerate(self._obs[lm][s]) if j not in drop])
         for lm in {lm for lm, _ in touched}:

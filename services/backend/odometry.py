@@ -114,8 +114,8 @@ class FrameTracker:
         ids = np.asarray(landmark_ids, np.int64).reshape(-1)
         cams = np.asarray(camera_index, np.int64).reshape(-1)
         uv = np.asarray(uv, float).reshape(-1, 2)
-        known = np.array([int(i) in self._points for i in ids], bool) if len(ids) else np.zeros(0, bool)
-        known &= (cams >= 0) & (cams < len(self.vision.cameras)) & np.all(np.isfinite(uv), axis=1)
+        known = (np.isin(ids, np.asarray(w.landmark_ids)) & (cams >= 0) & (cams < len(self.vision.cameras))
+                 & np.all(np.isfinite(uv), axis=1))
         lms = sorted({int(i) for i in ids[known]})
         status = "tracking" if len(lms) >= self.cfg.min_landmarks_tracking else "imu_only"
         if stamp_ns == k_ns:  # the keyframe itself: the window's estimate

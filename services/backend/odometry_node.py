@@ -16,10 +16,10 @@ import logging
 import numpy as np
 
 from services.backend.backlog import shed_backlog
-from services.backend.imu_factors import ImuDataError
 from services.backend.loop.backend_loop import corrected_state
 from services.backend.node import backend_cameras
-from services.backend.odometry import FrameTracker, StaleFrame
+from services.backend.odometry import FrameTracker
+from services.backend.window_rules import keyframe_due
 from shared import topics
 from shared.dataflow import Emit, Input, ProcessNode
 from shared.messages import EstimatorState, EstimatorWindow, FeatureFrame, Header, ImuSample
@@ -76,9 +76,8 @@ class OdometryNode(ProcessNode):
         """Remember whether the back end will optimise its window at this frame (its rule, WindowedVioEstimator.
         wants_frame, seen from here: before its first window every frame, then keyframes and the longest gap)."""
         stamp = int(frame.header.stamp_ns)
-        last = max(self._expected_window_ns, self.tracker.anchor_stamp_ns or -1)
-        if (self.tracker.window is None or frame.is_keyframe
-                or stamp - last >= self.bc.max_keyframe_interval_s * 1e9):
+        last = None if self.tracker.window is None else max(self._expected_window_ns, self.tracker.anchor_stamp_ns)
+        if keyframe_due(stamp, bool(frame.is_keyframe), last, self.bc.max_keyframe_interval_s):
             self._expected_window_ns = stamp
 
     def on_features(self, frame: FeatureFrame) -> list[Emit]:
@@ -86,7 +85,7 @@ class OdometryNode(ProcessNode):
         self._note_keyframe(frame)
         try:
             st = self.tracker.track(stamp, frame.landmark_ids, frame.camera_index, frame.uv)
-        except (StaleFrame, ImuDataError, ValueError) as exc:
+        except ValueError as exc:  # StaleFrame, ImuDataError, arrays that do not fit
             self.dropped += 1
             log.warning("feature frame %d dropped (%d so far): %s", stamp, self.dropped, exc)
             return []

@@ -7,31 +7,21 @@ frontend/frame + sensors/imu + estimator/window -> estimator/state (every frame)
 
 from __future__ import annotations
 
-import argparse
 import logging
 
 from services.backend.odometry_node import OdometryNode
-from services.system_config import load_system_config
-from shared.camera import CalibrationError
-from shared.rig import load_rig_config
+from services.backend.service import add_arguments  # noqa: F401 (the same command line as sigmaslam backend)
+from services.system_config import service_config_and_rig
 from transport.runner import run_node
 
 log = logging.getLogger("sigmaslam.odometry")
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("config", nargs="?", help="YAML system config (default: built-in defaults)")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config field")
-
-
-def main(args: argparse.Namespace) -> int:
-    cfg = load_system_config(args.config, args.set)
-    try:
-        cameras = load_rig_config(cfg.rig)
-    except (CalibrationError, FileNotFoundError) as exc:
-        print(f"sigmaslam odometry: {exc}", flush=True)
+def main(args) -> int:
+    started = service_config_and_rig(args, "odometry")
+    if started is None:
         return 2
-    node = OdometryNode(cfg, cameras)
+    cfg, cameras = started
     log.info("odometry: %d cameras", len(cameras))
-    run_node(node, cfg.transport)
+    run_node(OdometryNode(cfg, cameras), cfg.transport)
     return 0

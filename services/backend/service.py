@@ -14,9 +14,7 @@ import logging
 
 from services.backend.node import BackendNode
 from shared.supervision import restart_count
-from services.system_config import load_system_config
-from shared.camera import CalibrationError
-from shared.rig import load_rig_config
+from services.system_config import service_config_and_rig
 from transport.runner import run_node
 
 log = logging.getLogger("sigmaslam.backend")
@@ -28,12 +26,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    cfg = load_system_config(args.config, args.set)
-    try:
-        cameras = load_rig_config(cfg.rig)
-    except (CalibrationError, FileNotFoundError) as exc:
-        print(f"sigmaslam backend: {exc}", flush=True)
+    started = service_config_and_rig(args, "backend")
+    if started is None:
         return 2
+    cfg, cameras = started
     node = BackendNode(cfg, cameras, restarted=restart_count() > 0)
     log.info("backend: %d cameras", len(cameras))
     run_node(node, cfg.transport)

@@ -264,3 +264,14 @@ class DepthPipeline:
         mvs, n_src = self.mvs(left, T_WC, prior)
         n_prior = 0 if prior is None or mvs is None else int(np.count_nonzero(prior))
         return T_WC, mvs, n_src, n_prior
+
+
+def pipeline_for_rig(cfg: DepthConfig, cameras) -> DepthPipeline:
+    """The depth pipeline of a rig (shared.rig calibrations): the left camera alone with ``cfg.mono``, else the
+    stereo pair; ValueError naming the rig's cameras when one of them is not in it."""
+    by_name = {c.name: c for c in cameras}
+    missing = [n for n in (cfg.left_camera, *(() if cfg.mono else (cfg.right_camera,))) if n not in by_name]
+    if missing:
+        raise ValueError(f"depth cameras {missing} not in the rig ({sorted(by_name)}; depth.mono=true for a "
+                         f"one-camera rig)")
+    return DepthPipeline(cfg, by_name[cfg.left_camera], None if cfg.mono else by_name[cfg.right_camera])

@@ -10,7 +10,7 @@ import logging
 import time
 
 from services.depth.node import DepthNode
-from services.depth.pipeline import DepthPipeline
+from services.depth.pipeline import pipeline_for_rig
 from services.depth.weights import WeightsError
 from services.system_config import load_system_config
 from shared.camera import CalibrationError
@@ -29,12 +29,8 @@ def main(args: argparse.Namespace) -> int:
     cfg = load_system_config(args.config, args.set)
     dc = cfg.depth
     try:
-        cams = {c.name: c for c in load_rig_config(cfg.rig)}
-        pipe = DepthPipeline(dc, cams[dc.left_camera], None if dc.mono else cams[dc.right_camera])
-    except KeyError as exc:
-        print(f"sigmaslam depth: camera {exc} not in the rig (depth.mono=true for a one-camera rig)", flush=True)
-        return 2
-    except (CalibrationError, FileNotFoundError, WeightsError) as exc:
+        pipe = pipeline_for_rig(dc, load_rig_config(cfg.rig))
+    except (CalibrationError, FileNotFoundError, WeightsError, ValueError) as exc:
         print(f"sigmaslam depth: {exc}", flush=True)
         return 2
     log.info("depth: method %s (stereo gain %.3f, MVS %s), %dx%d, f %.1f px, baseline %.3f m", pipe.method,

@@ -10,9 +10,7 @@ import logging
 
 from services.frontend.node import FrontendNode
 from shared.supervision import restart_count
-from services.system_config import load_system_config
-from shared.camera import CalibrationError
-from shared.rig import load_rig_config
+from services.system_config import service_config_and_rig
 from transport.runner import run_node
 
 log = logging.getLogger("sigmaslam.frontend")
@@ -24,12 +22,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    cfg = load_system_config(args.config, args.set)
-    try:
-        cameras = load_rig_config(cfg.rig)
-    except (CalibrationError, FileNotFoundError) as exc:
-        print(f"sigmaslam frontend: {exc}", flush=True)
+    started = service_config_and_rig(args, "frontend")
+    if started is None:
         return 2
+    cfg, cameras = started
     # after a supervisor restart, landmark ids continue in a range of their own (2^40 ids per life)
     node = FrontendNode(cfg.frontend, cameras, first_landmark_id=restart_count() << 40)
     log.info("frontend: %d cameras %s", len(cameras), node.names)

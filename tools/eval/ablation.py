@@ -58,6 +58,7 @@ from pathlib import Path
 
 import numpy as np
 
+from shared import topics
 from tools.eval.ablation_table import MONO, ROWS, table_markdown
 
 DEFAULT_REPLICAS = ("V1_02", "V2_01", "MH_04")
@@ -140,8 +141,6 @@ class _Progress:
         self.frames, self.first_ns = 0, None
 
     def __call__(self, topic, msg) -> None:
-        from shared import topics
-
         if topic != topics.FRAME:
             return
         self.frames += 1

@@ -6,8 +6,9 @@ keyframe history (the estimator's marginalisation listener), the :class:`Threade
 
 * the estimator's per-frame path only enqueues, so ``estimator/state`` is never delayed by verification or
   pose-graph solves;
-* corrects the published state and keyframe poses by the pose graph's latest correction ``T_W'W`` (when
-  ``loop.correct_state``); after a solve the keyframes message also carries every corrected pose-graph node;
+* corrects the keyframe poses by the pose graph's latest correction ``T_W'W`` (when ``loop.correct_state``; the
+  fast path applies the same correction to the published states); after a solve the keyframes message also
+  carries every corrected pose-graph node;
 * with occupancy-to-point factors on (the shell's ``o2p``), the :class:`PublishedFrame` is their submap anchoring:
   it binds each closed submap to the keyframe anchoring it (:meth:`PublishedFrame.anchor_of`); the map-to-map
   terms go to the pose graph;
@@ -128,8 +129,9 @@ class LoopClosingBackend:
             np.asarray(msg.uv, float), np.asarray(msg.descriptors, np.uint8)))
 
     def process(self, frame):
-        """As ``BackendShell.process`` (a frame the estimator wants: services/backend/node.py), with corrected
-        poses. The published states of all frames come in through :meth:`record_state`."""
+        """As ``BackendShell.process`` (a frame the estimator wants: services/backend/node.py), with the keyframe
+        poses corrected; the state stays in W (the fast path corrects the published ones by
+        :meth:`PublishedFrame.correction`). The published states of all frames come in through :meth:`record_state`."""
         self._last_process = time.monotonic()
         if self.shell.o2p is not None:  # map-to-map terms of submaps closed since the last frame
             for term in self.shell.o2p.pop_map_to_map():
@@ -143,9 +145,8 @@ class LoopClosingBackend:
         state, kfs = msgs
         if not self.cfg.correct_state:
             return msgs
-        T, gen, (g_ids, g_stamps, g_T) = self.runner.snapshot()  # state and keyframes from the same solve
-        self.published.T_last = T
-        state = corrected_state(state, T)
+        T, gen, (g_ids, g_stamps, g_T) = self.runner.snapshot()  # correction and keyframes from the same solve
+        self.published.T_last = T  # the fast path applies it to the states (estimator/window's T_corr)
         if kfs is not None:
             ids, stamps, poses = kfs.ids, kfs.stamps_ns, np.einsum("ij,njk->nik", T, kfs.T_WS)
             if gen != self._generation:  # the correction moved the past keyframes: send them all once

@@ -1,0 +1,44 @@
+"""Two rules of the keyframe window, kept apart from the estimator's bookkeeping: when a frame becomes a keyframe
+(also what the per-frame fast path expects of the back end), and which observations reproject too badly to stay."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import L, X
+
+
+def keyframe_due(stamp_ns: int, flagged: bool, last_keyframe_ns: int | None, max_interval_s: float) -> bool:
+    """A frame becomes a keyframe when the frontend flagged it, when there is no keyframe yet (``None``: the
+    window is not initialised), or when the last one is ``max_interval_s`` old."""
+    return flagged or last_keyframe_ns is None or stamp_ns - last_keyframe_ns >= max_interval_s * 1e9
+
+
+def reprojection_outliers(values: gtsam.Values, obs: dict, landmarks, states, T_SC: np.ndarray, focal: np.ndarray,
+                          min_depth_m: float, max_error_px: float) -> dict[tuple[int, int], set[int]]:
+    """(landmark, state) -> indices of that state's observations of the landmark that are behind the camera (closer
+    than ``min_depth_m``) or reproject farther than ``max_error_px``, at the current ``values``. ``obs``:
+    landmark -> state -> [(camera, normalised xy)]; ``landmarks``: those with a value; ``states``: the window's."""
+    T_CW = {s: np.linalg.inv(values.atPose3(X(s)).matrix()[None] @ T_SC) for s in states}
+    rows, Ts, ps, xys, cams = [], [], [], [], []
+    for lm in landmarks:
+        p = values.atPoint3(L(lm))
+        for s, seen in obs[lm].items():
+            for j, (cam, xy) in enumerate(seen):
+                rows.append((lm, s, j))
+                Ts.append(T_CW[s][cam])
+                ps.append(p)
+                xys.append(xy)
+                cams.append(cam)
+    if not rows:
+        return {}
+    Ts, ps = np.array(Ts), np.array(ps)
+    p_C = np.einsum("nij,nj->ni", Ts[:, :3, :3], ps) + Ts[:, :3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        err = np.linalg.norm(p_C[:, :2] / p_C[:, 2:3] - np.array(xys), axis=1) * focal[np.array(cams)]
+    bad = ~((p_C[:, 2] > min_depth_m) & (err <= max_error_px))
+    out: dict[tuple[int, int], set[int]] = {}
+    for k in np.flatnonzero(bad):
+        lm, s, j = rows[k]
+        out.setdefault((lm, s), set()).add(j)
+    return out
