@@ -143,8 +143,8 @@ def write_euroc_csv(path: str | Path, poses: PoseSeries) -> None:
 
 
 def read_trajectory(path: str | Path) -> PoseSeries:
-    """Read by format: ``.txt``/``.tum`` -> TUM, otherwise EuRoC CSV (``.csv``/``.csv.xz``)."""
-    name = Path(path).name
+    """Read by format: ``.txt``/``.tum`` -> TUM, otherwise EuRoC CSV (``.csv``); either may be xz-compressed."""
+    name = Path(path).name.removesuffix(".xz")
     if name.endswith((".txt", ".tum")):
         return read_tum(path)
     return read_euroc_csv(path)

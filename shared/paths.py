@@ -20,11 +20,19 @@ from pathlib import Path
 REPO_ROOT = Path(__file__).resolve().parents[1]
 BUNDLED_EUROC = REPO_ROOT / "data" / "euroc"
 
-# short sequence names and the file stems of data/euroc
+# short sequence names -> the files of data/euroc: ground truth (17-column EuRoC CSV or TUM, xz), real imu0 data
+# (None: the sequence has none here; replicas simulate it), cam0 image stamps (the stereo list where cam1 misses frames)
 EUROC_SEQUENCES = {
-    "V1_02": {"groundtruth": "V1_02_medium", "imu": "V102", "images": "V102"},
-    "V2_01": {"groundtruth": "V2_01_easy", "imu": "V201", "images": "V201"},
-    "MH_04": {"groundtruth": "MH_04_difficult", "imu": "MH04", "images": "MH04_stereo"},
+    "MH_01": {"groundtruth": "MH_01_easy.groundtruth_tum.txt", "imu": None, "images": "MH01"},
+    "MH_02": {"groundtruth": "MH_02_easy.groundtruth_tum.txt", "imu": None, "images": "MH02"},
+    "MH_03": {"groundtruth": "MH_03_medium.groundtruth_tum.txt", "imu": "MH03", "images": "MH03"},
+    "MH_04": {"groundtruth": "MH_04_difficult.state_groundtruth_estimate0.csv", "imu": "MH04", "images": "MH04_stereo"},
+    # V1_01: OpenVINS' vicon2gt re-estimate (the original's orientation is known to be off, and the replica pairs
+    # the ground truth with the real IMU)
+    "V1_01": {"groundtruth": "V1_01_easy.vicon2gt_openvins.csv", "imu": "V101", "images": "V101"},
+    "V1_02": {"groundtruth": "V1_02_medium.state_groundtruth_estimate0.csv", "imu": "V102", "images": "V102"},
+    "V2_01": {"groundtruth": "V2_01_easy.state_groundtruth_estimate0.csv", "imu": "V201", "images": "V201"},
+    "V2_03": {"groundtruth": "V2_03_difficult.state_groundtruth_estimate0.csv", "imu": "V203", "images": "V203_stereo"},
 }
 
 
@@ -65,10 +73,20 @@ def euroc_files(sequence: str) -> dict[str, Path]:
     if sequence not in EUROC_SEQUENCES:
         raise KeyError(f"unknown sequence {sequence!r}; known: {', '.join(EUROC_SEQUENCES)}")
     names = EUROC_SEQUENCES[sequence]
-    return {"groundtruth": euroc_file(f"groundtruth/{names['groundtruth']}.state_groundtruth_estimate0.csv.xz"),
-            "imu": euroc_file(f"imu/{names['imu']}.imu0_data.csv.xz"),
-            "image_timestamps": euroc_file(f"image_timestamps/{names['images']}.txt"),
-            "calib": euroc_file("calib")}
+    files = {"groundtruth": euroc_file(f"groundtruth/{names['groundtruth']}.xz"),
+             "image_timestamps": euroc_file(f"image_timestamps/{names['images']}.txt"),
+             "calib": euroc_file("calib")}
+    if names["imu"]:
+        files["imu"] = euroc_file(f"imu/{names['imu']}.imu0_data.csv.xz")
+    return files
+
+
+def has_real_imu(sequence: str) -> bool:
+    """Whether the recorded imu0 data of ``sequence`` exists (else replicas of it need ``imu='sim'``)."""
+    try:
+        return "imu" in euroc_files(sequence)
+    except DataNotFound:
+        return False
 
 
 def has_sequence(sequence: str) -> bool:

@@ -41,6 +41,10 @@ class Trajectory:
         for i in range(1, len(q)):  # sign continuity
             if np.dot(q[i], q[i - 1]) < 0:
                 q[i] = -q[i]
+        # at least two samples per knot interval: a sparse ground truth (e.g. 20 Hz) gets a smoother fit instead of an
+        # underdetermined one
+        knot_spacing_s = max(knot_spacing_s, 2.0 * float(np.median(np.diff(t))))
+        self.knot_spacing_s = knot_spacing_s
         n_int = max(1, int(np.ceil(t[-1] / knot_spacing_s)))
         inner = np.linspace(t[0], t[-1], n_int + 1)[1:-1]
         knots = np.r_[[t[0]] * (_K + 1), inner, [t[-1]] * (_K + 1)]

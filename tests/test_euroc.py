@@ -114,3 +114,34 @@ def test_reader_accepts_real_sensor_yaml(tmp_path):
     (root / "imu0" / "sensor.yaml").write_text((DATA / "calib" / "imu0_sensor.yaml").read_text())
     ds = EurocDataset(root)
     assert ds.camera_yaml["cam0"]["resolution"] == [752, 480] and ds.imu_yaml["rate_hz"] == 200
+
+
+SEQUENCES = ("MH_01", "MH_02", "MH_03", "MH_04", "V1_01", "V1_02", "V2_01", "V2_03")
+
+
+@pytest.mark.parametrize("seq", SEQUENCES)
+def test_every_known_sequence_reads(seq):
+    """The eight EuRoC sequences of the shared folder: ground truth (CSV or TUM, xz) and, where recorded, the IMU."""
+    from shared.imu_sim import read_imu_csv
+    from tests.helpers_data import require_sequence
+    from shared.paths import has_real_imu
+
+    files = require_sequence(seq)
+    gt = read_trajectory(files["groundtruth"])
+    assert len(gt) > 1000 and np.all(np.diff(gt.stamps_ns) > 0)
+    stamps = np.loadtxt(files["image_timestamps"], dtype=np.int64)
+    assert gt.stamps_ns[0] < stamps[len(stamps) // 2] < gt.stamps_ns[-1]
+    assert has_real_imu(seq) == (seq not in ("MH_01", "MH_02"))
+    if has_real_imu(seq):
+        imu = read_imu_csv(files["imu"])
+        assert abs(np.median(np.diff(imu.stamps_ns)) - 5_000_000) < 100_000
+
+
+def test_replica_without_recorded_imu_says_so():
+    from services.app.synth.replica import ReplicaSpec, resolve_files
+    from tests.helpers_data import require_sequence
+
+    require_sequence("MH_01")
+    with pytest.raises(ValueError, match="no recorded IMU.*imu='sim'"):
+        resolve_files(ReplicaSpec(sequence="MH_01", imu="real"))
+    assert "imu" not in resolve_files(ReplicaSpec(sequence="MH_01", imu="sim"))

@@ -55,3 +55,15 @@ def test_series_from_matrices_round_trips_poses():
     s = series_from_matrices(np.arange(20) * 5_000_000, T)
     assert s.stamps_ns.dtype == np.int64 and len(s) == 20
     np.testing.assert_allclose(pose_from_pq(s.p_WS, s.q_WS_wxyz), T, atol=1e-12)
+
+
+def test_sparse_groundtruth_gets_a_determined_fit():
+    """A 20 Hz ground truth (OpenVINS' vicon2gt of V1_01) is fitted with knots at least two samples apart instead of
+    an underdetermined spline, and still follows the samples."""
+    traj = procedural("figure8")
+    stamps = np.arange(traj.t0_ns, traj.t_end_ns, 50_000_000, dtype=np.int64)
+    from shared.euroc import PoseSeries
+    gt = PoseSeries(stamps, traj.position(stamps), traj.quaternion_wxyz(stamps))
+    fit = Trajectory(gt, knot_spacing_s=0.05)
+    assert fit.knot_spacing_s >= 0.1 - 1e-9
+    assert np.abs(fit.position(stamps) - gt.p_WS).max() < 5e-3

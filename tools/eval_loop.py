@@ -56,11 +56,17 @@ def run(dataset: str, overrides: list[str], max_frames: int = 0, loop: bool = Tr
             res["final_keyframes"] = run.final.keyframes
     if run.groundtruth_path is not None:
         from shared.metrics.ate import compute_ate
+        from shared.metrics.segments import segment_errors
 
         gt = read_trajectory(run.groundtruth_path)
         for k, tr in trajs.items():
             if len(tr.stamps_ns) >= 3:
-                res[f"ate_{k}_m"] = compute_ate(gt.stamps_ns, gt.p_WS, tr.stamps_ns, tr.p_WS, mode="se3").rmse_m
+                ate = compute_ate(gt.stamps_ns, gt.p_WS, tr.stamps_ns, tr.p_WS, mode="se3")
+                res[f"ate_{k}_m"] = ate.rmse_m
+                seg = segment_errors(ate, gt.stamps_ns, gt.q_WS_wxyz)
+                res[f"ate_{k}_first10s_m"], res[f"ate_{k}_fastest10s_m"] = seg["first_rmse_m"], seg["fastest_rmse_m"]
+                res["fastest10s"] = {"start_s": round(seg["fastest_start_s"], 1),
+                                     "deg_s": round(seg["fastest_deg_s"], 1)}
     return res, trajs
 
 

@@ -56,6 +56,11 @@ def resolve_files(spec: ReplicaSpec) -> dict[str, Path]:
     out = {}
     for key, given in (("groundtruth", spec.groundtruth), ("imu", spec.imu_data),
                        ("image_timestamps", spec.image_timestamps), ("calib", spec.calib)):
+        if key == "imu" and not given and key not in known:
+            if spec.imu == "real":
+                raise ValueError(f"replica: no recorded IMU for sequence {spec.sequence!r}: use imu='sim' "
+                                 "(--imu sim) or give the imu0 data file")
+            continue
         if not given and key not in known:
             raise ValueError(f"replica: no {key} file: name a known --sequence or give it explicitly")
         out[key] = Path(given) if given else known[key]
@@ -121,7 +126,7 @@ def plan(spec: ReplicaSpec) -> dict:
         raise ValueError(f"replica: imu must be 'real' or 'sim', got {spec.imu!r}")
     gt = read_trajectory(files["groundtruth"])
     offset_ns, corr = 0, float("nan")
-    real = read_imu_csv(files["imu"]) if files["imu"].exists() else None
+    real = read_imu_csv(files["imu"]) if "imu" in files else None
     if spec.imu == "real":
         offset_ns, _, c = time_offset(Trajectory(gt), real)
         corr = float(c.max())
