@@ -16,7 +16,7 @@ from tools.bench_budgets import Budgets, check_budgets, format_table, load_budge
 from tools.bench_pipeline import frames_within, next_rate, stage_summary
 from services.app.metrics.latency import ArrivalLog, map_latencies, matched_latencies, summary
 from tools.pipeline_probe import service_name
-from tools.eval.suite_report import ate_table, mean_std, mesh_table, timing_table
+from tools.eval.suite_report import PAPER_MEAN, ate_table, mean_std, mesh_table, segment_table, timing_table
 from transport.stats import STAGE_LOG_DTYPE, STAGE_LOG_ENV, StageTimer, StatsCollector, read_stage_log
 
 FULL = os.environ.get("SIGMASLAM_E2E", "") == "full"
@@ -125,6 +125,36 @@ def test_suite_tables_put_paper_numbers_beside_ours():
     tt = timing_table({"occupancy update (per depth frame)": (10.0, 2.0, 5), "stereo network": None})
     assert "| occupancy update (per depth frame) | 10.0 +- 2.0 | 5 | 11.6 +- 3.6 |" in tt
     assert "| stereo network | - | - | 56.3 +- 24.1 |" in tt
+
+
+def test_suite_means_per_mode_and_the_target():
+    rows = {"V1_02 lockstep": {"sequence": "V1_02", "mode": "lockstep", "ate_causal_m": 0.02, "ate_noncausal_m": 0.01},
+            "MH_04 lockstep": {"sequence": "MH_04", "mode": "lockstep", "ate_causal_m": 0.04, "ate_noncausal_m": 0.03},
+            "V1_02 live 1x": {"sequence": "V1_02", "mode": "live 1x", "ate_causal_m": 0.03}}
+    t = ate_table(rows)
+    # the paper's columns are looked up by the row's sequence; the mean is per mode, over the same sequences
+    assert "| V1_02 live 1x | 0.030 | - | - | 0.028 | 0.014 |" in t
+    assert "| **mean of 2** lockstep | 0.030 | 0.020 | - | 0.050 | 0.042 | 0.048 | 0.036 |" in t
+    assert "**mean of 1**" not in t
+    assert abs(PAPER_MEAN[0] - 0.0408) < 1e-3 and abs(PAPER_MEAN[1] - 0.0305) < 1e-3
+    assert f"| target: 0.8 x the paper's mean of 11 | {0.8 * PAPER_MEAN[0]:.3f} | {0.8 * PAPER_MEAN[1]:.3f} |" in t
+    seg = segment_table({"V2_03": {"ate_causal_m": 0.02, "first10_causal_m": 0.05, "fastest10_start_s": 61.2,
+                                   "fastest10_deg_s": 57.4, "fastest10_causal_m": 0.01}})
+    assert "| V2_03 | 0.050 (2.5x) | - | 61, 57 | 0.010 (0.5x) | - |" in seg
+
+
+def test_suite_sequences_and_scenes():
+    from shared.paths import EUROC_SEQUENCES, has_sequence
+    from tools.eval.suite import available_sequences, parse_rates, scene_for
+    import argparse
+
+    assert available_sequences() == [s for s in sorted(EUROC_SEQUENCES) if has_sequence(s)]
+    assert {"V1_02", "V2_01"} <= set(available_sequences())  # bundled with the repository
+    assert scene_for("MH_03", "b") == "machinehall-b" and scene_for("V1_01") == "vicon-a"
+    with pytest.raises(ValueError):
+        scene_for("KITTI_00")
+    assert parse_rates(argparse.Namespace(rate=None, rates="0, 1")) == [0.0, 1.0]
+    assert parse_rates(argparse.Namespace(rate=2.0, rates="0")) == [2.0]
 
 
 @pytest.mark.e2e

@@ -47,12 +47,13 @@ def summary_figure(path: Path, rows: dict[str, dict], paper_ate: dict, paper_mes
     w = 0.2
     a1.bar(x - 1.5 * w, [val(s, "ate_causal_m") for s in seqs], w, label="ours causal (replica)")
     a1.bar(x - 0.5 * w, [val(s, "ate_noncausal_m") for s in seqs], w, label="ours non-causal (replica)")
-    a1.bar(x + 0.5 * w, [paper_ate.get(s, (np.nan,) * 2)[0] for s in seqs], w, label="paper causal (real)")
-    a1.bar(x + 1.5 * w, [paper_ate.get(s, (np.nan,) * 2)[1] for s in seqs], w, label="paper non-causal (real)")
+    name = lambda key: rows[key].get("sequence", key)  # noqa: E731
+    a1.bar(x + 0.5 * w, [paper_ate.get(name(s), (np.nan,) * 2)[0] for s in seqs], w, label="paper causal (real)")
+    a1.bar(x + 1.5 * w, [paper_ate.get(name(s), (np.nan,) * 2)[1] for s in seqs], w, label="paper non-causal (real)")
     a1.set(xticks=x, xticklabels=seqs, ylabel="ATE RMSE [m]", title="Table I: trajectory error")
     a1.legend(fontsize=7)
     a2.bar(x - 0.2, [val(s, "accuracy_m") for s in seqs], 0.4, label="ours (replica)")
-    a2.bar(x + 0.2, [paper_mesh.get(s, (np.nan, np.nan))[0] for s in seqs], 0.4, label="paper (real)")
+    a2.bar(x + 0.2, [paper_mesh.get(name(s), (np.nan, np.nan))[0] for s in seqs], 0.4, label="paper (real)")
     a2.set(xticks=x, xticklabels=seqs, ylabel="mesh accuracy [m]", title="Table II: mesh accuracy")
     a2.legend(fontsize=7)
     fig.tight_layout()

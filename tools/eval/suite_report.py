@@ -32,14 +32,56 @@ def _m(v: float | None, fmt: str = ".3f") -> str:
     return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, fmt)
 
 
+# the paper's averages over its eleven sequences (causal, non-causal) and issue 23's target: at most 0.8x of them
+PAPER_MEAN = tuple(float(sum(v[k] for v in PAPER_ATE.values()) / len(PAPER_ATE)) for k in (0, 1))
+TARGET_MEAN_FACTOR = 0.8
+
+
+def _mean(values) -> float | None:
+    v = [x for x in values if x is not None and not (isinstance(x, float) and math.isnan(x))]
+    return sum(v) / len(v) if v else None
+
+
 def ate_table(rows: dict[str, dict]) -> str:
-    """Table I: ``rows[seq]`` with 'ate_causal_m', 'ate_noncausal_m' (None when absent), 'poses'."""
+    """Table I: ``rows[key]`` with 'ate_causal_m', 'ate_noncausal_m' (None when absent), 'poses' and 'sequence'
+    (the EuRoC name the paper's columns are looked up by; default the key). Ends with the mean of the rows of each
+    mode beside the paper's mean over the same sequences and its eleven-sequence mean x 0.8 (the target)."""
     out = ["| sequence | ours causal | ours non-causal | poses | paper ours causal | paper ours non-causal | "
            "paper OKVIS2 causal | paper OKVIS2 non-causal |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
-    for seq, r in rows.items():
-        p = PAPER_ATE.get(seq, (None,) * 4)
-        out.append(f"| {seq} | {_m(r.get('ate_causal_m'))} | {_m(r.get('ate_noncausal_m'))} | {r.get('poses', '-')} | "
+    for key, r in rows.items():
+        p = PAPER_ATE.get(r.get("sequence", key), (None,) * 4)
+        out.append(f"| {key} | {_m(r.get('ate_causal_m'))} | {_m(r.get('ate_noncausal_m'))} | {r.get('poses', '-')} | "
                    + " | ".join(_m(v) for v in p) + " |")
+    for mode in dict.fromkeys(r.get("mode", "") for r in rows.values()):
+        group = [(k, r) for k, r in rows.items() if r.get("mode", "") == mode]
+        if len(group) < 2:
+            continue
+        paper = [PAPER_ATE.get(r.get("sequence", k), (None,) * 4) for k, r in group]
+        out.append(f"| **mean of {len(group)}**{' ' + mode if mode else ''} | "
+                   f"{_m(_mean(r.get('ate_causal_m') for _, r in group))} | "
+                   f"{_m(_mean(r.get('ate_noncausal_m') for _, r in group))} | - | "
+                   + " | ".join(_m(_mean(p[i] for p in paper)) for i in range(4)) + " |")
+    out.append(f"| target: 0.8 x the paper's mean of 11 | {_m(TARGET_MEAN_FACTOR * PAPER_MEAN[0])} | "
+               f"{_m(TARGET_MEAN_FACTOR * PAPER_MEAN[1])} | - | {_m(PAPER_MEAN[0])} | {_m(PAPER_MEAN[1])} | - | - |")
+    return "\n".join(out)
+
+
+def segment_table(rows: dict[str, dict]) -> str:
+    """First 10 s and fastest 10 s of each row (keys 'first10_causal_m', 'fastest10_causal_m', ... as written by
+    tools/eval/suite.evaluate_sequence), with their ratio to the row's RMSE."""
+    def cell(r, stretch, kind):
+        v, whole = r.get(f"{stretch}_{kind}_m"), r.get(f"ate_{kind}_m")
+        if v is None or whole is None or not whole:
+            return "-"
+        return f"{v:.3f} ({v / whole:.1f}x)"
+
+    out = ["| sequence | first 10 s causal | first 10 s non-causal | fastest 10 s: start [s], mean rate [deg/s] | "
+           "fastest 10 s causal | fastest 10 s non-causal |", "|---|---:|---:|---:|---:|---:|"]
+    for key, r in rows.items():
+        where = "-" if r.get("fastest10_start_s") is None else \
+            f"{r['fastest10_start_s']:.0f}, {r['fastest10_deg_s']:.0f}"
+        out.append(f"| {key} | {cell(r, 'first10', 'causal')} | {cell(r, 'first10', 'noncausal')} | {where} | "
+                   f"{cell(r, 'fastest10', 'causal')} | {cell(r, 'fastest10', 'noncausal')} |")
     return "\n".join(out)
 
 
