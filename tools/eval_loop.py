@@ -24,9 +24,11 @@ from shared import topics
 from shared.euroc import series_from_matrices, read_trajectory, write_tum
 
 
-def run(dataset: str, overrides: list[str], max_frames: int = 0, loop: bool = True) -> tuple[dict, dict]:
-    """Frontend and back end (loop closure as ``loop`` says, no occupancy terms) on the in-process runner."""
-    cfg = load_system_config(None, ["o2p.enabled=false", *overrides, f"loop.enabled={str(loop).lower()}"])
+def run(dataset: str, overrides: list[str], max_frames: int = 0, loop: bool = True,
+        config: str | None = None) -> tuple[dict, dict]:
+    """Frontend and back end (loop closure as ``loop`` says, no occupancy terms) on the in-process runner, with
+    the system config ``config`` (YAML; default the built-in defaults) and ``overrides``."""
+    cfg = load_system_config(config, ["o2p.enabled=false", *overrides, f"loop.enabled={str(loop).lower()}"])
     raw: list = []  # the published states without the loop correction the fast path applied (its latest window's)
     T_corr = [np.eye(4)]
 

@@ -62,7 +62,9 @@ class BackendConfig:
     min_landmarks_tracking: int = param(6, "fewer triangulated landmarks observed in a frame than this: status 'imu_only'")
     static_window_s: float = param(0.5, "IMU span inspected for a static start", "s")
     static_gyro_std: float = param(0.01, "a start is static when the gyro std stays below this", "rad/s")
-    static_acc_std: float = param(0.08, "... and the accelerometer std below this", "m/s^2")
+    static_acc_std: float = param(0.15, "... and the accelerometer std below this", "m/s^2")
+    static_lowpass_s: float = param(0.05, "the static test looks at the IMU readings averaged over blocks this long "
+                                    "(motor vibration is not motion; 0 = raw readings)", "s")
     compute_covariance: bool = param(False, "compute the 15x15 marginal covariance of every frame (else only of "
                                      "keyframes, NaN for the others; ~5-10 ms per frame)")
     reject_outliers_every_frame: bool = param(False, "remove outlier observations after every frame's optimisation "

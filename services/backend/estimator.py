@@ -139,7 +139,7 @@ class WindowedVioEstimator:
         if len(st) == 0 or st[0] > t0 or sel.sum() < 10:
             return False
         res = vio_init.initialise(st[sel], np.array(self.imu.omega)[sel], np.array(self.imu.acc)[sel],
-                                  self.cfg.static_gyro_std, self.cfg.static_acc_std)
+                                  self.cfg.static_gyro_std, self.cfg.static_acc_std, self.cfg.static_lowpass_s)
         self.initialise(stamp_ns, res.R_WS, res.v_W, res.gyro_bias, res.acc_bias, res.static)
         return True
 

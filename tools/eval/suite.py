@@ -58,6 +58,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", help="YAML system config of the runs (default: built-in defaults), e.g. configs/demo.yaml")
     p.add_argument("--hilti-points", type=int, default=12, help="control points per sequence for the Hilti score")
     p.add_argument("--skip-run", action="store_true", help="use the run folders already under --out")
+    p.add_argument("--in-process", action="store_true",
+                   help="the estimator alone in one process (frontend, back end, loop closure, final BA; no depth, "
+                        "mapping, transport), reproducible: Table I in minutes (--rates is ignored)")
     p.add_argument("--timeout-s", type=float, default=1800.0, help="give up a run after this long [s]")
 
 
@@ -194,6 +197,22 @@ def write_report(out: Path, rows: dict[str, dict], timing: dict, args, rates: li
     return path
 
 
+def run_estimator_in_process(replica: Path, run_dir: Path, config: str | None, sets: list[str]) -> dict:
+    """The estimator alone (frontend, fast path, back end with loop closure and final BA; no depth, mapping or
+    occupancy terms) on the in-process runner, loop events handled synchronously: a reproducible run of a few
+    minutes per sequence. Writes trajectory_causal.txt and trajectory_final.txt into ``run_dir``."""
+    from shared.euroc import write_tum
+    from tools.eval_loop import run
+
+    run_dir.mkdir(parents=True, exist_ok=True)
+    res, trajs = run(str(replica), ["loop.synchronous=true", "loop.final_ba=true", *sets], config=config)
+    write_tum(run_dir / "trajectory_causal.txt", trajs["causal"])
+    if "final" in trajs:
+        write_tum(run_dir / "trajectory_final.txt", trajs["final"])
+    (run_dir / "eval_loop.json").write_text(json.dumps(res, indent=1, default=str))
+    return res
+
+
 def parse_rates(args: argparse.Namespace) -> list[float]:
     if args.rate is not None:
         return [args.rate]
@@ -214,7 +233,7 @@ def main(args: argparse.Namespace) -> int:
         seqs = available_sequences() if args.sequences.strip() == "all" else \
             [s.strip() for s in args.sequences.split(",") if s.strip()]
         scenes = {s: scene_for(s, args.variant) for s in seqs}
-        rates = parse_rates(args)
+        rates = [0.0] if args.in_process else parse_rates(args)
     except ValueError as exc:
         print(f"eval suite: {exc}", file=sys.stderr)
         return 2
@@ -229,7 +248,11 @@ def main(args: argparse.Namespace) -> int:
         for rate in rates:
             key = seq if len(rates) == 1 else f"{seq} {mode_name(rate)}"
             seq_out = out / seq if len(rates) == 1 else out / seq / mode_name(rate).replace(" ", "_")
-            if not args.skip_run:
+            if args.skip_run:
+                pass
+            elif args.in_process:
+                run_estimator_in_process(replica, seq_out / "run", args.config, args.set)
+            else:
                 raw = run_once(replica, seq_out, rate, 0.0, args.services, args.config,
                                ["loop.final_ba=true", *args.set], args.timeout_s)
                 if raw["rc"] != 0:

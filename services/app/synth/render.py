@@ -13,6 +13,7 @@ the exposure), Gaussian read + shot noise, 8-bit output.
 from __future__ import annotations
 
 import dataclasses
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -39,7 +40,15 @@ class RenderConfig:
     exposure_period_s: float = param(9.0, "period of the slowest exposure change", "s")
     vignetting: float = param(0.25, "relative brightness lost at the image corners (cos^4-like falloff)")
     motion_blur_samples: int = param(1, "sub-frame renders averaged over the exposure (1 = no motion blur)")
+    motion_blur_mode: Literal["render", "flow"] = param(
+        "render", "'render': every sub-frame pose is ray cast (exact, motion_blur_samples x the cost); 'flow': the "
+        "frame is rendered once and resampled along each pixel's image motion over the exposure (from its depth "
+        "and the sub-frame poses; cheap, ignores what the motion uncovers)")
     exposure_time_s: float = param(0.004, "exposure time for motion blur", "s")
+    exposure_jump_rate_hz: float = param(0.0, "auto-exposure jumps: mean rate of sudden gain changes per camera "
+                                         "(Poisson; 0 = none)", "Hz")
+    exposure_jump_amplitude: float = param(0.3, "auto-exposure jumps: each jump multiplies the gain by exp(u), u "
+                                           "uniform in [-a, a]; the gain stays there until the next jump")
     seed: int = param(0, "seed of the noise and exposure pattern")
 
 
@@ -70,6 +79,27 @@ def vignette_map(calib: CameraCalib, strength: float) -> np.ndarray:
     falloff = 1.0 / (1.0 + r2) ** 2  # cos^4 of the (pinhole) incidence angle
     lo = float(falloff.min())
     return (1.0 - strength * (1.0 - falloff) / max(1.0 - lo, 1e-9)).astype(np.float32)
+
+
+def flow_blur(rad: np.ndarray, depth: np.ndarray, rays_C: np.ndarray, camera, T_WC: np.ndarray,
+              T_WC_samples: list[np.ndarray]) -> np.ndarray:
+    """Motion blur of an image rendered at pose ``T_WC``: the mean over the sub-frame poses of the image resampled
+    along each pixel's motion. A pixel's 3D point (its ray ``rays_C`` (H*W, 3), z = 1, times ``depth``; far where
+    there is none) projects to w_k(x) at sub-frame pose k; the sub-frame image is approximated by rad(2x - w_k(x))
+    (the inverse of a locally smooth motion)."""
+    h, w = rad.shape
+    v, u = np.mgrid[0:h, 0:w]
+    uv = np.stack([u.ravel(), v.ravel()], 1).astype(np.float64)
+    z = np.nan_to_num(depth.ravel().astype(np.float64), nan=1e3)
+    p_W = (np.asarray(rays_C, np.float64) * z[:, None]) @ T_WC[:3, :3].T + T_WC[:3, 3]
+    rad = rad.astype(np.float32)
+    out = np.zeros_like(rad)
+    for T in T_WC_samples:
+        uv_k, ok = camera.project((p_W - T[:3, 3]) @ T[:3, :3])
+        src = np.where(ok[:, None], 2.0 * uv - uv_k, uv).astype(np.float32)
+        out += cv2.remap(rad, src[:, 0].reshape(h, w), src[:, 1].reshape(h, w), cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_REPLICATE)
+    return out / len(T_WC_samples)
 
 
 class Renderer:
@@ -167,13 +197,41 @@ class Renderer:
         return out
 
     def exposure(self, t_s: float, cam_index: int = 0) -> float:
-        """Slowly varying exposure/gain factor at time t_s."""
+        """Exposure/gain factor at time t_s: slow changes times the auto-exposure jumps' gain."""
         a, p, ph = self.cfg.exposure_amplitude, self.cfg.exposure_period_s, self._phase[cam_index]
-        return float(1.0 + a * (0.7 * np.sin(2 * np.pi * t_s / p + ph[0]) + 0.3 * np.sin(2 * np.pi * t_s / (0.31 * p) + ph[1])))
+        slow = 1.0 + a * (0.7 * np.sin(2 * np.pi * t_s / p + ph[0]) + 0.3 * np.sin(2 * np.pi * t_s / (0.31 * p) + ph[1]))
+        return float(slow * self._jump_gain(t_s, cam_index))
 
-    def image(self, T_WC_samples: list[np.ndarray], cam_index: int, t_s: float, rng: np.random.Generator) -> np.ndarray:
+    def _jump_gain(self, t_s: float, cam_index: int) -> float:
+        """Piecewise-constant gain of the auto-exposure jumps (1 without them): a Poisson schedule per camera,
+        drawn from the config's seed and extended as time goes on, so that it depends on t_s alone."""
+        rate = self.cfg.exposure_jump_rate_hz
+        if rate <= 0 or t_s <= 0:
+            return 1.0
+        if not hasattr(self, "_jumps"):
+            self._jumps = {}
+        times, gains, rng = self._jumps.setdefault(
+            cam_index, ([0.0], [1.0], np.random.default_rng([self.cfg.seed, 13, cam_index])))
+        while times[-1] < t_s:
+            times.append(times[-1] + rng.exponential(1.0 / rate))
+            gains.append(float(np.exp(rng.uniform(-1.0, 1.0) * self.cfg.exposure_jump_amplitude)))
+        return gains[int(np.searchsorted(times, t_s, side="right")) - 1]
+
+    def blurred_radiance(self, T_WC_samples: list[np.ndarray], cam_index: int,
+                         T_WC: np.ndarray | None = None) -> np.ndarray:
+        """Radiance averaged over the exposure's sub-frame poses; ``T_WC``: the frame's own pose (the 'flow' mode
+        renders there; default the middle sample)."""
+        if len(T_WC_samples) == 1 or self.cfg.motion_blur_mode == "render":
+            return sum(self.radiance(T, cam_index) for T in T_WC_samples) / len(T_WC_samples)
+        mid = T_WC_samples[len(T_WC_samples) // 2] if T_WC is None else T_WC
+        rad = self.radiance(mid, cam_index)
+        return flow_blur(rad, self.depth(mid, cam_index), self._centre[cam_index], self.cameras[cam_index].camera, mid,
+                         T_WC_samples)
+
+    def image(self, T_WC_samples: list[np.ndarray], cam_index: int, t_s: float, rng: np.random.Generator,
+              T_WC: np.ndarray | None = None) -> np.ndarray:
         """(H, W) uint8 image: radiance averaged over the sub-frame poses, exposure, noise."""
-        rad = sum(self.radiance(T, cam_index) for T in T_WC_samples) / len(T_WC_samples)
+        rad = self.blurred_radiance(T_WC_samples, cam_index, T_WC)
         sig = rad * (self.cfg.brightness_dn * self.exposure(t_s, cam_index))
         std = np.sqrt(self.cfg.read_noise_dn ** 2 + self.cfg.shot_noise_gain * np.maximum(sig, 0.0))
         sig = sig + rng.standard_normal(sig.shape, dtype=np.float32) * std
@@ -187,7 +245,7 @@ class Renderer:
         poses = blur_T_WS or [T_WS]
         imgs, depths = [], {}
         for i, c in enumerate(self.cameras):
-            imgs.append(self.image([T @ c.T_SC for T in poses], i, t_s, rng))
+            imgs.append(self.image([T @ c.T_SC for T in poses], i, t_s, rng, T_WS @ c.T_SC))
             if i in with_depth:  # right after the image: reuses its rays when they are the same
                 depths[i] = self.depth(T_WS @ c.T_SC, i)
         return imgs, depths

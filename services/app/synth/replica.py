@@ -48,6 +48,8 @@ class ReplicaSpec:
     calib: str = param("", "calibration: folder with camN_sensor.yaml + imu0_sensor.yaml, an EuRoC folder or a rig YAML")
     depth_cameras: tuple[int, ...] = param((0,), "cameras whose ground-truth depth is written (mav0/depth<i>)")
     knot_spacing_s: float = param(0.05, "knot spacing of the smooth trajectory fitted to the ground truth", "s")
+    timeshift_cam_imu_s: float = param(0.0, "camera-IMU clock offset as Kalibr writes it (t_imu = t_cam + shift): the "
+                                       "image stamped t shows the scene at IMU time t + shift (0 = in sync)", "s")
     render: RenderConfig = param(RenderConfig(), "photometric settings")
 
 
@@ -195,15 +197,17 @@ def generate(spec: ReplicaSpec, out: str | Path, progress: bool = True) -> Path:
     stats = {"depth_pixels_out_of_range": 0, "depth_pixels_no_hit": 0}
     nblur = spec.render.motion_blur_samples
     blur_dt = np.linspace(-0.5, 0.5, nblur) * spec.render.exposure_time_s * 1e9 if nblur > 1 else None
+    shift_ns = int(round(spec.timeshift_cam_imu_s * 1e9))
 
     def frames_iter():
         for stamp in tqdm(frames, desc=f"render {spec.scene}", unit="frame", disable=not progress):
             stamp = int(stamp)
+            t_true = int(np.clip(stamp + shift_ns, traj.t0_ns, traj.t_end_ns))  # when the image was really taken
             blur = None
             if blur_dt is not None:
-                ts = np.clip(stamp + blur_dt.astype(np.int64), traj.t0_ns, traj.t_end_ns)
+                ts = np.clip(t_true + blur_dt.astype(np.int64), traj.t0_ns, traj.t_end_ns)
                 blur = list(traj.pose(ts))
-            imgs, depths = renderer.render_rig(traj.pose(stamp), (stamp - int(frames[0])) * 1e-9, rng,
+            imgs, depths = renderer.render_rig(traj.pose(t_true), (stamp - int(frames[0])) * 1e-9, rng,
                                                tuple(spec.depth_cameras), blur)
             for i, d in depths.items():
                 stats["depth_pixels_no_hit"] += int(np.isnan(d).sum())
