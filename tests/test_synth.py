@@ -323,3 +323,36 @@ def test_replica_time_shift_moves_the_images(tmp_path):
     ga = read_euroc_csv(a / "mav0" / "state_groundtruth_estimate0" / "data.csv")
     gb = read_euroc_csv(b / "mav0" / "state_groundtruth_estimate0" / "data.csv")
     np.testing.assert_allclose(ga.p_WS, gb.p_WS)
+
+
+def test_named_profile_gets_its_own_cached_replica(tmp_path, monkeypatch):
+    """``profile='hard'``: the spec handed to the generator carries the profile's blur, exposure jumps and clock
+    offset, the folder name says so, and other non-default settings are refused (they would be cached under a
+    default name)."""
+    import dataclasses
+
+    from services.app.synth import api
+    from services.app.synth.profiles import PROFILES, apply_profile
+
+    specs = []
+
+    def fake_generate(spec, out, progress=True):
+        specs.append(spec)
+        out.mkdir(parents=True)
+        (out / "replica.yaml").write_text("frames: 1\n")
+        return out
+
+    monkeypatch.setattr(api, "generate", fake_generate)
+    hard = api.ensure_replica("V1_02", "vicon-a", imu="sim", duration_s=0.3, root=tmp_path, progress=False,
+                              profile="hard")
+    plain = api.ensure_replica("V1_02", "vicon-a", imu="sim", duration_s=0.3, root=tmp_path, progress=False)
+    assert hard.name == plain.name + "-hard" and len(specs) == 2
+    r = specs[0].render
+    assert r.motion_blur_samples == PROFILES["hard"]["render"]["motion_blur_samples"] > 1
+    assert r.motion_blur_mode == "flow" and r.exposure_jump_rate_hz > 0
+    assert specs[0].timeshift_cam_imu_s == PROFILES["hard"]["timeshift_cam_imu_s"] and specs[1].render == RenderConfig()
+    with pytest.raises(ValueError, match="unknown replica profile"):
+        apply_profile(specs[1], "blurry")
+    odd = dataclasses.replace(specs[1], render=dataclasses.replace(RenderConfig(), read_noise_dn=9.0))
+    with pytest.raises(ValueError, match="default render settings or a named profile"):
+        api.ensure_spec(odd, tmp_path)

@@ -47,6 +47,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sequences", default="all",
                    help="comma-separated EuRoC sequences (default 'all': every one whose files are found)")
     p.add_argument("--variant", default="a", choices=("a", "b"), help="scene variant of the replicas")
+    p.add_argument("--profile", default="", help="harder replicas (services/app/synth/profiles.py: 'hard' = motion "
+                   "blur, auto-exposure jumps, 1 ms camera-IMU offset)")
     p.add_argument("--duration", type=float, default=0.0, help="replica length (0: whole sequence) [s]")
     p.add_argument("--out", default="out/suite", help="output folder (default out/suite)")
     p.add_argument("--rates", default="0",
@@ -167,7 +169,8 @@ def write_report(out: Path, rows: dict[str, dict], timing: dict, args, rates: li
     modes = ", ".join(("lockstep playback" if r <= 0 else f"playback at {r:g}x sensor rate (live)") for r in rates)
     imus = ", ".join(sorted({f"{r.get('sequence', k)}: {r['imu']}" for k, r in rows.items() if "imu" in r}))
     lines = ["# sigmaslam evaluation suite", "",
-             f"Replicas ({dur}; scene variant {args.variant}; IMU {imus}), {modes}. {NOTE}", "",
+             f"Replicas ({dur}; scene variant {args.variant}; profile {args.profile or 'default'}; IMU {imus}), "
+             f"{modes}{' (the estimator alone, in one process)' if args.in_process else ''}. {NOTE}", "",
              "## Table I: ATE RMSE [m], SE(3) alignment", "", ate_table(rows), "",
              "## Where the error is: first 10 s and the fastest-turning 10 s", "",
              "RMSE [m] of the stretch within the whole run's alignment, and its ratio to the run's RMSE "
@@ -243,7 +246,8 @@ def main(args: argparse.Namespace) -> int:
     rows, stage_dirs, rc = {}, [], 0
     for seq in seqs:
         imu = "real" if has_real_imu(seq) else "sim"
-        replica = ensure_replica(seq, scenes[seq], imu=imu, duration_s=args.duration, progress=False)
+        replica = ensure_replica(seq, scenes[seq], imu=imu, duration_s=args.duration, progress=False,
+                                 profile=args.profile)
         print(f"[eval suite] {seq}: replica {replica} ({imu} IMU)", flush=True)
         for rate in rates:
             key = seq if len(rates) == 1 else f"{seq} {mode_name(rate)}"

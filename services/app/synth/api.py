@@ -12,12 +12,14 @@ processes) wait for one generator instead of rendering twice.
 """
 from __future__ import annotations
 
+import dataclasses
 import fcntl
 import logging
 import shutil
 from pathlib import Path
 
 from shared.paths import data_dir
+from services.app.synth.profiles import apply_profile
 from services.app.synth.render import RenderConfig
 from services.app.synth.replica import ReplicaSpec, generate
 
@@ -34,13 +36,17 @@ def replica_name(spec: ReplicaSpec) -> str:
     return f"{spec.sequence or 'custom'}-{spec.scene}-{spec.imu}-s{num(spec.start_s)}-d{dur}-seed{spec.seed}"
 
 
-def ensure_spec(spec: ReplicaSpec, root: Path | None = None, progress: bool = True) -> Path:
-    """Path of the replica of ``spec`` (default render settings only), generating it if absent."""
-    if spec.render != RenderConfig() or spec.groundtruth or spec.imu_data or spec.image_timestamps or spec.calib:
-        raise ValueError("ensure_replica caches only known sequences with default render settings; use generate()")
+def ensure_spec(spec: ReplicaSpec, root: Path | None = None, progress: bool = True, profile: str = "") -> Path:
+    """Path of the replica of ``spec`` (default render settings, or those of ``profile``:
+    services/app/synth/profiles.py), generating it if absent."""
+    plain = dataclasses.replace(spec, render=RenderConfig(), timeshift_cam_imu_s=0.0)
+    if (spec != apply_profile(plain, profile) or spec.groundtruth or spec.imu_data or spec.image_timestamps
+            or spec.calib):
+        raise ValueError("ensure_replica caches only known sequences with default render settings or a named "
+                         "profile; use generate()")
     root = Path(root) if root is not None else data_dir() / "replicas"
     root.mkdir(parents=True, exist_ok=True)
-    final = root / replica_name(spec)
+    final = root / (replica_name(spec) + (f"-{profile}" if profile else ""))
     if (final / "replica.yaml").is_file():
         return final
     with open(root / f".{final.name}.lock", "w") as lock:
@@ -57,11 +63,12 @@ def ensure_spec(spec: ReplicaSpec, root: Path | None = None, progress: bool = Tr
 
 def ensure_replica(sequence: str = "V1_02", scene: str = "vicon-a", imu: str = "real", duration_s: float = 0.0,
                    start_s: float = 0.0, seed: int = 0, depth_cameras: tuple[int, ...] = (0,),
-                   root: Path | None = None, progress: bool = True) -> Path:
-    """Replica folder (holding ``mav0/``) of a known EuRoC sequence in a scene; generated on first use."""
+                   root: Path | None = None, progress: bool = True, profile: str = "") -> Path:
+    """Replica folder (holding ``mav0/``) of a known EuRoC sequence in a scene, with the settings of ``profile``
+    ('' = defaults; services/app/synth/profiles.py); generated on first use."""
     spec = ReplicaSpec(scene=scene, sequence=sequence, imu=imu, start_s=start_s, duration_s=duration_s, seed=seed,
                        depth_cameras=list(depth_cameras))
-    return ensure_spec(spec, root, progress)
+    return ensure_spec(apply_profile(spec, profile), root, progress, profile)
 
 
 def dataset_or_replica(path: str | Path | None = None, seconds: float = 0.0) -> Path:

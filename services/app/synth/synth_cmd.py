@@ -17,7 +17,8 @@ from services.app.synth.scene import SCENES
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--sequence", default="V1_02", help="EuRoC sequence (V1_02, V2_01, MH_04) or '' with explicit files")
+    p.add_argument("--sequence", default="V1_02", help="EuRoC sequence (MH_01..MH_04, V1_01, V1_02, V2_01, V2_03; "
+                   "those whose files are found) or '' with explicit files")
     p.add_argument("--scene", default="vicon-a", choices=sorted(SCENES))
     p.add_argument("--imu", default="real", choices=("real", "sim"), help="recorded imu0 (time-aligned) or simulated")
     p.add_argument("--out", help="output folder (gets mav0/, replica.yaml)")
@@ -31,6 +32,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--depth-cameras", default="0", help="comma-separated camera indices with GT depth ('' = none)")
     p.add_argument("--render-config", help="YAML with RenderConfig fields (noise, exposure, vignetting, blur)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a RenderConfig field")
+    p.add_argument("--profile", default="", help="named harder settings (services/app/synth/profiles.py: 'hard' = "
+                   "motion blur, auto-exposure jumps, 1 ms camera-IMU offset); --set/--render-config apply after it")
+    p.add_argument("--timeshift-cam-imu", type=float, default=None, metavar="S",
+                   help="camera-IMU clock offset left in the data, Kalibr's convention (t_imu = t_cam + S) [s]")
     p.add_argument("--default", action="store_true", help="make sure the bundled default replica exists; print its path")
     p.add_argument("--no-progress", action="store_true")
 
@@ -50,8 +55,16 @@ def main(args: argparse.Namespace) -> int:
     extra: dict = {}
     for text in args.set:
         extra = merge(extra, parse_override(text))
+    from services.app.synth.profiles import PROFILES
+
+    if args.profile and args.profile not in PROFILES:
+        print(f"sigmaslam synth: unknown --profile {args.profile!r}; known: {', '.join(PROFILES)}", file=sys.stderr)
+        return 2
+    profile = PROFILES.get(args.profile, {})
+    extra = merge(dict(profile.get("render", {})), extra)
     render = load_yaml(RenderConfig, args.render_config, extra) if args.render_config else from_dict(RenderConfig, extra)
-    spec = ReplicaSpec(scene=args.scene, sequence=args.sequence, imu=args.imu, start_s=args.start,
+    shift = profile.get("timeshift_cam_imu_s", 0.0) if args.timeshift_cam_imu is None else args.timeshift_cam_imu
+    spec = ReplicaSpec(timeshift_cam_imu_s=shift, scene=args.scene, sequence=args.sequence, imu=args.imu, start_s=args.start,
                        duration_s=args.duration, seed=args.seed, groundtruth=args.groundtruth, imu_data=args.imu_data,
                        image_timestamps=args.image_timestamps, calib=args.calib,
                        depth_cameras=tuple(int(x) for x in args.depth_cameras.split(",") if x.strip()), render=render)
