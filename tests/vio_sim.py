@@ -88,6 +88,41 @@ class Trajectory:
         return np.einsum("nji,nj->ni", R, self.acceleration(t) - G_W)
 
 
+class Pausing:
+    """``base`` played until ``t_stop``, then brought to a stand smoothly (time warp s(t) = t_stop + tau (1 -
+    exp(-(t - t_stop) / tau)): the body slows down exponentially and stands still after a few tau)."""
+
+    def __init__(self, base: Trajectory, t_stop: float, tau: float = 0.3):
+        self.base, self.t_stop, self.tau = base, t_stop, tau
+
+    def _warp(self, t):
+        t = np.asarray(t, float)
+        d = np.maximum(t - self.t_stop, 0.0)
+        e = np.exp(-d / self.tau)
+        moving = t <= self.t_stop
+        s = np.where(moving, t, self.t_stop + self.tau * (1 - e))
+        ds = np.where(moving, 1.0, e)
+        dds = np.where(moving, 0.0, -e / self.tau)
+        return s, ds, dds
+
+    def position(self, t):
+        return self.base.position(self._warp(t)[0])
+
+    def velocity(self, t):
+        s, ds, _ = self._warp(t)
+        return self.base.velocity(s) * ds[:, None]
+
+    def acceleration(self, t):
+        s, ds, dds = self._warp(t)
+        return self.base.acceleration(s) * (ds ** 2)[:, None] + self.base.velocity(s) * dds[:, None]
+
+    def euler(self, t, deriv=0):
+        s, ds, _ = self._warp(t)
+        return self.base.euler(s) if deriv == 0 else self.base.euler(s, 1) * ds[:, None]
+
+    rotation, T_WS, omega_S, acc_S = Trajectory.rotation, Trajectory.T_WS, Trajectory.omega_S, Trajectory.acc_S
+
+
 def imu(traj: Trajectory, t0: float, t1: float, rate_hz: float = 200.0, rng=None, gyro_nd=0.0, acc_nd=0.0,
         gyro_rw=0.0, acc_rw=0.0, gyro_bias=(0, 0, 0), acc_bias=(0, 0, 0)):
     """IMU samples over [t0, t1] s: (stamps_ns int64, omega_S, acc_S); noise densities are continuous-time."""

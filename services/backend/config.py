@@ -59,6 +59,9 @@ class BackendConfig:
     prior_sigma_vel_moving_m_s: float = param(1.0, "first state's velocity prior after a moving start", "m/s")
     prior_sigma_gyro_bias: float = param(5e-3, "initial gyro bias prior", "rad/s")
     prior_sigma_acc_bias: float = param(0.1, "initial accelerometer bias prior", "m/s^2")
+    marginals_landmark_sigma_m: float = param(10.0, "when the window's marginals are indeterminant (landmarks seen from "
+                                              "one place only: a still body), they are computed again with priors "
+                                              "of this sigma on the landmarks", "m")
     min_landmarks_tracking: int = param(6, "fewer triangulated landmarks observed in a frame than this: status 'imu_only'")
     static_window_s: float = param(0.5, "IMU span inspected for a static start", "s")
     static_gyro_std: float = param(0.01, "a start is static when the gyro std stays below this", "rad/s")

@@ -45,7 +45,7 @@ from services.backend.config import BackendConfig
 from services.backend.frame_result import FrameResult, to_message_covariance
 from services.backend.imu_factors import ImuBuffer, imu_factor, make_bias, make_params, predict
 from services.backend.motion_only import optimise_latest
-from services.backend.priors import marginal_prior, state_priors
+from services.backend.priors import FALLBACK_COVARIANCE, marginal_prior, state_priors
 from services.backend.protocols import ExtraFactorSource, MarginalisationListener
 from services.backend.landmarks import WindowLandmarks, gather_landmarks
 from services.backend.mono_init import bootstrap as mono_bootstrap
@@ -102,6 +102,9 @@ class WindowedVioEstimator:
         self.initialised = False
         self.dropped_observations = 0
         self.failed_optimisations = 0
+        self.held_marginals = 0  # window marginals computed with the landmarks held (see _window_marginals)
+        self.prior_carried = 0  # marginalisations that kept the previous prior's covariance (no marginals)
+        self._prior_cov = FALLBACK_COVARIANCE
         self.last_error = ""
         self._marginals: gtsam.Marginals | None = None
         self._first_frame_pending = False
@@ -128,6 +131,7 @@ class WindowedVioEstimator:
         bias_sig = np.array([c.prior_sigma_acc_bias] * 3 + [c.prior_sigma_gyro_bias] * 3)
         self._priors = state_priors(n, gtsam.Pose3(T), np.asarray(v_W, float), make_bias(gyro_bias, acc_bias),
                                     pose_sig, sv, bias_sig)
+        self._prior_cov = np.diag(np.r_[pose_sig, [sv] * 3, bias_sig] ** 2)  # marginal_prior's order
         self.keyframes = [n]
         self.initialised = True
         self._first_frame_pending = True  # the next frame at this stamp attaches to this state
@@ -211,10 +215,13 @@ class WindowedVioEstimator:
         self._marginals = None
         cov = np.full((15, 15), np.nan)
         if self.cfg.compute_covariance or keyframe:
+            self._marginals = self._window_marginals(graph)
             try:
-                self._marginals = gtsam.Marginals(graph, self.values)
-                cov = self._marginals.jointMarginalCovariance(_state_keys(n)).fullMatrix()
+                if self._marginals is not None:
+                    cov = self._marginals.jointMarginalCovariance(_state_keys(n)).fullMatrix()
             except RuntimeError:
+                self._marginals = None
+            if self._marginals is None:
                 self.failed_optimisations += 1
         result = self._result(n, cov, status)
         if keyframe:
@@ -228,6 +235,27 @@ class WindowedVioEstimator:
                 self._remove_state(n)
         self.imu.prune_before(self.stamps[self.keyframes[-1]])
         return result
+
+    def _window_marginals(self, graph: gtsam.NonlinearFactorGraph) -> gtsam.Marginals | None:
+        """Marginals of the optimised window; None when gtsam cannot compute them even with the landmarks held.
+
+        A landmark seen from (nearly) one place only (a body standing still, or turning on the spot) has no depth
+        information: LM copes (damping) but the marginals' system is indeterminant. Then weak priors on every
+        landmark (``backend.marginals_landmark_sigma_m`` around its estimate) make it determinate; they change
+        the states' marginals only where a landmark's position was free anyway."""
+        try:
+            return gtsam.Marginals(graph, self.values)
+        except RuntimeError:
+            pass
+        held = gtsam.NonlinearFactorGraph(graph)
+        noise = gtsam.noiseModel.Isotropic.Sigma(3, self.cfg.marginals_landmark_sigma_m)
+        for lm in self._in_graph:
+            held.add(gtsam.PriorFactorPoint3(L(lm), self.values.atPoint3(L(lm)), noise))
+        self.held_marginals += 1
+        try:
+            return gtsam.Marginals(held, self.values)
+        except RuntimeError:
+            return None
 
     def _motion_only_frame(self, n: int, k: int) -> FrameResult:
         """Non-keyframe: solve the newest state alone against the fixed window, report it, drop it."""
@@ -398,7 +426,14 @@ class WindowedVioEstimator:
         old, new = self.keyframes[0], self.keyframes[1]
         for listener in self._on_marginalise:
             listener.on_marginalise(self, old, new)
-        self._priors = [marginal_prior(self.values, new, self.joint_marginal(_state_keys(new)))]
+        cov = self.joint_marginal(_state_keys(new))
+        if cov is None or not np.all(np.isfinite(cov)):
+            # no marginals this time: the new oldest state keeps the anchoring the old one had (a loose default
+            # here would free the window's tilt and position for the rest of the run)
+            cov = self._prior_cov
+            self.prior_carried += 1
+        self._prior_cov = cov
+        self._priors = [marginal_prior(self.values, new, cov)]
         self.keyframes.pop(0)
         self._imu_factors.pop(new, None)
         self._still.pop(new, None)  # refers to the old state; the marginal prior holds its information
