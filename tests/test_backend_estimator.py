@@ -210,7 +210,7 @@ def test_a_pause_keeps_the_window_anchored():
     assert est.held_marginals > 10  # the pause's keyframes needed the held landmarks
     # what still fails (an ill-conditioned window) keeps the previous prior instead of a loose one
     assert est.prior_carried == est.failed_optimisations <= 3
-    cov = est._prior_cov
+    cov = est.prior_covariance
     assert np.sqrt(cov[0, 0]) < 0.01 and np.sqrt(cov[1, 1]) < 0.01  # roll, pitch of the oldest state [rad]
     assert np.sqrt(np.diag(cov)[3:6]).max() < 0.05  # its position [m]
     assert np.linalg.norm(res[-1].T_WS[:3, 3] - gt[-1][:3, 3]) < 0.05

@@ -475,6 +475,12 @@ class WindowedVioEstimator:
         return self._T_SC.copy()
 
     @property
+    def prior_covariance(self) -> np.ndarray:
+        """(15,15) covariance of the prior on the window's oldest state, order (rotation, position, velocity,
+        accelerometer bias, gyro bias) (a copy)."""
+        return self._prior_cov.copy()
+
+    @property
     def mono_pending(self) -> bool:
         """One camera: the window has no metric scale yet (it neither stood still nor was rebuilt by mono_init)."""
         return self._mono_pending
