@@ -50,6 +50,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--profile", default="", help="harder replicas (services/app/synth/profiles.py: 'hard' = motion "
                    "blur, auto-exposure jumps, 1 ms camera-IMU offset)")
     p.add_argument("--duration", type=float, default=0.0, help="replica length (0: whole sequence) [s]")
+    p.add_argument("--seconds", type=float, default=0.0,
+                   help="play only the first S seconds of each replica (0: all); unlike --duration, the cached "
+                        "replica is reused [s]")
     p.add_argument("--out", default="out/suite", help="output folder (default out/suite)")
     p.add_argument("--rates", default="0",
                    help="comma-separated playback rate factors, one run each (0: lockstep; 1: live at sensor rate)")
@@ -166,6 +169,8 @@ def write_report(out: Path, rows: dict[str, dict], timing: dict, args, rates: li
 
     summary_figure(out / "summary.png", rows, PAPER_ATE, PAPER_MESH)
     dur = "whole sequences" if args.duration <= 0 else f"first {args.duration:g} s of each sequence"
+    if args.seconds > 0:
+        dur += f", the first {args.seconds:g} s played"
     modes = ", ".join(("lockstep playback" if r <= 0 else f"playback at {r:g}x sensor rate (live)") for r in rates)
     imus = ", ".join(sorted({f"{r.get('sequence', k)}: {r['imu']}" for k, r in rows.items() if "imu" in r}))
     lines = ["# sigmaslam evaluation suite", "",
@@ -200,7 +205,8 @@ def write_report(out: Path, rows: dict[str, dict], timing: dict, args, rates: li
     return path
 
 
-def run_estimator_in_process(replica: Path, run_dir: Path, config: str | None, sets: list[str]) -> dict:
+def run_estimator_in_process(replica: Path, run_dir: Path, config: str | None, sets: list[str],
+                             seconds: float = 0.0) -> dict:
     """The estimator alone (frontend, fast path, back end with loop closure and final BA; no depth, mapping or
     occupancy terms) on the in-process runner, loop events handled synchronously: a reproducible run of a few
     minutes per sequence. Writes trajectory_causal.txt and trajectory_final.txt into ``run_dir``."""
@@ -208,7 +214,10 @@ def run_estimator_in_process(replica: Path, run_dir: Path, config: str | None, s
     from tools.eval_loop import run
 
     run_dir.mkdir(parents=True, exist_ok=True)
-    res, trajs = run(str(replica), ["loop.synchronous=true", "loop.final_ba=true", *sets], config=config)
+    from tools.bench_pipeline import frames_within
+
+    frames = frames_within(replica, seconds) if seconds > 0 else 0
+    res, trajs = run(str(replica), ["loop.synchronous=true", "loop.final_ba=true", *sets], frames, config=config)
     write_tum(run_dir / "trajectory_causal.txt", trajs["causal"])
     if "final" in trajs:
         write_tum(run_dir / "trajectory_final.txt", trajs["final"])
@@ -255,9 +264,9 @@ def main(args: argparse.Namespace) -> int:
             if args.skip_run:
                 pass
             elif args.in_process:
-                run_estimator_in_process(replica, seq_out / "run", args.config, args.set)
+                run_estimator_in_process(replica, seq_out / "run", args.config, args.set, args.seconds)
             else:
-                raw = run_once(replica, seq_out, rate, 0.0, args.services, args.config,
+                raw = run_once(replica, seq_out, rate, args.seconds, args.services, args.config,
                                ["loop.final_ba=true", *args.set], args.timeout_s)
                 if raw["rc"] != 0:
                     rc = 1
