@@ -203,3 +203,25 @@ def test_bench_pipeline_end_to_end(tmp_path):
     for png in ("latency_time.png", "latency_hist.png", "compute_hist.png", "processes.png"):
         assert (out / png).stat().st_size > 5000
     assert "| check | measured | budget |" in proc.stdout
+
+
+@pytest.mark.e2e
+def test_eval_suite_in_process_end_to_end(tmp_path):
+    """``sigmaslam eval suite --in-process`` on a 3 s V1_02 replica rendered into a fresh data folder: Table I with
+    our row beside the paper's, the first-10-s table, the trajectories and the run's JSON."""
+    from helpers_zenoh import REPO, child_env
+
+    env = {**child_env(), "SIGMASLAM_DATA": str(tmp_path / "data")}
+    out = tmp_path / "suite"
+    proc = subprocess.run([sys.executable, "-m", "services.app.cli", "eval", "suite", "--in-process", "--sequences",
+                           "V1_02", "--duration", "3", "--out", str(out)], cwd=REPO, env=env, capture_output=True,
+                          text=True, timeout=900)
+    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-3000:]
+    rows = json.loads((out / "suite.json").read_text())["rows"]
+    r = rows["V1_02"]
+    assert 0 < r["ate_causal_m"] < 0.1 and 0 < r["ate_noncausal_m"] < 0.1 and r["imu"] == "real"
+    assert r["first10_causal_m"] == pytest.approx(r["ate_causal_m"])  # a 3 s run is all first 10 s
+    report = (out / "report.md").read_text()
+    assert "| V1_02 | " in report and "0.028 | 0.014 | 0.031 | 0.014 |" in report
+    assert "Where the error is" in report and "(the estimator alone, in one process)" in report
+    assert (out / "V1_02" / "run" / "trajectory_final.txt").is_file() and (out / "V1_02" / "trajectory.png").is_file()
