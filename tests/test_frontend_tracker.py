@@ -183,3 +183,19 @@ def test_gyro_integration_constant_rate():
     assert g.rotation(0, 300_000_000) is None
     g.add(10, w)  # out of order: dropped and counted
     assert g.dropped == 1
+
+
+def test_normalised_gain_removes_a_global_gain():
+    """frontend.normalise_gain: two images of the same scene under gains 1 and 1.25 become the same image."""
+    import numpy as np
+
+    from services.frontend.tracker import normalised_gain
+
+    rng = np.random.default_rng(0)
+    base = rng.uniform(30, 170, (120, 160))
+    a = np.round(base).astype(np.uint8)
+    b = np.round(base * 1.25).astype(np.uint8)
+    na, nb = normalised_gain(a, 110.0), normalised_gain(b, 110.0)
+    assert abs(na.mean() - 110.0) < 1.0 and abs(nb.mean() - 110.0) < 1.0
+    assert np.abs(na.astype(int) - nb.astype(int)).max() <= 1
+    assert normalised_gain(np.zeros((4, 4), np.uint8), 110.0).max() == 0  # a black frame stays black

@@ -24,6 +24,10 @@ class FrontendConfig:
     klt_iterations: int = param(10, "KLT iterations per level")
     fb_max_error_px: float = param(0.7, "forward-backward tracking error above which a track is dropped", "px")
     use_gyro_prior: bool = param(True, "start KLT at the position predicted by the gyro-integrated rotation")
+    normalise_gain: bool = param(False, "scale every image to the same mean brightness before tracking and matching "
+                                 "(KLT assumes constant brightness: auto-exposure jumps and left/right gain "
+                                 "differences break it)")
+    normalised_mean_dn: float = param(110.0, "the mean grey level images are scaled to with normalise_gain", "DN")
     # --- outlier rejection ---
     ransac_threshold_px: float = param(1.0, "fundamental-matrix RANSAC inlier threshold (undistorted pixels)", "px")
     ransac_confidence: float = param(0.995, "RANSAC confidence")

@@ -28,6 +28,14 @@ from shared.camera import CameraCalib
 from shared.geometry import inv_T
 
 
+def normalised_gain(image: np.ndarray, mean_dn: float) -> np.ndarray:
+    """``image`` (uint8) scaled so that its mean grey level is ``mean_dn`` (a global gain; saturates at 255)."""
+    m = float(image.mean())
+    if m <= 1.0:
+        return image
+    return cv2.convertScaleAbs(image, alpha=mean_dn / m)
+
+
 class FrontendInputError(ValueError):
     """Images that do not fit the rig (count, size, type) or time going backwards."""
 
@@ -125,6 +133,8 @@ class MultiCameraTracker:
         """Track, reject, detect and match for one frame; ``R_S_prev_cur`` = R_S(prev)S(cur) from the gyro."""
         images = self._check(stamp_ns, images)
         cfg = self.cfg
+        if cfg.normalise_gain:
+            images = [normalised_gain(im, cfg.normalised_mean_dn) for im in images]
         counts: collections.Counter = collections.Counter()
         use_prior = cfg.use_gyro_prior and R_S_prev_cur is not None
         R_rel = np.asarray(R_S_prev_cur, float) if R_S_prev_cur is not None else np.eye(3)
