@@ -23,6 +23,8 @@ class PoseSeries:
     p_WS: np.ndarray  # float64 (N, 3) [m]
     q_WS_wxyz: np.ndarray  # float64 (N, 4) Hamilton, w first
     v_WS: np.ndarray | None = None  # float64 (N, 3) [m/s] or None
+    gyro_bias: np.ndarray | None = None  # float64 (N, 3) [rad/s] (17-column EuRoC ground truth) or None
+    acc_bias: np.ndarray | None = None  # float64 (N, 3) [m/s^2] (17-column EuRoC ground truth) or None
 
     def __len__(self) -> int:
         return int(self.stamps_ns.shape[0])
@@ -84,8 +86,10 @@ def read_euroc_csv(path: str | Path) -> PoseSeries:
     except ValueError as e:
         raise TrajectoryFileError(f"{path}: not a number ({e})") from None
     _check_monotonic(path, stamps)
-    v = data[:, 7:10].copy() if data.shape[1] >= 10 else None
-    return PoseSeries(stamps, data[:, 0:3].copy(), _normalised(data[:, 3:7], path), v)
+    full = data.shape[1] == 16  # 17 columns: velocity and biases too
+    return PoseSeries(stamps, data[:, 0:3].copy(), _normalised(data[:, 3:7], path),
+                      data[:, 7:10].copy() if full else None, data[:, 10:13].copy() if full else None,
+                      data[:, 13:16].copy() if full else None)
 
 
 def read_tum(path: str | Path) -> PoseSeries:

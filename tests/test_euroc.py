@@ -145,3 +145,15 @@ def test_replica_without_recorded_imu_says_so():
     with pytest.raises(ValueError, match="no recorded IMU.*imu='sim'"):
         resolve_files(ReplicaSpec(sequence="MH_01", imu="real"))
     assert "imu" not in resolve_files(ReplicaSpec(sequence="MH_01", imu="sim"))
+
+
+def test_euroc_groundtruth_keeps_velocity_and_biases(tmp_path):
+    """17 columns: velocity and biases are read too (replica biases, tools/eval/diagnose.py); 8 columns: None."""
+    rows = [[10**18 + k * 5_000_000, k, 0, 0, 1, 0, 0, 0, 0.5, 0, 0, 0.01, 0.02, 0.03, 0.1, 0.2, 0.3] for k in range(3)]
+    (tmp_path / "gt.csv").write_text("\n".join(",".join(str(x) for x in r) for r in rows) + "\n")
+    gt = read_euroc_csv(tmp_path / "gt.csv")
+    np.testing.assert_allclose(gt.v_WS[:, 0], 0.5)
+    np.testing.assert_allclose(gt.gyro_bias[1], [0.01, 0.02, 0.03])
+    np.testing.assert_allclose(gt.acc_bias[2], [0.1, 0.2, 0.3])
+    (tmp_path / "p.csv").write_text("\n".join(",".join(str(x) for x in r[:8]) for r in rows) + "\n")
+    assert read_euroc_csv(tmp_path / "p.csv").gyro_bias is None

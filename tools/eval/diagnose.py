@@ -54,32 +54,23 @@ def collect(dataset: str, overrides: list[str], max_frames: int = 0) -> dict:
             "frames": run.frames}
 
 
-def read_groundtruth17(path: Path) -> dict:
-    """Stamps, positions, quaternions (w, x, y, z), velocities and biases of a 17-column EuRoC ground truth."""
-    from shared.euroc import _open_text
-
-    with _open_text(Path(path)) as f:
-        a = np.loadtxt(f, delimiter=",", comments="#", ndmin=2)
-    if a.shape[1] != 17:
-        raise ValueError(f"{path}: expected 17 columns (pose, velocity, biases), got {a.shape[1]}")
-    return {"stamps_ns": a[:, 0].astype(np.int64), "p": a[:, 1:4], "q": a[:, 4:8], "v": a[:, 8:11],
-            "bg": a[:, 11:14], "ba": a[:, 14:17]}
-
-
 def analyse(d: dict, segment_s: float = 10.0) -> dict:
     """Per-state errors and per-segment figures of :func:`collect`'s output against its ground truth."""
+    from shared.euroc import read_euroc_csv
     from shared.metrics.ate import associate, compute_ate
     from shared.metrics.segments import angular_speed
 
-    gt = read_groundtruth17(d["groundtruth"])
-    ate = compute_ate(gt["stamps_ns"], gt["p"], d["stamps_ns"], d["T_WS"][:, :3, 3], mode="se3")
-    ie, ig = associate(d["stamps_ns"], gt["stamps_ns"], 10_000_000)
+    gt = read_euroc_csv(d["groundtruth"])
+    if gt.gyro_bias is None:
+        raise ValueError(f"{d['groundtruth']}: expected 17 columns (pose, velocity, biases)")
+    ate = compute_ate(gt.stamps_ns, gt.p_WS, d["stamps_ns"], d["T_WS"][:, :3, 3], mode="se3")
+    ie, ig = associate(d["stamps_ns"], gt.stamps_ns, 10_000_000)
     R = ate.alignment.R
-    t_mid, w = angular_speed(gt["stamps_ns"], gt["q"])
+    t_mid, w = angular_speed(gt.stamps_ns, gt.q_WS_wxyz)
     rows = {"t_s": (d["stamps_ns"][ie] - d["stamps_ns"][ie[0]]) * 1e-9, "err_m": ate.errors_m,
-            "vel_err_m_s": np.linalg.norm(d["v_W"][ie] @ R.T - gt["v"][ig], axis=1),
-            "bg_err_rad_s": np.linalg.norm(d["bg"][ie] - gt["bg"][ig], axis=1),
-            "ba_err_m_s2": np.linalg.norm(d["ba"][ie] - gt["ba"][ig], axis=1),
+            "vel_err_m_s": np.linalg.norm(d["v_W"][ie] @ R.T - gt.v_WS[ig], axis=1),
+            "bg_err_rad_s": np.linalg.norm(d["bg"][ie] - gt.gyro_bias[ig], axis=1),
+            "ba_err_m_s2": np.linalg.norm(d["ba"][ie] - gt.acc_bias[ig], axis=1),
             "features_cam0": d["features_cam0"][ie], "features_all": d["features_all"][ie],
             "gt_deg_s": np.degrees(np.interp(d["stamps_ns"][ie], t_mid, w)),
             "imu_only": np.array([d["status"][i] == "imu_only" for i in ie], float)}

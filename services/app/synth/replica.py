@@ -11,7 +11,6 @@ layout plus ``mav0/depth0`` (see :mod:`shared.depth_io`), ``mav0/scene/mesh.ply`
 from __future__ import annotations
 
 import dataclasses
-import lzma
 import time
 from pathlib import Path
 from typing import Literal
@@ -93,19 +92,15 @@ def load_calibration(path: Path) -> tuple[list[CameraCalib], list[dict], dict]:
     return cams, yamls, imu_yaml
 
 
-def _groundtruth_biases(path: Path, stamps_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Gyro/accel biases of a 17-column EuRoC ground truth interpolated at stamps (zeros otherwise)."""
-    zeros = np.zeros((len(stamps_ns), 3))
-    if not path.name.endswith((".csv", ".csv.xz")):
+def _groundtruth_biases(gt: PoseSeries, stamps_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Gyro/accel biases of a ground truth that has them (17-column EuRoC) interpolated at stamps (zeros otherwise)."""
+    if gt.gyro_bias is None or gt.acc_bias is None:
+        zeros = np.zeros((len(stamps_ns), 3))
         return zeros, zeros
-    with (lzma.open(path, "rt") if path.suffix == ".xz" else open(path)) as f:
-        a = np.loadtxt(f, delimiter=",", comments="#")
-    if a.ndim != 2 or a.shape[1] != 17:
-        return zeros, zeros
-    t = (a[:, 0] - a[0, 0]) * 1e-9
-    s = (stamps_ns - int(a[0, 0])) * 1e-9
-    interp = lambda c: np.stack([np.interp(s, t, a[:, k]) for k in c], 1)  # noqa: E731
-    return interp(range(11, 14)), interp(range(14, 17))
+    t = (gt.stamps_ns - gt.stamps_ns[0]) * 1e-9
+    s = (np.asarray(stamps_ns, np.int64) - gt.stamps_ns[0]) * 1e-9
+    interp = lambda a: np.stack([np.interp(s, t, a[:, k]) for k in range(3)], 1)  # noqa: E731
+    return interp(gt.gyro_bias), interp(gt.acc_bias)
 
 
 def write_groundtruth17(path: Path, stamps_ns, p, q, v, bg, ba) -> None:
@@ -132,7 +127,7 @@ def plan(spec: ReplicaSpec) -> dict:
     if spec.imu == "real":
         offset_ns, _, c = time_offset(Trajectory(gt), real)
         corr = float(c.max())
-        gt = PoseSeries(gt.stamps_ns - offset_ns, gt.p_WS, gt.q_WS_wxyz, gt.v_WS)
+        gt = dataclasses.replace(gt, stamps_ns=gt.stamps_ns - offset_ns)  # on the IMU clock
     traj = Trajectory(gt, knot_spacing_s=spec.knot_spacing_s)
     frames = np.loadtxt(files["image_timestamps"], dtype=np.int64, comments="#", ndmin=1)
     if np.any(np.diff(frames) <= 0):
@@ -154,7 +149,7 @@ def plan(spec: ReplicaSpec) -> dict:
         imu_stamps = real.stamps_ns[keep]
     else:
         imu_stamps = np.arange(imu_lo, imu_hi, 5_000_000, dtype=np.int64)
-    return {"files": files, "traj": traj, "frames": frames, "imu_stamps": imu_stamps, "real": real,
+    return {"files": files, "gt": gt, "traj": traj, "frames": frames, "imu_stamps": imu_stamps, "real": real,
             "offset_ns": offset_ns, "offset_corr": corr}
 
 
@@ -184,7 +179,7 @@ def generate(spec: ReplicaSpec, out: str | Path, progress: bool = True) -> Path:
     if spec.imu == "real":
         keep = np.isin(p["real"].stamps_ns, imu_stamps)
         imu = ImuData(imu_stamps, p["real"].omega_S[keep], p["real"].acc_S[keep])
-        bg, ba = _groundtruth_biases(p["files"]["groundtruth"], imu_stamps + p["offset_ns"])
+        bg, ba = _groundtruth_biases(p["gt"], imu_stamps)
     else:
         imu = simulate_imu(traj, imu_stamps, imu_noise_from_yaml(imu_yaml) if spec.imu_noise else None, seed=spec.seed)
         bg, ba = imu.gyro_bias, imu.accel_bias
