@@ -23,12 +23,17 @@ PROFILES: dict[str, dict] = {
 }
 
 
-def apply_profile(spec: ReplicaSpec, name: str) -> ReplicaSpec:
-    """``spec`` with the settings of profile ``name`` ('' = unchanged)."""
+def profile_settings(name: str) -> dict:
+    """The settings of profile ``name`` ('' = none): ``{"render": {RenderConfig fields}, ReplicaSpec fields...}``."""
     if not name:
-        return spec
+        return {}
     if name not in PROFILES:
         raise ValueError(f"unknown replica profile {name!r}; known: {', '.join(PROFILES)}")
-    p = PROFILES[name]
+    return PROFILES[name]
+
+
+def apply_profile(spec: ReplicaSpec, name: str) -> ReplicaSpec:
+    """``spec`` with the settings of profile ``name`` ('' = unchanged)."""
+    p = profile_settings(name)
     render = dataclasses.replace(spec.render, **p.get("render", {}))
     return dataclasses.replace(spec, render=render, **{k: v for k, v in p.items() if k != "render"})

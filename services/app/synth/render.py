@@ -136,6 +136,7 @@ class Renderer:
         self._last_hit: tuple | None = None
         rng = np.random.default_rng([self.cfg.seed, 7])
         self._phase = rng.uniform(0, 2 * np.pi, (len(self.cameras), 2))
+        self._jumps: dict[int, tuple[list, list, np.random.Generator]] = {}  # camera -> auto-exposure jump schedule
 
     @property
     def raycasting_scene(self) -> o3d.t.geometry.RaycastingScene:
@@ -218,8 +219,6 @@ class Renderer:
         rate = self.cfg.exposure_jump_rate_hz
         if rate <= 0 or t_s <= 0:
             return 1.0
-        if not hasattr(self, "_jumps"):
-            self._jumps = {}
         times, gains, rng = self._jumps.setdefault(
             cam_index, ([0.0], [1.0], np.random.default_rng([self.cfg.seed, 13, cam_index])))
         while times[-1] < t_s:

@@ -55,13 +55,14 @@ def main(args: argparse.Namespace) -> int:
     extra: dict = {}
     for text in args.set:
         extra = merge(extra, parse_override(text))
-    from services.app.synth.profiles import PROFILES
+    from services.app.synth.profiles import profile_settings
 
-    if args.profile and args.profile not in PROFILES:
-        print(f"sigmaslam synth: unknown --profile {args.profile!r}; known: {', '.join(PROFILES)}", file=sys.stderr)
+    try:
+        profile = profile_settings(args.profile)
+    except ValueError as exc:
+        print(f"sigmaslam synth: --profile: {exc}", file=sys.stderr)
         return 2
-    profile = PROFILES.get(args.profile, {})
-    extra = merge(dict(profile.get("render", {})), extra)
+    extra = merge(dict(profile.get("render", {})), extra)  # --set and --render-config apply after the profile
     render = load_yaml(RenderConfig, args.render_config, extra) if args.render_config else from_dict(RenderConfig, extra)
     shift = profile.get("timeshift_cam_imu_s", 0.0) if args.timeshift_cam_imu is None else args.timeshift_cam_imu
     spec = ReplicaSpec(timeshift_cam_imu_s=shift, scene=args.scene, sequence=args.sequence, imu=args.imu, start_s=args.start,
