@@ -45,18 +45,15 @@ from services.backend.config import BackendConfig
 from services.backend.frame_result import FrameResult, to_message_covariance
 from services.backend.imu_factors import ImuBuffer, imu_factor, make_bias, make_params, predict
 from services.backend.motion_only import optimise_latest
-from services.backend.priors import FALLBACK_COVARIANCE, marginal_prior, state_priors
+from services.backend.priors import marginal_prior, state_priors, window_marginals
 from services.backend.protocols import ExtraFactorSource, MarginalisationListener
 from services.backend.landmarks import WindowLandmarks, gather_landmarks
 from services.backend.mono_init import bootstrap as mono_bootstrap
 from services.backend.still import mono_frame_factors
 from services.backend.triangulation import triangulate_checked
 from services.backend.vision_factors import ProjectionModel
-from services.backend.window_rules import keyframe_due, reprojection_outliers
-
-
-class BackendInputError(ValueError):
-    """A frame whose arrays cannot be used (shape mismatch, unknown camera, time going backwards)."""
+from services.backend.window_rules import (BackendInputError, keyframe_due,  # noqa: F401 (re-exported)
+                                           observation_arrays, reprojection_outliers)
 
 
 def _state_keys(n: int) -> list[int]:
@@ -102,9 +99,9 @@ class WindowedVioEstimator:
         self.initialised = False
         self.dropped_observations = 0
         self.failed_optimisations = 0
-        self.held_marginals = 0  # window marginals computed with the landmarks held (see _window_marginals)
+        self.held_marginals = 0  # window marginals computed with the landmarks held (priors.window_marginals)
         self.prior_carried = 0  # marginalisations that kept the previous prior's covariance (no marginals)
-        self._prior_cov = FALLBACK_COVARIANCE
+        self._prior_cov = np.eye(15)  # the oldest state's prior covariance (set by initialise)
         self.last_error = ""
         self._marginals: gtsam.Marginals | None = None
         self._first_frame_pending = False
@@ -215,14 +212,15 @@ class WindowedVioEstimator:
         self._marginals = None
         cov = np.full((15, 15), np.nan)
         if self.cfg.compute_covariance or keyframe:
-            self._marginals = self._window_marginals(graph)
-            try:
-                if self._marginals is not None:
-                    cov = self._marginals.jointMarginalCovariance(_state_keys(n)).fullMatrix()
-            except RuntimeError:
+            self._marginals, held = window_marginals(graph, self.values, self._in_graph,
+                                                     self.cfg.marginals_landmark_sigma_m)
+            self.held_marginals += held
+            joint = self.joint_marginal(_state_keys(n))
+            if joint is None:
                 self._marginals = None
-            if self._marginals is None:
                 self.failed_optimisations += 1
+            else:
+                cov = joint
         result = self._result(n, cov, status)
         if keyframe:
             result = dataclasses.replace(result, landmarks=self.window_landmarks())
@@ -235,27 +233,6 @@ class WindowedVioEstimator:
                 self._remove_state(n)
         self.imu.prune_before(self.stamps[self.keyframes[-1]])
         return result
-
-    def _window_marginals(self, graph: gtsam.NonlinearFactorGraph) -> gtsam.Marginals | None:
-        """Marginals of the optimised window; None when gtsam cannot compute them even with the landmarks held.
-
-        A landmark seen from (nearly) one place only (a body standing still, or turning on the spot) has no depth
-        information: LM copes (damping) but the marginals' system is indeterminant. Then weak priors on every
-        landmark (``backend.marginals_landmark_sigma_m`` around its estimate) make it determinate; they change
-        the states' marginals only where a landmark's position was free anyway."""
-        try:
-            return gtsam.Marginals(graph, self.values)
-        except RuntimeError:
-            pass
-        held = gtsam.NonlinearFactorGraph(graph)
-        noise = gtsam.noiseModel.Isotropic.Sigma(3, self.cfg.marginals_landmark_sigma_m)
-        for lm in self._in_graph:
-            held.add(gtsam.PriorFactorPoint3(L(lm), self.values.atPoint3(L(lm)), noise))
-        self.held_marginals += 1
-        try:
-            return gtsam.Marginals(held, self.values)
-        except RuntimeError:
-            return None
 
     def _motion_only_frame(self, n: int, k: int) -> FrameResult:
         """Non-keyframe: solve the newest state alone against the fixed window, report it, drop it."""
@@ -275,16 +252,10 @@ class WindowedVioEstimator:
         return result
 
     def _validate(self, stamp_ns, landmark_ids, camera_index, uv):
-        ids = np.asarray(landmark_ids, np.int64).reshape(-1)
-        cams = np.asarray(camera_index, np.int64).reshape(-1)
-        uv = np.asarray(uv, float)
-        if uv.shape != (len(ids), 2) or len(cams) != len(ids):
-            raise BackendInputError(f"observation arrays disagree: {len(ids)} ids, {len(cams)} camera indices, "
-                                    f"uv of shape {uv.shape}")
+        ids, cams, uv, ok = observation_arrays(landmark_ids, camera_index, uv, len(self.cameras))
         latest = max(self.stamps.values()) if self.stamps else None
         if latest is not None and (stamp_ns < latest or (stamp_ns == latest and not self._first_frame_pending)):
             raise BackendInputError(f"frame stamp {stamp_ns} ns is not after the previous frame")
-        ok = (cams >= 0) & (cams < len(self.cameras)) & np.all(np.isfinite(uv), axis=1)
         self.dropped_observations += int((~ok).sum())
         return ids[ok], cams[ok], uv[ok]
 

@@ -25,6 +25,7 @@ from services.backend.config import BackendConfig
 from services.backend.imu_factors import ImuBuffer, imu_factor, make_bias, make_params, predict
 from services.backend.motion_only import optimise_latest
 from services.backend.vision_factors import ProjectionModel
+from services.backend.window_rules import observation_arrays
 from shared.messages import EstimatorWindow
 
 KEYFRAME, FRAME = 0, 1  # state indices of the pinned keyframe and the frame being solved
@@ -104,18 +105,16 @@ class FrameTracker:
     def track(self, stamp_ns: int, landmark_ids: np.ndarray, camera_index: np.ndarray, uv: np.ndarray
               ) -> TrackedState | None:
         """The frame's state (None while no window has come); raises :class:`StaleFrame` for a frame before the
-        anchor and ``ImuDataError`` when the IMU does not cover the interval."""
+        anchor, ``BackendInputError`` for arrays that disagree and ``ImuDataError`` when the IMU does not cover the
+        interval."""
         w = self.window
         if w is None:
             return None
         k_ns = int(w.header.stamp_ns)
         if stamp_ns < k_ns:
             raise StaleFrame(f"frame {stamp_ns} ns is older than the window's newest keyframe {k_ns} ns")
-        ids = np.asarray(landmark_ids, np.int64).reshape(-1)
-        cams = np.asarray(camera_index, np.int64).reshape(-1)
-        uv = np.asarray(uv, float).reshape(-1, 2)
-        known = (np.isin(ids, np.asarray(w.landmark_ids)) & (cams >= 0) & (cams < len(self.vision.cameras))
-                 & np.all(np.isfinite(uv), axis=1))
+        ids, cams, uv, usable = observation_arrays(landmark_ids, camera_index, uv, len(self.vision.cameras))
+        known = usable & np.isin(ids, np.asarray(w.landmark_ids))
         lms = sorted({int(i) for i in ids[known]})
         status = "tracking" if len(lms) >= self.cfg.min_landmarks_tracking else "imu_only"
         if stamp_ns == k_ns:  # the keyframe itself: the window's estimate

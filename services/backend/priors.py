@@ -1,15 +1,12 @@
 """Prior factors on the oldest state of the estimator's window: at initialisation, after the monocular rebuild
-(services/backend/mono_init.py) and, as a Gaussian on (pose, velocity, bias), after each marginalisation."""
+(services/backend/mono_init.py) and, as a Gaussian on (pose, velocity, bias), after each marginalisation; and the
+window's marginals those Gaussians come from."""
 
 from __future__ import annotations
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import B, V, X
-
-# when the window's marginals could not give the next keyframe's covariance: loose, in the order
-# (rotation [rad^2], position [m^2], velocity [m^2/s^2], accelerometer bias, gyro bias)
-FALLBACK_COVARIANCE = np.diag([1e-2] * 3 + [1e-1] * 3 + [1.0] * 3 + [1e-2] * 3 + [1e-4] * 3)
+from gtsam.symbol_shorthand import B, L, V, X
 
 
 def state_priors(n: int, T_WS: gtsam.Pose3, v_W: np.ndarray, bias: gtsam.imuBias.ConstantBias,
@@ -21,17 +18,36 @@ def state_priors(n: int, T_WS: gtsam.Pose3, v_W: np.ndarray, bias: gtsam.imuBias
             gtsam.PriorFactorConstantBias(B(n), bias, gtsam.noiseModel.Diagonal.Sigmas(bias_sigmas))]
 
 
-def marginal_prior(values: gtsam.Values, n: int, cov: np.ndarray | None) -> gtsam.NonlinearFactor:
-    """The joint 15x15 marginal ``cov`` of state n's (pose, velocity, bias) as a Gaussian prior linearised at its
-    estimate in ``values`` (:data:`FALLBACK_COVARIANCE` when None or not finite)."""
+def marginal_prior(values: gtsam.Values, n: int, cov: np.ndarray) -> gtsam.NonlinearFactor:
+    """The joint 15x15 marginal ``cov`` of state n's (pose, velocity, bias), order (rotation, position, velocity,
+    accelerometer bias, gyro bias), as a Gaussian prior linearised at its estimate in ``values``."""
     lin = gtsam.Values()
     lin.insert(X(n), values.atPose3(X(n)))
     lin.insert(V(n), values.atVector(V(n)))
     lin.insert(B(n), values.atConstantBias(B(n)))
-    if cov is None or not np.all(np.isfinite(cov)):
-        cov = FALLBACK_COVARIANCE
     info = np.linalg.inv(0.5 * (cov + cov.T))
     R = np.linalg.cholesky(0.5 * (info + info.T)).T  # R^T R = information
     jf = gtsam.JacobianFactor(X(n), R[:, 0:6], V(n), R[:, 6:9], B(n), R[:, 9:15], np.zeros(15),
                               gtsam.noiseModel.Unit.Create(15))
     return gtsam.LinearContainerFactor(jf, lin)
+
+
+def window_marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, landmarks,
+                     landmark_sigma_m: float) -> tuple[gtsam.Marginals | None, bool]:
+    """(marginals of the optimised window or None when gtsam cannot compute them, whether the landmarks had to be
+    held). A landmark seen from (nearly) one place only (a body standing still, or turning on the spot) has no
+    depth information: LM copes (damping) but the marginals' system is indeterminant. Then weak priors on every
+    landmark of ``landmarks`` (ids; ``landmark_sigma_m`` around its estimate) make it determinate; they change the
+    states' marginals only where a landmark's position was free anyway."""
+    try:
+        return gtsam.Marginals(graph, values), False
+    except RuntimeError:
+        pass
+    held = gtsam.NonlinearFactorGraph(graph)
+    noise = gtsam.noiseModel.Isotropic.Sigma(3, landmark_sigma_m)
+    for lm in landmarks:
+        held.add(gtsam.PriorFactorPoint3(L(lm), values.atPoint3(L(lm)), noise))
+    try:
+        return gtsam.Marginals(held, values), True
+    except RuntimeError:
+        return None, True

@@ -1,11 +1,30 @@
-"""Two rules of the keyframe window, kept apart from the estimator's bookkeeping: when a frame becomes a keyframe
-(also what the per-frame fast path expects of the back end), and which observations reproject too badly to stay."""
+"""Rules of the keyframe window that the estimator and the per-frame fast path share, kept apart from the
+estimator's bookkeeping: which observations of a feature frame are usable, when a frame becomes a keyframe (also
+what the fast path expects of the back end), and which observations reproject too badly to stay."""
 
 from __future__ import annotations
 
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
+
+
+class BackendInputError(ValueError):
+    """A frame whose arrays cannot be used (shape mismatch, time going backwards)."""
+
+
+def observation_arrays(landmark_ids, camera_index, uv, n_cameras: int
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A feature frame's observations as (ids (M,) int64, cameras (M,) int64, uv (M, 2) float, usable (M,) bool):
+    usable where the camera index is one of the rig's ``n_cameras`` and the pixel is finite. Raises
+    :class:`BackendInputError` when the arrays disagree in length."""
+    ids = np.asarray(landmark_ids, np.int64).reshape(-1)
+    cams = np.asarray(camera_index, np.int64).reshape(-1)
+    uv = np.asarray(uv, float)
+    if uv.shape != (len(ids), 2) or len(cams) != len(ids):
+        raise BackendInputError(f"observation arrays disagree: {len(ids)} ids, {len(cams)} camera indices, "
+                                f"uv of shape {uv.shape}")
+    return ids, cams, uv, (cams >= 0) & (cams < n_cameras) & np.all(np.isfinite(uv), axis=1)
 
 
 def keyframe_due(stamp_ns: int, flagged: bool, last_keyframe_ns: int | None, max_interval_s: float) -> bool:
