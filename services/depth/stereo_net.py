@@ -57,3 +57,17 @@ class StereoNet(nn.Module):
         sigma = F.softplus(raw) + SIGMA_MIN_PX / SCALE
         up = convex_upsample(torch.cat([disp, sigma], 1), mask) * SCALE
         return up[:, 0], up[:, 1]
+
+
+def predict_disparity(net: nn.Module, left, right, device: str = "cpu"):
+    """Disparity and sigma [px] (float32 numpy (H,W)) of a rectified uint8 pair of any size: padded at the right
+    and bottom (edge pixels repeated) to multiples of 16 for the network, cropped back after."""
+    import numpy as np
+
+    h, w = left.shape
+    ph, pw = -h % 16, -w % 16
+    pad = lambda a: np.pad(np.asarray(a, np.float32), ((0, ph), (0, pw)), mode="edge")
+    with torch.inference_mode():
+        t = lambda a: torch.from_numpy(pad(a))[None, None].to(device)
+        u, su = net(t(left), t(right))
+    return u[0, :h, :w].cpu().numpy(), su[0, :h, :w].cpu().numpy()
