@@ -9,7 +9,8 @@ import pytest
 
 from shared.stereo_scene import StereoSceneError, find_scenes, read_pfm, read_stereo_scene
 from tests.helpers_data import require_real_data
-from tools.depth.stereo_bench import disparity_metrics, fill_background, scene_scale
+from services.depth.sgbm import fill_background
+from tools.depth.stereo_bench import disparity_metrics, scene_scale
 
 
 def _textured(rng, h, w):

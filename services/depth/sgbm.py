@@ -39,6 +39,23 @@ def sgbm_disparity(left: np.ndarray, right: np.ndarray, params: SgbmParams = Sgb
     return disp
 
 
+def fill_background(disp: np.ndarray) -> np.ndarray:
+    """Holes (NaN) take the smaller of the nearest valid disparities to their left and right on the same row (the
+    background side of an occlusion); rows without any valid pixel take the image's median (0 if none)."""
+    d = np.asarray(disp, np.float32)
+    valid = np.isfinite(d)
+    h, w = d.shape
+    cols = np.arange(w)[None, :].repeat(h, 0)
+    rows = np.arange(h)[:, None]
+    left_idx = np.maximum.accumulate(np.where(valid, cols, -1), axis=1)
+    right_idx = np.flip(np.minimum.accumulate(np.flip(np.where(valid, cols, w), 1), axis=1), 1)
+    from_left = np.where(left_idx >= 0, d[rows, np.clip(left_idx, 0, w - 1)], np.inf)
+    from_right = np.where(right_idx < w, d[rows, np.clip(right_idx, 0, w - 1)], np.inf)
+    fill = np.minimum(from_left, from_right)
+    default = float(np.nanmedian(d)) if valid.any() else 0.0
+    return np.where(valid, d, np.where(np.isfinite(fill), fill, default)).astype(np.float32)
+
+
 def sgbm_depth(left: np.ndarray, right: np.ndarray, f_px: float, baseline_m: float, sigma_model: str = "quadratic",
                sigma_coeff: float = 1.0, params: SgbmParams = SgbmParams()) -> tuple[np.ndarray, np.ndarray]:
     """Depth [m] and heuristic sigma [m]. ``sigma_coeff``: the disparity sigma [px] for 'quadratic',

@@ -59,9 +59,10 @@ class StereoNet(nn.Module):
         return up[:, 0], up[:, 1]
 
 
-def predict_disparity(net: nn.Module, left, right, device: str = "cpu"):
+def predict_disparity(net: nn.Module, left, right, device: str = "cpu", search_px: float | None = None):
     """Disparity and sigma [px] (float32 numpy (H,W)) of a rectified uint8 pair of any size: padded at the right
-    and bottom (edge pixels repeated) to multiples of 16 for the network, cropped back after."""
+    and bottom (edge pixels repeated) to multiples of 16 for the network, cropped back after. ``search_px``: the
+    disparity range of the classical matching inside an SGBM-guided network (ignored by the others)."""
     import numpy as np
 
     h, w = left.shape
@@ -69,5 +70,5 @@ def predict_disparity(net: nn.Module, left, right, device: str = "cpu"):
     pad = lambda a: np.pad(np.asarray(a, np.float32), ((0, ph), (0, pw)), mode="edge")
     with torch.inference_mode():
         t = lambda a: torch.from_numpy(pad(a))[None, None].to(device)
-        u, su = net(t(left), t(right))
+        u, su = net(t(left), t(right), search_px) if hasattr(net, "refine") and search_px else net(t(left), t(right))
     return u[0, :h, :w].cpu().numpy(), su[0, :h, :w].cpu().numpy()

@@ -2,7 +2,7 @@
 (architecture arguments, calibration gain, training command, data, seed, time, figures).
 
 Other weights load through the same interface as long as the state dict fits the architecture named in
-the JSON (``arch``: 'stereo' or 'mvs', ``arch_args``: constructor keyword arguments).
+the JSON (``arch``: 'stereo', 'stereo_refine' or 'mvs', ``arch_args``: constructor keyword arguments).
 """
 from __future__ import annotations
 
@@ -25,11 +25,15 @@ def build(arch: str, arch_args: dict) -> torch.nn.Module:
         from services.depth.stereo_net import StereoNet
 
         return StereoNet(**arch_args)
+    if arch == "stereo_refine":
+        from services.depth.refine_net import RefineStereoNet
+
+        return RefineStereoNet(**arch_args)
     if arch == "mvs":
         from services.depth.mvs_net import MVSNet
 
         return MVSNet(**arch_args)
-    raise WeightsError(f"unknown architecture {arch!r} (stereo, mvs)")
+    raise WeightsError(f"unknown architecture {arch!r} (stereo, stereo_refine, mvs)")
 
 
 def save(model: torch.nn.Module, path: str | Path, arch: str, arch_args: dict, meta: dict) -> Path:

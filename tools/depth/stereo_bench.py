@@ -9,7 +9,9 @@ this project trains or calibrates on them.
 Methods, per scene and on average:
 
 - ``net`` (one row per ``--weights``): the network's dense disparity and its sigma times the gain in the
-  weights' JSON (fitted on the training data's validation split);
+  weights' JSON (fitted on the training data's validation split). An SGBM-guided network
+  (services/depth/refine_net.py) gets the scene's stated range for its SGBM like ``sgbm``, and a second row
+  ``net@96`` with the depth service's fixed 96 px search range;
 - ``sgbm``: OpenCV SGBM (the depth service's parameters, left-right checked, its search range the scene's stated
   largest disparity rounded up to 16, as Middlebury gives every method) on the pixels it matches,
   sigma the heuristic constant disparity sigma ``depth.heuristic_sigma_coeff`` (1 px);
@@ -43,7 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.depth.sgbm import SgbmParams, sgbm_disparity
+from services.depth.sgbm import SgbmParams, fill_background, sgbm_disparity
 from shared.stereo_scene import StereoScene, find_scenes, read_stereo_scene
 
 DEFAULT_SCENES = "middlebury_2001_2003"
@@ -67,23 +69,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 # ---------------------------------------------------------------------------------------------- algorithms
-def fill_background(disp: np.ndarray) -> np.ndarray:
-    """Holes (NaN) take the smaller of the nearest valid disparities to their left and right on the same row (the
-    background side of an occlusion); rows without any valid pixel take the image's median (0 if none)."""
-    d = np.asarray(disp, np.float32)
-    valid = np.isfinite(d)
-    h, w = d.shape
-    cols = np.arange(w)[None, :].repeat(h, 0)
-    rows = np.arange(h)[:, None]
-    left_idx = np.maximum.accumulate(np.where(valid, cols, -1), axis=1)
-    right_idx = np.flip(np.minimum.accumulate(np.flip(np.where(valid, cols, w), 1), axis=1), 1)
-    from_left = np.where(left_idx >= 0, d[rows, np.clip(left_idx, 0, w - 1)], np.inf)
-    from_right = np.where(right_idx < w, d[rows, np.clip(right_idx, 0, w - 1)], np.inf)
-    fill = np.minimum(from_left, from_right)
-    default = float(np.nanmedian(d)) if valid.any() else 0.0
-    return np.where(valid, d, np.where(np.isfinite(fill), fill, default)).astype(np.float32)
-
-
 def disparity_metrics(est: np.ndarray, sigma: np.ndarray | None, gt: np.ndarray, mask: np.ndarray) -> dict:
     """Metrics over ``mask`` & known ground truth; accuracy on the pixels with an estimate (coverage says how many)."""
     m = mask & np.isfinite(gt)
@@ -129,15 +114,19 @@ def run_methods(scene: StereoScene, nets: list[tuple[str, object, float]], fit: 
         small = (max(16, round(shape[0] * s)), max(16, round(shape[1] * s)))
         left, right = (_resize(a, small, cv2.INTER_AREA) for a in (left, right))
     back = lambda a: a if s >= 1.0 else _resize(a, shape, cv2.INTER_LINEAR) / (left.shape[1] / shape[1])
-    out: dict[str, dict] = {}
-    for label, net, gain in nets:
-        c0 = time.process_time()
-        u, su = predict_disparity(net, left, right, device)
-        out[label] = {"disp": back(u), "sigma": back(su * gain), "cpu_s": time.process_time() - c0, "scale": s}
-    c0 = time.process_time()
     # the scene's stated range (info.txt / calib.txt ndisp, which Middlebury gives every method), not the GT
     top = scene.max_disparity if np.isfinite(scene.max_disparity) else float(np.nanmax(scene.disparity))
     n_disp = int(np.ceil(max(16.0, top * s + 1) / 16) * 16)
+    out: dict[str, dict] = {}
+    for label, net, gain in nets:
+        runs = [(label, n_disp)]
+        if hasattr(net, "refine"):  # SGBM-guided: also with the depth service's fixed search range
+            runs.append((f"{label}@{net.max_disparity}", None))
+        for name, search in runs:
+            c0 = time.process_time()
+            u, su = predict_disparity(net, left, right, device, search)
+            out[name] = {"disp": back(u), "sigma": back(su * gain), "cpu_s": time.process_time() - c0, "scale": s}
+    c0 = time.process_time()
     sg = sgbm_disparity(left, right, SgbmParams(num_disparities=n_disp))
     cpu = time.process_time() - c0
     if s < 1.0:  # nearest keeps holes as holes

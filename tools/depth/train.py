@@ -4,6 +4,8 @@ validation split (sec. V-A, one gain in the depth domain) and write weights + pr
     nice .venv/bin/python -m tools.depth.train --net stereo --minutes 20 --data data/depth_train \
         --out services/depth/weights/stereo
     nice .venv/bin/python -m tools.depth.train --net mvs --minutes 20 ...
+    nice .venv/bin/python -m tools.depth.train --net stereo_refine --data data/stereo_train --crop 256 320 \
+        --out services/depth/weights/stereo_refine     # the layered set of tools/depth/make_stereo_data.py
 
 Training stops after ``--minutes`` of process CPU time or ``--max-wall-minutes`` of wall time, whichever
 comes first (the learning rate follows a cosine over that progress; on a shared machine CPU time is the
@@ -143,9 +145,35 @@ def evaluate(net, kind, scenes, n_src, device, gain=1.0, seed=7):
     return np.stack(est), np.stack(sig), np.stack(gt)
 
 
+def evaluate_refine(net, shards, device) -> tuple[float, dict]:
+    """The SGBM-guided network on validation frames: (disparity-domain gain, metrics before and after it)."""
+    from services.depth.sgbm import fill_background
+    from tools.depth.stereo_bench import disparity_metrics
+    from tools.depth.stereo_shards import validation_frames
+
+    errs, sigmas, rows = [], [], []
+    with torch.inference_mode():
+        for f in validation_frames(shards):
+            t = lambda a: torch.from_numpy(np.ascontiguousarray(a))[None].to(device)
+            u, su = net.refine(t(f["left"]).float()[:, None], t(f["right"]).float()[:, None],
+                               t(fill_background(f["sgbm"])).float(), t(np.isfinite(f["sgbm"])))
+            u, su = u[0].cpu().numpy(), su[0].cpu().numpy()
+            rows.append(disparity_metrics(u, su, f["disparity"], f["nonocc"]))
+            errs.append(np.abs(u - f["disparity"]).ravel())
+            sigmas.append(su.ravel())
+    e, s = np.concatenate(errs), np.concatenate(sigmas)
+    gain = float(np.mean(e / s))
+    mean = lambda k: float(np.mean([r[k] for r in rows]))
+    metrics = {"frames": len(rows), "epe_nonocc": mean("epe"), "bad2_nonocc": mean("bad2"),
+               "epe_all": float(e.mean()), "err_over_sigma_all": gain,
+               "err_over_sigma_all_calibrated": float(np.mean(e / (gain * s))),
+               "within2s_all_calibrated": float(100 * np.mean(e / (gain * s) < 2))}
+    return gain, metrics
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--net", choices=["stereo", "mvs"], required=True)
+    p.add_argument("--net", choices=["stereo", "mvs", "stereo_refine"], required=True)
     p.add_argument("--data", default="data/depth_train")
     p.add_argument("--out", required=True, help="weights path without suffix, e.g. services/depth/weights/stereo")
     p.add_argument("--minutes", type=float, default=20.0, help="CPU-time budget of the training loop (process time)")
@@ -157,14 +185,26 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sources", type=int, default=4, help="MVS source views per sample")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--init", default="", help="start from these weights (same architecture), e.g. to fine-tune")
     a = p.parse_args(argv)
     torch.manual_seed(a.seed)
     torch.set_num_threads(a.threads)
     rng = np.random.default_rng(a.seed)
     root = Path(a.data)
-    train = load_split(root, "train")
-    arch_args = {"max_disparity": 96} if a.net == "stereo" else {"n_planes": 32, "min_depth": 0.3, "max_depth": 15.0}
+    if a.net == "stereo_refine":
+        from tools.depth.stereo_shards import load_shards, refine_batch
+
+        train = load_shards(root, "train")
+    else:
+        train = load_split(root, "train")
+    arch_args = {"n_planes": 32, "min_depth": 0.3, "max_depth": 15.0} if a.net == "mvs" else {"max_disparity": 96}
     net = weights.build(a.net, arch_args).to(a.device).train()
+    if a.init:
+        init, init_meta = weights.load(a.init, a.device)
+        if init_meta["arch"] != a.net:
+            raise SystemExit(f"--init {a.init}: architecture {init_meta['arch']!r}, not {a.net!r}")
+        net.load_state_dict(init.state_dict())
+        net.train()
     opt = torch.optim.AdamW(net.parameters(), lr=a.lr, weight_decay=1e-4)
     budget, wall_cap = a.minutes * 60.0, a.max_wall_minutes * 60.0
     curve_path = Path(a.out).with_suffix(".curve.csv")
@@ -178,7 +218,11 @@ def main(argv: list[str] | None = None) -> int:
         lr = a.lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * progress)))
         for g in opt.param_groups:
             g["lr"] = lr
-        if a.net == "stereo":
+        if a.net == "stereo_refine":
+            left, right, d0, matched, u_gt, valid = (x.to(a.device) for x in refine_batch(train, rng, a.batch, tuple(a.crop)))
+            u, su = net.refine(left, right, d0, matched)
+            loss = stereo_loss(u, su, u_gt, valid & (u_gt > 0))
+        elif a.net == "stereo":
             left, right, u_gt = (x.to(a.device) for x in stereo_batch(train, rng, a.batch, tuple(a.crop)))
             valid = torch.isfinite(u_gt) & (u_gt > 0.5) & (u_gt < net.max_disparity - 1)
             u, su = net(left, right)
@@ -193,7 +237,9 @@ def main(argv: list[str] | None = None) -> int:
         torch.nn.utils.clip_grad_norm_(net.parameters(), 5.0)
         opt.step()
         step += 1
-        if step % 200 == 0 and len(list((root / "train").glob("scene_?????.npz"))) > len(train):
+        if step % 200 == 0 and a.net == "stereo_refine" and len(list((root / "train").glob("shard_????"))) > len(train):
+            train = load_shards(root, "train")  # shards still rendering when training started join in
+        elif step % 200 == 0 and a.net != "stereo_refine" and len(list((root / "train").glob("scene_?????.npz"))) > len(train):
             train = load_split(root, "train")  # scenes still rendering when training started join in
         smooth = loss.item() if smooth is None else 0.95 * smooth + 0.05 * loss.item()
         curve.write(f"{step},{elapsed:.1f},{lr:.3g},{loss.item():.5f}\n")
@@ -203,15 +249,21 @@ def main(argv: list[str] | None = None) -> int:
                   f"loss {smooth:.4f}", flush=True)
     curve.close()
     net.eval()
-    val = load_split(root, "val")  # loaded only now: it may still be rendering when training starts
-    est, sig, gt = evaluate(net, a.net, val, a.sources, a.device)
-    gain = calibration_gain(est, sig, gt)
-    val_raw = depth_metrics(est, sig, gt)
-    val_cal = depth_metrics(est, sig * gain, gt)
+    if a.net == "stereo_refine":
+        val = load_shards(root, "val")
+        gain, val_cal = evaluate_refine(net, val, a.device)
+        val_raw, domain = {}, "disparity sigma [px] (mean |u - u_gt| / (gain sigma_u) = 1 on val, all pixels)"
+    else:
+        val = load_split(root, "val")  # loaded only now: it may still be rendering when training starts
+        est, sig, gt = evaluate(net, a.net, val, a.sources, a.device)
+        gain = calibration_gain(est, sig, gt)
+        val_raw = depth_metrics(est, sig, gt)
+        val_cal = depth_metrics(est, sig * gain, gt)
+        domain = "depth sigma [m] (mean |d - d_gt| / (gain sigma) = 1 on val)"
     print(f"[{a.net}] {step} steps in {time.time() - t0:.0f}s; val gain {gain:.4f}; calibrated {val_cal}", flush=True)
     data_meta = json.loads((root / "dataset.json").read_text()) if (root / "dataset.json").is_file() else {}
     weights.save(net.cpu(), a.out, a.net, arch_args, {
-        "gain": gain, "gain_domain": "depth sigma [m] (mean |d - d_gt| / (gain sigma) = 1 on val)",
+        "gain": gain, "gain_domain": domain, "init": a.init or None,
         "command": "python -m tools.depth.train " + " ".join(argv if argv is not None else sys.argv[1:]),
         "seed": a.seed, "steps": step, "train_wall_s": round(time.time() - t0), "train_cpu_s": round(time.process_time() - c0), "device": a.device,
         "threads": a.threads, "data": {"root": str(root), "train_scenes": [s["name"] for s in train],

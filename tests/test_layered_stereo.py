@@ -1,0 +1,116 @@
+"""The layered stereo generator renders exact pairs (the right view is the left one moved by the disparity,
+occlusions where a nearer surface hides a farther one), its set is reproducible from the seed, and the SGBM-guided
+network starts from SGBM's answer and learns from the set."""
+import numpy as np
+import pytest
+import torch
+
+from services.depth.refine_net import RefineStereoNet, shift_right_image
+from tools.depth.layered_stereo import Surface, camera_effects, random_frame, render_pair
+from tools.depth.materials import fractal_noise, random_material
+
+pytestmark = pytest.mark.unit
+
+
+def _surface(rng, h, w_ext, u0, mask=None, gx=0.0, gy=0.0):
+    tex = fractal_noise(rng, h, w_ext)
+    return Surface(np.ones((h, w_ext), np.float32) if mask is None else mask, u0, gx, gy, 0.0, w_ext / 2, h / 2, tex)
+
+
+def test_fronto_parallel_surfaces_move_by_their_disparity_and_occlude():
+    rng = np.random.default_rng(1)
+    h, w, u_max = 40, 80, 20.0
+    w_ext = w + 28
+    near = np.zeros((h, w_ext), np.float32)
+    near[10:30, 40:60] = 1.0
+    s = [_surface(rng, h, w_ext, 4.0), _surface(rng, h, w_ext, 12.0, near)]
+    f = render_pair(s, h, w, u_max)
+    assert np.all(f["disparity"][10:30, 40:60] == 12.0) and np.all(f["disparity"][:10] == 4.0)
+    # the right image at x - u shows what the left image shows at x (integer disparities: exact)
+    assert np.allclose(f["right"][20, 40 - 12:60 - 12], f["left"][20, 40:60], atol=1e-5)
+    assert np.allclose(f["right"][5, 10:70], f["left"][5, 14:74], atol=1e-5)
+    # background just left of the near square is hidden from the right camera (8 px = 12 - 4), the rest is seen
+    assert not f["nonocc"][20, 32:40].any() and f["nonocc"][20, 20:31].all() and f["nonocc"][20, 40:60].all()
+    assert not f["nonocc"][:, :4].any()  # leaves the right image's field of view
+
+
+def test_slanted_surface_right_view_is_consistent():
+    rng = np.random.default_rng(2)
+    h, w = 32, 96
+    s = [_surface(rng, h, w + 40, 10.0, gx=0.1, gy=0.05)]
+    f = render_pair(s, h, w, 40.0)
+    y, x = 16, 60
+    u = f["disparity"][y, x]
+    assert u == pytest.approx(10.0 + 0.1 * (x - (w + 40) / 2) + 0.05 * (y - h / 2), abs=1e-4)
+    xr = x - u  # sample the right image there: the same surface point
+    i = int(np.floor(xr))
+    val = f["right"][y, i] * (i + 1 - xr) + f["right"][y, i + 1] * (xr - i)
+    assert val == pytest.approx(f["left"][y, x], abs=0.02)
+
+
+def test_random_frames_are_reproducible_and_plausible():
+    a = random_frame(np.random.default_rng(7), [], 64, 96)
+    b = random_frame(np.random.default_rng(7), [], 64, 96)
+    assert np.array_equal(a["left"], b["left"]) and np.array_equal(a["disparity"], b["disparity"])
+    assert a["left"].dtype == np.uint8 and a["left"].shape == (64, 96)
+    assert 0 <= a["disparity"].min() and a["disparity"].max() <= a["u_max"] + 1e-4
+    assert 0.3 < a["nonocc"].mean() <= 1.0
+    mat = random_material(np.random.default_rng(3), [np.random.default_rng(0).random((50, 60)).astype(np.float32)], 30, 40)
+    assert mat.shape == (30, 40) and np.isfinite(mat).all()
+    left, right, fx = camera_effects(np.random.default_rng(4), np.full((20, 30), 0.5, np.float32),
+                                     np.full((20, 30), 0.5, np.float32))
+    assert left.dtype == np.uint8 and set(fx) >= {"blur", "gain_lr", "gamma", "noise", "jpeg"}
+
+
+def test_shift_right_image_matches_an_integer_shift():
+    right = torch.arange(2 * 1 * 4 * 10, dtype=torch.float32).view(2, 1, 4, 10)
+    out = shift_right_image(right, torch.full((2, 1, 4, 10), 3.0))
+    assert torch.allclose(out[..., 3:], right[..., :-3])
+    half = shift_right_image(right, torch.full((2, 1, 4, 10), 0.5))
+    assert torch.allclose(half[..., 1:], 0.5 * (right[..., 1:] + right[..., :-1]))
+
+
+def test_refine_net_starts_at_sgbm_and_learns():
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    f = random_frame(rng, [], 64, 96, u_max=12.0)
+    net = RefineStereoNet(max_disparity=16, width=16)
+    t = lambda a: torch.from_numpy(np.ascontiguousarray(a)).float()[None]
+    left, right, gt = t(f["left"])[:, None], t(f["right"])[:, None], t(f["disparity"])
+    u, sigma = net(left, right)
+    from services.depth.sgbm import SgbmParams, fill_background, sgbm_disparity
+
+    d0 = fill_background(sgbm_disparity(f["left"], f["right"], SgbmParams(num_disparities=16)))
+    assert np.allclose(u[0].detach().numpy(), d0)  # the correction head starts at zero
+    assert (sigma > 0).all()
+    from services.depth.losses import stereo_loss
+
+    opt = torch.optim.Adam(net.parameters(), 3e-3)
+    d0t, matched = t(d0), torch.from_numpy(np.isfinite(d0))[None]
+    valid = torch.ones_like(gt, dtype=torch.bool)
+    losses = []
+    for _ in range(100):
+        u, s = net.refine(left, right, d0t, matched)
+        loss = stereo_loss(u, s, gt, valid)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert losses[-1] < 0.7 * losses[0]
+
+
+def test_a_shard_is_written_whole_and_read_back(tmp_path):
+    from tools.depth.make_stereo_data import render_shard
+    from tools.depth.stereo_shards import load_shards, refine_batch
+
+    msg = render_shard((str(tmp_path), "val", 3, 0, 2, None))
+    assert "2 frames" in msg and not list((tmp_path / "val").glob("*.tmp*"))
+    again = render_shard((str(tmp_path), "val", 3, 0, 2, None))
+    assert again.endswith("kept")  # a shard is a function of its seed: kept, not rendered twice
+    shards = load_shards(tmp_path, "val")
+    assert len(shards) == 1 and shards[0]["left"].shape[0] == 2
+    left, right, d0, matched, u, valid = refine_batch(shards, np.random.default_rng(0), 3, (128, 160))
+    assert left.shape == (3, 1, 128, 160) and d0.shape == u.shape == (3, 128, 160)
+    assert torch.isfinite(d0).all() and (u >= 0).all() and matched.dtype == torch.bool
+    with pytest.raises(SystemExit, match="no complete shard"):
+        load_shards(tmp_path, "train")

@@ -1,0 +1,115 @@
+"""Render the stereo training set of layered real-looking pairs (tools/depth/layered_stereo.py), with OpenCV
+SGBM's disparity of every pair precomputed (the input of the SGBM-guided network, services/depth/refine_net.py).
+
+    .venv/bin/python -m tools.depth.make_stereo_data --out data/stereo_train --train 4096 --val 256 --seed 0
+
+Frames are written in shards of ``--shard`` frames of one size (sizes vary between shards: 256-352 x 320-512 px),
+each shard a folder of .npy arrays (memory-mapped by training): ``left``, ``right`` (N,H,W) uint8; ``disparity``
+(N,H,W) uint16 in 1/256 px; ``nonocc`` (N,H,W) uint8; ``sgbm`` (N,H,W) uint16 in 1/16 px, 0 = no match;
+``u_max`` (N,) float32 (the frame's disparity range [px]); ``sgbm_range`` (N,) int16 (SGBM's search range: the
+depth service's 96 px or the frame's range rounded up to 16, at random). A shard is a function of (seed, split,
+index): existing shards are kept, a shard is written to a temporary folder and renamed when complete.
+``dataset.json`` records the command, seeds, counts, sizes and the photographs used as materials.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sys
+import time
+from multiprocessing import Pool
+from pathlib import Path
+
+import numpy as np
+
+SPLIT_SEED = {"train": 10_000, "val": 20_000}
+HEIGHTS = (256, 288, 320, 352)
+WIDTHS = (320, 384, 448, 512)
+SERVICE_RANGE = 96
+
+_PHOTOS: list | None = None
+
+
+def _photos(real_dir: str | None):
+    global _PHOTOS
+    if _PHOTOS is None:
+        from tools.depth.materials import load_photos
+
+        _PHOTOS = load_photos(Path(real_dir) if real_dir else None)[0]
+    return _PHOTOS
+
+
+def render_shard(job: tuple[str, str, int, int, int, str | None]) -> str:
+    out, split, seed, index, n, real_dir = job
+    from services.depth.sgbm import SgbmParams, sgbm_disparity
+    from tools.depth.layered_stereo import random_frame
+
+    final = Path(out) / split / f"shard_{index:04d}"
+    if (final / "u_max.npy").is_file():
+        return f"{final} kept"
+    rng = np.random.default_rng([seed, SPLIT_SEED[split], index])
+    h, w = int(rng.choice(HEIGHTS)), int(rng.choice(WIDTHS))
+    photos = _photos(real_dir)
+    arrays = {k: [] for k in ("left", "right", "disparity", "nonocc", "sgbm", "u_max", "sgbm_range")}
+    for _ in range(n):
+        f = random_frame(rng, photos, h, w)
+        rng_sgbm = SERVICE_RANGE if rng.random() < 0.5 else int(np.ceil((f["u_max"] + 1) / 16) * 16)
+        sg = sgbm_disparity(f["left"], f["right"], SgbmParams(num_disparities=rng_sgbm))
+        arrays["left"].append(f["left"])
+        arrays["right"].append(f["right"])
+        arrays["disparity"].append(np.clip(np.rint(f["disparity"] * 256), 0, 65535).astype(np.uint16))
+        arrays["nonocc"].append(f["nonocc"].astype(np.uint8))
+        arrays["sgbm"].append(np.where(np.isfinite(sg), np.rint(np.nan_to_num(sg) * 16), 0).astype(np.uint16))
+        arrays["u_max"].append(np.float32(f["u_max"]))
+        arrays["sgbm_range"].append(np.int16(rng_sgbm))
+    tmp = final.with_name(final.name + f".tmp{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    for k, v in arrays.items():
+        np.save(tmp / f"{k}.npy", np.stack(v))
+    shutil.rmtree(final, ignore_errors=True)
+    tmp.rename(final)
+    return f"{final} {n} frames {h}x{w}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--out", default="data/stereo_train")
+    p.add_argument("--train", type=int, default=4096, help="training frames")
+    p.add_argument("--val", type=int, default=256, help="validation frames (the sigma calibration)")
+    p.add_argument("--shard", type=int, default=64, help="frames per shard")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--real", default=None, help="folder of real images used as photographic materials (default "
+                   "$SIGMASLAM_SHARED/data/real when present; 'none': scikit-image photographs only)")
+    a = p.parse_args(argv)
+    from shared.paths import shared_dir
+    from tools.depth.materials import load_photos
+
+    real = None if a.real == "none" else (a.real or str(shared_dir() / "data" / "real"))
+    if real and not Path(real).is_dir():
+        print(f"[make_stereo_data] {real} not found: scikit-image photographs only", flush=True)
+        real = None
+    _, sources = load_photos(Path(real) if real else None)
+    jobs = []
+    for split, frames in (("train", a.train), ("val", a.val)):
+        for i in range((frames + a.shard - 1) // a.shard):
+            jobs.append((a.out, split, a.seed, i, min(a.shard, frames - i * a.shard), real))
+    t0 = time.time()
+    Path(a.out).mkdir(parents=True, exist_ok=True)
+    with Pool(a.workers) as pool:
+        for k, msg in enumerate(pool.imap_unordered(render_shard, jobs)):
+            print(f"[make_stereo_data] {k + 1}/{len(jobs)} {msg} ({time.time() - t0:.0f} s)", flush=True)
+    meta = {"command": "python -m tools.depth.make_stereo_data " + " ".join(argv if argv is not None else sys.argv[1:]),
+            "generator": "tools/depth/layered_stereo.py + tools/depth/materials.py", "seed": a.seed,
+            "split_seed": SPLIT_SEED, "frames": {"train": a.train, "val": a.val}, "shard": a.shard,
+            "heights": HEIGHTS, "widths": WIDTHS, "materials": sources, "render_wall_s": round(time.time() - t0)}
+    (Path(a.out) / "dataset.json").write_text(json.dumps(meta, indent=1))
+    print(f"[make_stereo_data] done in {time.time() - t0:.0f} s: {a.out}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

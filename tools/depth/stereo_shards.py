@@ -1,0 +1,72 @@
+"""The layered stereo set on disk (tools/depth/make_stereo_data.py): memory-mapped shards, training crops and
+validation frames for the SGBM-guided network (services/depth/refine_net.py)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from services.depth.sgbm import fill_background
+
+KEYS = ("left", "right", "disparity", "nonocc", "sgbm", "u_max", "sgbm_range")
+
+
+def load_shards(root: str | Path, split: str) -> list[dict[str, np.ndarray]]:
+    """Every complete shard of ``split`` as a dict of memory-mapped arrays (plus 'name')."""
+    d = Path(root) / split
+    shards = []
+    for s in sorted(d.glob("shard_????")):
+        if all((s / f"{k}.npy").is_file() for k in KEYS):
+            shards.append({k: np.load(s / f"{k}.npy", mmap_mode="r") for k in KEYS} | {"name": s.name})
+    if not shards:
+        raise SystemExit(f"{d}: no complete shard (render them: python -m tools.depth.make_stereo_data)")
+    return shards
+
+
+def frame(shard: dict, i: int) -> dict[str, np.ndarray]:
+    """Frame i of a shard decoded: disparity and SGBM in px (SGBM NaN where it found no match)."""
+    sg = shard["sgbm"][i].astype(np.float32) / 16.0
+    return {"left": np.asarray(shard["left"][i]), "right": np.asarray(shard["right"][i]),
+            "disparity": shard["disparity"][i].astype(np.float32) / 256.0, "nonocc": shard["nonocc"][i] > 0,
+            "sgbm": np.where(sg > 0, sg, np.nan).astype(np.float32), "u_max": float(shard["u_max"][i])}
+
+
+def refine_batch(shards: list[dict], rng: np.random.Generator, batch: int, crop: tuple[int, int]):
+    """(left, right (B,1,h,w), d0 (B,h,w) filled SGBM, matched (B,h,w) bool, u_gt (B,h,w), valid (B,h,w) bool).
+    The hole filling runs on the whole frame (as at inference) before the crop; photometric jitter is a gain and
+    offset common to both images plus a small left/right gain difference (the images are standardised anyway)."""
+    ch, cw = crop
+    out = {k: [] for k in ("left", "right", "d0", "matched", "u", "valid")}
+    for _ in range(batch):
+        sh = shards[int(rng.integers(len(shards)))]
+        f = frame(sh, int(rng.integers(len(sh["u_max"]))))
+        h, w = f["left"].shape
+        y, x = int(rng.integers(0, h - ch + 1)), int(rng.integers(0, w - cw + 1))
+        sl = np.s_[y:y + ch, x:x + cw]
+        d0 = fill_background(f["sgbm"])[sl]
+        gain, off = rng.uniform(0.8, 1.2), rng.uniform(-15, 15)
+        lr = rng.uniform(0.95, 1.05)
+        left = np.clip(f["left"][sl] * gain + off, 0, 255)
+        right = np.clip(f["right"][sl] * gain * lr + off, 0, 255)
+        u, matched = f["disparity"][sl], np.isfinite(f["sgbm"][sl])
+        if rng.random() < 0.5:  # an upside-down pair is still a rectified pair
+            left, right, d0, u, matched = (a[::-1] for a in (left, right, d0, u, matched))
+        out["left"].append(left)
+        out["right"].append(right)
+        out["d0"].append(d0)
+        out["matched"].append(matched)
+        out["u"].append(u)
+        out["valid"].append(np.ones_like(matched))
+    t = lambda k: torch.from_numpy(np.ascontiguousarray(np.stack(out[k])))
+    return (t("left").float()[:, None], t("right").float()[:, None], t("d0").float(), t("matched"), t("u").float(),
+            t("valid"))
+
+
+def validation_frames(shards: list[dict], per_shard: int = 8):
+    """(frame dict) for the first ``per_shard`` frames of every validation shard, cropped to multiples of 16."""
+    for sh in shards:
+        for i in range(min(per_shard, len(sh["u_max"]))):
+            f = frame(sh, i)
+            h, w = f["left"].shape
+            yield {k: (v[: h // 16 * 16, : w // 16 * 16] if isinstance(v, np.ndarray) else v) for k, v in f.items()}
