@@ -37,13 +37,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--runs", type=int, default=50)
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--sources", type=int, default=4)
+    p.add_argument("--stereo-weights", default=str(weights.WEIGHTS_DIR / "stereo.pt"),
+                   help="stereo weights to time (an SGBM-guided network's time includes its SGBM)")
     p.add_argument("--out", default="out/depth/bench.json")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     rng = np.random.default_rng(0)
     left = rng.integers(0, 255, (384, 512), dtype=np.uint8)
     right = np.roll(left, -8, axis=1)
-    st, st_meta = weights.load(weights.WEIGHTS_DIR / "stereo.pt")
+    st, st_meta = weights.load(a.stereo_weights)
     mv, mv_meta = weights.load(weights.WEIGHTS_DIR / "mvs.pt")
     t = lambda x: torch.from_numpy(np.asarray(x)).float()
     K = t(K_RECT)[None]
@@ -66,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
                "stereo_net": _time(stereo, a.runs), "mvs_net": _time(mvs, a.runs),
                "fusion": _time(lambda: fuse(*d1, *d2), a.runs)}
     res["total_networks_fusion"] = {k: res["stereo_net"][k] + res["mvs_net"][k] + res["fusion"][k] for k in ("cpu_ms", "wall_ms")}
-    res["config"] = {"runs": a.runs, "threads": a.threads, "sources": a.sources, "size": [512, 384],
+    res["config"] = {"stereo_weights": a.stereo_weights, "stereo_arch": st_meta["arch"], "runs": a.runs, "threads": a.threads, "sources": a.sources, "size": [512, 384],
                      "torch": torch.__version__}
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     Path(a.out).write_text(json.dumps(res, indent=1))

@@ -185,16 +185,28 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sources", type=int, default=4, help="MVS source views per sample")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--real-pairs", nargs="*", default=[], help="stereo_refine: unlabelled real pair folders (ETH3D "
+                   "two-view, EuRoC) to adapt on with SGBM proxy labels (tools/depth/real_pairs.py); never Middlebury")
+    p.add_argument("--real-weight", type=float, default=0.5, help="weight of the real pairs' proxy loss")
+    p.add_argument("--checkpoint-minutes", type=float, default=10.0,
+                   help="write <out>.partial.pt (uncalibrated) this often while training; 0: never")
     p.add_argument("--init", default="", help="start from these weights (same architecture), e.g. to fine-tune")
     a = p.parse_args(argv)
     torch.manual_seed(a.seed)
     torch.set_num_threads(a.threads)
     rng = np.random.default_rng(a.seed)
     root = Path(a.data)
+    real = []
     if a.net == "stereo_refine":
+        from tools.depth.real_pairs import load_real_pairs, proxy_loss, real_batch
         from tools.depth.stereo_shards import load_shards, refine_batch
 
         train = load_shards(root, "train")
+        real = load_real_pairs(a.real_pairs) if a.real_pairs else []
+        if real:
+            print(f"[{a.net}] {len(real)} real pairs for the proxy loss", flush=True)
+    elif a.real_pairs:
+        raise SystemExit("--real-pairs is for --net stereo_refine")
     else:
         train = load_split(root, "train")
     arch_args = {"n_planes": 32, "min_depth": 0.3, "max_depth": 15.0} if a.net == "mvs" else {"max_disparity": 96}
@@ -212,6 +224,7 @@ def main(argv: list[str] | None = None) -> int:
     curve = open(curve_path, "w")
     curve.write("step,elapsed_s,lr,loss\n")
     t0, c0, step, smooth = time.time(), time.process_time(), 0, None
+    last_ckpt = t0
     # progress: the larger of CPU time over its budget and wall time over its cap (shared, busy machines)
     while (progress := max((time.process_time() - c0) / budget, (time.time() - t0) / wall_cap)) < 1.0:
         elapsed = time.time() - t0
@@ -222,6 +235,10 @@ def main(argv: list[str] | None = None) -> int:
             left, right, d0, matched, u_gt, valid = (x.to(a.device) for x in refine_batch(train, rng, a.batch, tuple(a.crop)))
             u, su = net.refine(left, right, d0, matched)
             loss = stereo_loss(u, su, u_gt, valid & (u_gt > 0))
+            if real:
+                rl, rr, rd0, rm, rlabel = (x.to(a.device) for x in real_batch(real, rng, a.batch, tuple(a.crop)))
+                ru, _ = net.refine(rl, rr, rd0, rm)
+                loss = loss + a.real_weight * proxy_loss(ru, rl, rlabel, rm)
         elif a.net == "stereo":
             left, right, u_gt = (x.to(a.device) for x in stereo_batch(train, rng, a.batch, tuple(a.crop)))
             valid = torch.isfinite(u_gt) & (u_gt > 0.5) & (u_gt < net.max_disparity - 1)
@@ -247,6 +264,10 @@ def main(argv: list[str] | None = None) -> int:
             curve.flush()
             print(f"[{a.net}] step {step} wall {elapsed:.0f}s cpu {time.process_time() - c0:.0f}s lr {lr:.2g} "
                   f"loss {smooth:.4f}", flush=True)
+        if a.checkpoint_minutes > 0 and time.time() - last_ckpt > 60 * a.checkpoint_minutes:
+            last_ckpt = time.time()  # uncalibrated (gain 1) snapshot to look at while training goes on
+            weights.save(net, str(a.out) + ".partial", a.net, arch_args, {"gain": 1.0, "steps": step, "partial": True})
+            net.train()
     curve.close()
     net.eval()
     if a.net == "stereo_refine":
@@ -267,7 +288,9 @@ def main(argv: list[str] | None = None) -> int:
         "command": "python -m tools.depth.train " + " ".join(argv if argv is not None else sys.argv[1:]),
         "seed": a.seed, "steps": step, "train_wall_s": round(time.time() - t0), "train_cpu_s": round(time.process_time() - c0), "device": a.device,
         "threads": a.threads, "data": {"root": str(root), "train_scenes": [s["name"] for s in train],
-                                       "val_scenes": [s["name"] for s in val], **data_meta},
+                                       "val_scenes": [s["name"] for s in val], **data_meta,
+                                       "real_pairs": {"folders": a.real_pairs, "pairs": len(real),
+                                                      "weight": a.real_weight} if real else None},
         "val_uncalibrated": val_raw, "val_calibrated": val_cal, "curve": curve_path.name,
         "torch": torch.__version__})
     return 0
