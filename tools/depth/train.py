@@ -189,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
                    "two-view, EuRoC) to adapt on with SGBM proxy labels (tools/depth/real_pairs.py); never Middlebury")
     p.add_argument("--real-weight", type=float, default=0.5, help="weight of the real pairs' proxy loss")
     p.add_argument("--checkpoint-minutes", type=float, default=10.0,
-                   help="write <out>.partial.pt (uncalibrated) this often while training; 0: never")
+                   help="write <out>_partial.pt (uncalibrated) this often while training; 0: never")
     p.add_argument("--init", default="", help="start from these weights (same architecture), e.g. to fine-tune")
     a = p.parse_args(argv)
     torch.manual_seed(a.seed)
@@ -266,7 +266,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"loss {smooth:.4f}", flush=True)
         if a.checkpoint_minutes > 0 and time.time() - last_ckpt > 60 * a.checkpoint_minutes:
             last_ckpt = time.time()  # uncalibrated (gain 1) snapshot to look at while training goes on
-            weights.save(net, str(a.out) + ".partial", a.net, arch_args, {"gain": 1.0, "steps": step, "partial": True})
+            weights.save(net, str(a.out) + "_partial", a.net, arch_args, {"gain": 1.0, "steps": step, "partial": True})
             net.train()
     curve.close()
     net.eval()
