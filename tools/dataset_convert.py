@@ -1,4 +1,7 @@
-"""``sigmaslam convert SRC DST``: EuRoC ASL folder <-> sigmaslam MCAP recording.
+"""``sigmaslam convert SRC DST``: EuRoC ASL folder <-> sigmaslam MCAP recording; ROS bag -> EuRoC folder.
+
+ROS bags (ROS 2 MCAP or sqlite3, ROS 1) become EuRoC folders with tools/bag_convert.py (``--calib`` Kalibr
+camchain-imucam.yaml + ``--imu-calib`` imu.yaml, or an EuRoC folder; ``--cam``/``--imu`` topics when ambiguous).
 
 EuRoC -> MCAP: IMU samples and multi-camera frames become native ``sensors/imu`` / ``sensors/frame``
 messages (log time = sensor stamp) under ``--namespace``; every other file of ``mav0`` (sensor.yaml
@@ -101,16 +104,38 @@ def mcap_to_euroc(src: str | Path, dst: str | Path, calib: str | Path | None = N
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("src", help="EuRoC folder (mav0 or its parent) or .mcap file")
-    p.add_argument("dst", help=".mcap file (from a folder) or folder (from a .mcap)")
+    p.add_argument("src", help="EuRoC folder (mav0 or its parent), sigmaslam .mcap recording, or ROS bag (ROS 2 "
+                   "folder or .mcap/.db3, ROS 1 .bag)")
+    p.add_argument("dst", help=".mcap file (from a folder) or folder (from a .mcap or a bag)")
     p.add_argument("--namespace", default="sigmaslam/robot0", help="key prefix of the topics written to MCAP")
     p.add_argument("--foxglove", action="store_true", help="also write Foxglove image mirrors (doubles the size)")
-    p.add_argument("--calib", help="MCAP -> EuRoC: calibration folder when the recording carries none")
+    p.add_argument("--calib", help="MCAP -> EuRoC: calibration folder when the recording carries none; bag -> EuRoC: "
+                   "Kalibr camchain-imucam.yaml or an EuRoC folder")
+    add_bag_arguments(p, calib=False)
+
+
+def add_bag_arguments(p: argparse.ArgumentParser, calib: bool = True) -> None:
+    """The options of a ROS bag input (``convert`` and ``run``)."""
+    if calib:
+        p.add_argument("--calib", help="ROS bag input: Kalibr camchain-imucam.yaml or an EuRoC folder")
+    p.add_argument("--imu-calib", help="ROS bag input: Kalibr imu.yaml (IMU noise densities and random walks)")
+    p.add_argument("--cam", action="append", default=None, metavar="TOPIC",
+                   help="ROS bag input: camera topic, repeated in rig order (default: picked when unambiguous)")
+    p.add_argument("--imu", default=None, metavar="TOPIC", help="ROS bag input: IMU topic (default: the only one)")
+    p.add_argument("--sync-tolerance-ms", type=float, default=2.0,
+                   help="ROS bag input: stereo images further apart than this are not a frame (counted)")
 
 
 def main(args: argparse.Namespace) -> int:
+    from shared.ros_bag import is_ros_bag
+
     try:
-        if str(args.src).endswith(".mcap"):
+        if is_ros_bag(args.src):
+            from tools.bag_convert import bag_to_euroc
+
+            counts = bag_to_euroc(args.src, args.dst, args.calib, args.imu_calib, args.cam, args.imu,
+                                  args.sync_tolerance_ms)
+        elif str(args.src).endswith(".mcap"):
             counts = mcap_to_euroc(args.src, args.dst, args.calib)
         else:
             counts = euroc_to_mcap(args.src, args.dst, args.namespace, args.foxglove)

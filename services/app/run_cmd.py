@@ -69,7 +69,8 @@ GT_CANDIDATES = ("mav0/state_groundtruth_estimate0/data.csv", "groundtruth_tum.t
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("dataset", help="EuRoC ASL folder (real or replica; the folder holding mav0/, or mav0)")
+    p.add_argument("dataset", help="EuRoC ASL folder (real or replica; the folder holding mav0/, or mav0), or a ROS "
+                   "bag (ROS 2 folder/.mcap/.db3, ROS 1 .bag: converted to DIR/dataset first, with --calib)")
     p.add_argument("config", nargs="?", help="YAML system config (default: built-in defaults); before or after "
                    "the options")
     p.add_argument("--gt", metavar="PATH", help="ground truth for the ATE: EuRoC CSV (state_groundtruth_estimate0 "
@@ -90,6 +91,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "bundle adjustment (estimator/trajectory_final) after the stream ended [s]")
     p.add_argument("--serve-s", type=float, default=0.0, help="after the run, show its final map and trajectories "
                    "in the web viewer (viewer.host:viewer.port) this long [s] (0: no)")
+    from tools.dataset_convert import add_bag_arguments
+
+    add_bag_arguments(p)
     _intermixed(p)
 
 
@@ -267,9 +271,35 @@ def _ate_line(kind: str, ate: dict) -> str:
             f"{ate['poses']} poses ({(t1 - t0) * 1e-9:.1f} s with ground truth)")
 
 
+def _bag_dataset(args: argparse.Namespace, out: Path) -> str:
+    """A ROS bag converted to OUT/dataset (an EuRoC folder; reused when it is already there)."""
+    from tools.bag_convert import bag_to_euroc
+
+    dst = out / "dataset"
+    if (dst / "mav0").is_dir():
+        print(f"[sigmaslam run] {args.dataset}: using the conversion already in {dst}", flush=True)
+    else:
+        counts = bag_to_euroc(args.dataset, dst, getattr(args, "calib", None), getattr(args, "imu_calib", None),
+                              getattr(args, "cam", None), getattr(args, "imu", None),
+                              getattr(args, "sync_tolerance_ms", 2.0))
+        print(f"[sigmaslam run] converted {args.dataset} -> {dst}: " + ", ".join(f"{k} {v}" for k, v in counts.items()),
+              flush=True)
+    return str(dst.resolve())
+
+
 def main(args: argparse.Namespace) -> int:
+    from shared.euroc_reader import DatasetError
+    from shared.ros_bag import is_ros_bag
+
     out = Path(args.out)
     dataset = str(Path(args.dataset).resolve())
+    if is_ros_bag(dataset):
+        out.mkdir(parents=True, exist_ok=True)
+        try:
+            dataset = _bag_dataset(args, out)
+        except (DatasetError, OSError) as exc:
+            print(f"sigmaslam run: {exc}", flush=True)
+            return 2
     gt_arg = getattr(args, "gt", None)
     if gt_arg and gt_arg != "none" and not Path(gt_arg).is_file():
         print(f"sigmaslam run: --gt {gt_arg}: file not found", flush=True)
