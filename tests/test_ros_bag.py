@@ -164,7 +164,7 @@ def test_sigmaslam_run_on_a_ros2_bag(tmp_path, micro):
     out = tmp_path / "run"
     proc = subprocess.run([sys.executable, "-m", "services.app.cli", "run", str(bag), "--calib", str(chain),
                            "--imu-calib", str(imu), "--gt", str(micro / "groundtruth_tum.txt"), "--out", str(out),
-                           "--set", services, "--timeout-s", "300"],
+                           "--set", services, "--timeout-s", "300", "--ros2-bag", str(tmp_path / "results")],
                           cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=600)
     log = proc.stdout + proc.stderr
     assert proc.returncode == 0, log[-3000:]
@@ -173,6 +173,12 @@ def test_sigmaslam_run_on_a_ros2_bag(tmp_path, micro):
     assert stats["frames_sent"] == 60, stats
     ate = json.loads((out / "ate.json").read_text())
     assert ate["ate_rmse_m"] < 0.02, ate
+    # the results handed back as a ROS 2 bag: one Odometry per published pose, the final path
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([tmp_path / "results"]) as r:
+        n = {c.topic: c.msgcount for c in r.connections}
+    assert n["/sigmaslam/odometry"] == ate["poses"] and n["/tf"] == ate["poses"] and n["/sigmaslam/path"] == 1, n
     bad = subprocess.run([sys.executable, "-m", "services.app.cli", "run", str(bag), "--out", str(tmp_path / "x")],
                          cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "no calibration" in bad.stdout + bad.stderr

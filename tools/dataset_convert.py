@@ -108,6 +108,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "folder or .mcap/.db3, ROS 1 .bag)")
     p.add_argument("dst", help=".mcap file (from a folder) or folder (from a .mcap or a bag)")
     p.add_argument("--namespace", default="sigmaslam/robot0", help="key prefix of the topics written to MCAP")
+    p.add_argument("--to", choices=["euroc", "ros2"], default="euroc", help="from a sigmaslam recording: an EuRoC "
+                   "folder of its sensor data (euroc), or a ROS 2 bag of its results (ros2: odometry, tf, path, "
+                   "submap clouds and meshes, depth; tools/ros2_export.py)")
     p.add_argument("--foxglove", action="store_true", help="also write Foxglove image mirrors (doubles the size)")
     p.add_argument("--calib", help="MCAP -> EuRoC: calibration folder when the recording carries none; bag -> EuRoC: "
                    "Kalibr camchain-imucam.yaml or an EuRoC folder")
@@ -135,6 +138,10 @@ def main(args: argparse.Namespace) -> int:
 
             counts = bag_to_euroc(args.src, args.dst, args.calib, args.imu_calib, args.cam, args.imu,
                                   args.sync_tolerance_ms)
+        elif str(args.src).endswith(".mcap") and args.to == "ros2":
+            from tools.ros2_export import recording_to_ros2
+
+            counts = recording_to_ros2(args.src, args.dst)
         elif str(args.src).endswith(".mcap"):
             counts = mcap_to_euroc(args.src, args.dst, args.calib)
         else:

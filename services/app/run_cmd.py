@@ -82,6 +82,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rate", type=float, default=0.0, metavar="R",
                    help="play at R times sensor rate instead of lockstep (overrides --realtime; 0: off)")
     p.add_argument("--record", action="store_true", help="also record every topic to DIR/recording.mcap")
+    p.add_argument("--ros2-bag", metavar="BAG", default=None, help="also write the results as a ROS 2 bag (MCAP "
+                   "storage, standard messages: tools/ros2_export.py) to the new folder BAG; implies --record")
     p.add_argument("--player-arg", action="append", default=[], metavar="ARG",
                    help="extra argument for the player (repeatable), e.g. --player-arg=--max-frames=200")
     p.add_argument("--settle-s", type=float, default=5.0, help="after the player ended, stop when no state came "
@@ -130,6 +132,9 @@ def pipeline_services(cfg, dataset: str, out: Path, realtime: bool, record: bool
             s = dataclasses.replace(s, argv=["mapping", "--out", str(out)],
                                     stop_timeout_s=s.stop_timeout_s or MAPPING_STOP_TIMEOUT_S)
         services.append(dataclasses.replace(s, restart="never"))
+    if record and not any(s.argv and s.argv[0] == "record" for s in services):  # asked for, but not configured
+        services.append(ServiceSpec(name="record", argv=["record", "--out", str(out / "recording.mcap")],
+                                    restart="never"))
     mode = ["--rate", f"{rate:g}"] if rate > 0 else (["--realtime"] if realtime else ["--lockstep"])
     wait = ["--wait-for", ",".join(s.name for s in services)] if services else []
     services.append(ServiceSpec(name="player", argv=["player", dataset, *mode, *wait, *player_args], restart="never"))
@@ -311,6 +316,8 @@ def main(args: argparse.Namespace) -> int:
     overrides = [f"transport.namespace=sigmaslam/run-{run_id}", f"transport.connect=[tcp/127.0.0.1:{port}]",
                  f"transport.router_listen=[tcp/127.0.0.1:{port}]", *args.set]
     cfg = load_system_config(args.config, overrides)
+    if getattr(args, "ros2_bag", None):
+        args.record = True
     changes: dict = {"supervisor.services": pipeline_services(cfg, dataset, out.resolve(), args.realtime, args.record,
                                                               args.player_arg, getattr(args, "rate", 0.0)),
                      "supervisor.start_router": True}
@@ -376,6 +383,16 @@ def main(args: argparse.Namespace) -> int:
     elif gt_arg != "none":
         print("[sigmaslam run] no ground truth (none of " + ", ".join(GT_CANDIDATES) + " in the dataset, no --gt): "
               "no ATE", flush=True)
+    if getattr(args, "ros2_bag", None):
+        from tools.ros2_export import recording_to_ros2
+
+        try:
+            counts = recording_to_ros2(out / "recording.mcap", args.ros2_bag)
+            print(f"[sigmaslam run] ROS 2 bag {args.ros2_bag}: " + ", ".join(f"{k} {v}" for k, v in counts.items()),
+                  flush=True)
+        except (OSError, ValueError) as exc:
+            print(f"[sigmaslam run] ROS 2 bag not written: {exc}", flush=True)
+            rc = 1
     if getattr(args, "serve_s", 0.0) > 0:
         from services.app.demo_serve import serve_run
 
