@@ -65,3 +65,33 @@ def test_network_method_without_weights_falls_back_to_sgbm(rendered, tmp_path):
     assert p2.method == "sgbm"
     with pytest.raises(ValueError, match="calibration says"):
         p2.process(0, raw[0][:100], raw[1], None)
+
+
+def test_sgbm_guided_network_in_the_pipeline_starts_from_sgbm(rendered, tmp_path):
+    """The SGBM-guided network (arch stereo_refine) loads through the weights interface and runs inside the
+    pipeline; untrained (its correction head starts at zero) its depth is SGBM's where SGBM matched, with the
+    holes filled from the background side, and its sigma is positive and scaled by the gain in the JSON."""
+    import torch
+
+    from services.depth import weights
+    from services.depth.refine_net import RefineStereoNet
+    from services.depth.sgbm import fill_background, sgbm_disparity
+
+    pipe, raw, _, _ = rendered
+    torch.manual_seed(0)
+    weights.save(RefineStereoNet(96), tmp_path / "ref", "stereo_refine", {"max_disparity": 96}, {"gain": 2.0})
+    calib = euroc_dir() / "calib"
+    cams = [camera_from_sensor_yaml(read_sensor_yaml_file(calib / f"cam{i}_sensor.yaml"), f"cam{i}") for i in (0, 1)]
+    p2 = DepthPipeline(DepthConfig(method="network", use_mvs=False, stereo_weights=str(tmp_path / "ref.pt"),
+                                   threads=1, device="cpu"), *cams)
+    assert p2.method == "network" and p2.stereo_gain == 2.0
+    left, right = p2.rect.rectify(raw[0], raw[1])
+    d, s = p2.stereo(left, right)
+    sg = sgbm_disparity(left, right, p2.sgbm_params)
+    u = fill_background(sg)
+    expect = p2.f_px * p2.baseline_m / u
+    ok = np.isfinite(sg) & (u > 1.0)
+    np.testing.assert_allclose(d[ok], expect[ok], rtol=1e-4)
+    assert np.all(np.isfinite(s[np.isfinite(d)])) and np.all(s[np.isfinite(d)] > 0)
+    res = p2.process(0, raw[0], raw[1], None)
+    assert res.stereo[0].shape == (p2.cfg.height, p2.cfg.width) and res.mvs is None
