@@ -37,6 +37,7 @@ DEV_COMMANDS = {
     ("services/app/eval_cmd.py", "tools.depth.evaluate"),  # sigmaslam eval depth: depth network evaluation
     ("services/app/eval_cmd.py", "tools.eval.ablation"),  # sigmaslam eval ablation: the paper's Table IV
     ("services/app/eval_cmd.py", "tools.eval.suite"),  # sigmaslam eval suite: the paper's tables I, II, V
+    ("services/app/eval_cmd.py", "tools.depth.stereo_bench"),  # sigmaslam eval stereo: real-photograph stereo
 }
 
 _MODULE_NAME = re.compile(r"^(%s)(\.\w+)+$" % "|".join(PACKAGES))

@@ -96,7 +96,7 @@ def test_kalibr_rig_equals_the_euroc_rig(tmp_path, micro):
 @pytest.mark.parametrize("kind", ["mcap", "sqlite3", "ros1"])
 def test_real_frames_round_trip_through_a_bag(tmp_path, micro, kind):
     from shared.euroc_reader import EurocDataset
-    from tools.bag_convert import bag_to_euroc
+    from services.app.bag_input import bag_to_euroc
 
     name = {"mcap": "bag2", "sqlite3": "bag2db", "ros1": "run.bag"}[kind]
     bag = write_bag(micro, tmp_path / name, kind, max_frames=15)
@@ -117,7 +117,7 @@ def test_real_frames_round_trip_through_a_bag(tmp_path, micro, kind):
 
 def test_sync_tolerance_timeshift_and_missing_calibration(tmp_path, micro):
     from shared.euroc_reader import EurocDataset
-    from tools.bag_convert import bag_to_euroc
+    from services.app.bag_input import bag_to_euroc
 
     bag = write_bag(micro, tmp_path / "b", "mcap", max_frames=10, cam_delay_ns=(0, 3_000_000))
     chain, imu = write_kalibr(micro, tmp_path / "k", timeshift_s=0.005)
@@ -135,7 +135,7 @@ def test_sync_tolerance_timeshift_and_missing_calibration(tmp_path, micro):
 
 @pytest.mark.e2e
 def test_converted_bag_gives_the_same_trajectory(tmp_path, micro):
-    from tools.bag_convert import bag_to_euroc
+    from services.app.bag_input import bag_to_euroc
     from tools.vio.offline import run
 
     bag = write_bag(micro, tmp_path / "bag", "mcap", encodings=("mono8", "png"))

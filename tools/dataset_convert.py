@@ -1,6 +1,6 @@
 """``sigmaslam convert SRC DST``: EuRoC ASL folder <-> sigmaslam MCAP recording; ROS bag -> EuRoC folder.
 
-ROS bags (ROS 2 MCAP or sqlite3, ROS 1) become EuRoC folders with tools/bag_convert.py (``--calib`` Kalibr
+ROS bags (ROS 2 MCAP or sqlite3, ROS 1) become EuRoC folders with services/app/bag_input.py (``--calib`` Kalibr
 camchain-imucam.yaml + ``--imu-calib`` imu.yaml, or an EuRoC folder; ``--cam``/``--imu`` topics when ambiguous).
 
 EuRoC -> MCAP: IMU samples and multi-camera frames become native ``sensors/imu`` / ``sensors/frame``
@@ -110,23 +110,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--namespace", default="sigmaslam/robot0", help="key prefix of the topics written to MCAP")
     p.add_argument("--to", choices=["euroc", "ros2"], default="euroc", help="from a sigmaslam recording: an EuRoC "
                    "folder of its sensor data (euroc), or a ROS 2 bag of its results (ros2: odometry, tf, path, "
-                   "submap clouds and meshes, depth; tools/ros2_export.py)")
+                   "submap clouds and meshes, depth; services/app/ros2_export.py)")
     p.add_argument("--foxglove", action="store_true", help="also write Foxglove image mirrors (doubles the size)")
     p.add_argument("--calib", help="MCAP -> EuRoC: calibration folder when the recording carries none; bag -> EuRoC: "
                    "Kalibr camchain-imucam.yaml or an EuRoC folder")
+    from services.app.bag_input import add_bag_arguments
+
     add_bag_arguments(p, calib=False)
-
-
-def add_bag_arguments(p: argparse.ArgumentParser, calib: bool = True) -> None:
-    """The options of a ROS bag input (``convert`` and ``run``)."""
-    if calib:
-        p.add_argument("--calib", help="ROS bag input: Kalibr camchain-imucam.yaml or an EuRoC folder")
-    p.add_argument("--imu-calib", help="ROS bag input: Kalibr imu.yaml (IMU noise densities and random walks)")
-    p.add_argument("--cam", action="append", default=None, metavar="TOPIC",
-                   help="ROS bag input: camera topic, repeated in rig order (default: picked when unambiguous)")
-    p.add_argument("--imu", default=None, metavar="TOPIC", help="ROS bag input: IMU topic (default: the only one)")
-    p.add_argument("--sync-tolerance-ms", type=float, default=2.0,
-                   help="ROS bag input: stereo images further apart than this are not a frame (counted)")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -134,12 +124,12 @@ def main(args: argparse.Namespace) -> int:
 
     try:
         if is_ros_bag(args.src):
-            from tools.bag_convert import bag_to_euroc
+            from services.app.bag_input import bag_to_euroc
 
             counts = bag_to_euroc(args.src, args.dst, args.calib, args.imu_calib, args.cam, args.imu,
                                   args.sync_tolerance_ms)
         elif str(args.src).endswith(".mcap") and args.to == "ros2":
-            from tools.ros2_export import recording_to_ros2
+            from services.app.ros2_export import recording_to_ros2
 
             counts = recording_to_ros2(args.src, args.dst)
         elif str(args.src).endswith(".mcap"):

@@ -83,7 +83,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="play at R times sensor rate instead of lockstep (overrides --realtime; 0: off)")
     p.add_argument("--record", action="store_true", help="also record every topic to DIR/recording.mcap")
     p.add_argument("--ros2-bag", metavar="BAG", default=None, help="also write the results as a ROS 2 bag (MCAP "
-                   "storage, standard messages: tools/ros2_export.py) to the new folder BAG; implies --record")
+                   "storage, standard messages: services/app/ros2_export.py) to the new folder BAG; implies --record")
     p.add_argument("--player-arg", action="append", default=[], metavar="ARG",
                    help="extra argument for the player (repeatable), e.g. --player-arg=--max-frames=200")
     p.add_argument("--settle-s", type=float, default=5.0, help="after the player ended, stop when no state came "
@@ -93,7 +93,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "bundle adjustment (estimator/trajectory_final) after the stream ended [s]")
     p.add_argument("--serve-s", type=float, default=0.0, help="after the run, show its final map and trajectories "
                    "in the web viewer (viewer.host:viewer.port) this long [s] (0: no)")
-    from tools.dataset_convert import add_bag_arguments
+    from services.app.bag_input import add_bag_arguments
 
     add_bag_arguments(p)
     _intermixed(p)
@@ -278,7 +278,7 @@ def _ate_line(kind: str, ate: dict) -> str:
 
 def _bag_dataset(args: argparse.Namespace, out: Path) -> str:
     """A ROS bag converted to OUT/dataset (an EuRoC folder; reused when it is already there)."""
-    from tools.bag_convert import bag_to_euroc
+    from services.app.bag_input import bag_to_euroc
 
     dst = out / "dataset"
     if (dst / "mav0").is_dir():
@@ -384,7 +384,7 @@ def main(args: argparse.Namespace) -> int:
         print("[sigmaslam run] no ground truth (none of " + ", ".join(GT_CANDIDATES) + " in the dataset, no --gt): "
               "no ATE", flush=True)
     if getattr(args, "ros2_bag", None):
-        from tools.ros2_export import recording_to_ros2
+        from services.app.ros2_export import recording_to_ros2
 
         try:
             counts = recording_to_ros2(out / "recording.mcap", args.ros2_bag)

@@ -11,6 +11,7 @@ frames are matched by header stamp within ``--sync-tolerance-ms``; unmatched ima
 """
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 import numpy as np
@@ -84,3 +85,15 @@ def bag_to_euroc(bag: str | Path, dst: str | Path, calib: str | Path | None, imu
     write_euroc(dst, cam_yaml, frames(), imu_rows, imu_yaml, imu_stamps_ns=content.imu_stamps_ns)
     return {"frames": written[0], "imu": len(content.imu_stamps_ns), **{k: v for k, v in stats.items() if v},
             "cameras": ",".join(cams), "imu_topic": imu}
+
+
+def add_bag_arguments(p: argparse.ArgumentParser, calib: bool = True) -> None:
+    """The options of a ROS bag input (``convert`` and ``run``)."""
+    if calib:
+        p.add_argument("--calib", help="ROS bag input: Kalibr camchain-imucam.yaml or an EuRoC folder")
+    p.add_argument("--imu-calib", help="ROS bag input: Kalibr imu.yaml (IMU noise densities and random walks)")
+    p.add_argument("--cam", action="append", default=None, metavar="TOPIC",
+                   help="ROS bag input: camera topic, repeated in rig order (default: picked when unambiguous)")
+    p.add_argument("--imu", default=None, metavar="TOPIC", help="ROS bag input: IMU topic (default: the only one)")
+    p.add_argument("--sync-tolerance-ms", type=float, default=2.0,
+                   help="ROS bag input: stereo images further apart than this are not a frame (counted)")
