@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 import torch
 
+from services.depth.net_blocks import normalise_image
 from services.depth.sgbm import SgbmParams, fill_background, sgbm_disparity
 
 
@@ -38,13 +39,13 @@ def _pairs_in(folder: Path) -> list[tuple[np.ndarray, np.ndarray, str]]:
 
 def _euroc_pairs(folder: Path, every: int = 5) -> list[tuple[np.ndarray, np.ndarray, str]]:
     from services.depth.config import DepthConfig
-    from shared.camera import load_rig, stereo_rectification
+    from services.depth.pipeline import pipeline_for_rig
+    from shared.camera import load_rig
     from shared.euroc_reader import EurocDataset
 
-    cfg = DepthConfig()
+    cfg = DepthConfig(method="sgbm")  # the service's rectification, no network loaded
+    rect = pipeline_for_rig(cfg, load_rig(folder)).rect
     ds = EurocDataset(folder)
-    cams = {c.name: c for c in load_rig(folder)}
-    rect = stereo_rectification(cams[cfg.left_camera], cams[cfg.right_camera], (cfg.width, cfg.height), cfg.fov_scale)
     names = ds.camera_names
     out = []
     for t in ds.frame_stamps_ns[::every]:
@@ -96,8 +97,6 @@ def proxy_loss(u: torch.Tensor, left: torch.Tensor, label: torch.Tensor, matched
     """L1 to SGBM's disparity on its matched pixels + edge-aware smoothness (|du/dx| exp(-|dI/dx|), standardised I)."""
     n = matched.sum().clamp(min=1)
     l1 = torch.where(matched, (u - label).abs(), torch.zeros_like(u)).sum() / n
-    from services.depth.net_blocks import normalise_image
-
     img = normalise_image(left)[:, 0]
     sx = ((u[:, :, 1:] - u[:, :, :-1]).abs() * torch.exp(-(img[:, :, 1:] - img[:, :, :-1]).abs())).mean()
     sy = ((u[:, 1:] - u[:, :-1]).abs() * torch.exp(-(img[:, 1:] - img[:, :-1]).abs())).mean()

@@ -150,18 +150,15 @@ def scene_metrics(scene: StereoScene, results: dict[str, dict]) -> dict[str, dic
 def euroc_agreement(dataset: Path, nets: list[tuple[str, object, float]], frames: int, device: str = "cpu") -> dict:
     """Per network: agreement with SGBM on real EuRoC frames rectified as the depth service does."""
     from services.depth.config import DepthConfig
-    from services.depth.coverage import stereo_valid
+    from services.depth.pipeline import pipeline_for_rig
     from services.depth.stereo_net import predict_disparity
-    from shared.camera import load_rig, stereo_rectification
+    from shared.camera import load_rig
     from shared.euroc_reader import EurocDataset
 
-    cfg = DepthConfig()
+    cfg = DepthConfig(method="sgbm")  # the service's rectification and valid region, no network loaded
+    pipe = pipeline_for_rig(cfg, load_rig(dataset))
+    rect, valid = pipe.rect, pipe.valid
     ds = EurocDataset(dataset)
-    cams = {c.name: c for c in load_rig(dataset)}
-    left_cam, right_cam = cams[cfg.left_camera], cams[cfg.right_camera]
-    rect = stereo_rectification(left_cam, right_cam, (cfg.width, cfg.height), cfg.fov_scale)
-    raw_hw = ((left_cam.camera.height, left_cam.camera.width), (right_cam.camera.height, right_cam.camera.width))
-    valid = stereo_valid(rect, raw_hw, cfg.border_margin_px)
     names = ds.camera_names
     picks = np.unique(np.linspace(0, len(ds.frame_stamps_ns) - 1, frames).round().astype(int))
     z = {label: [] for label, _, _ in nets}
