@@ -4,16 +4,16 @@ The mapping service keeps the map as occupancy submaps (paper eq. 2-4, sec. IV-E
 log-odds L (L > 0 occupied, L < 0 free, surface at L = 0) and observation counts w on 2.5 cm voxels, stored in its
 own frame M_j (the body frame at the submap's creation) with a pose ``T_WM`` that follows the estimator's keyframes
 and, at the end, the non-causal trajectory. With an output folder (``sigmaslam run ... --out DIR``,
-``sigmaslam demo``, ``sigmaslam mapping --out DIR``) it writes ``DIR/map.npz`` (the whole map, reloadable),
+``sigmaslam demo``, ``sigmaslam mapping --out DIR``) it writes ``DIR/map/dense.npz`` (the whole map, reloadable),
 ``DIR/mesh.ply`` (all submaps in W) and ``DIR/submaps/submap_NNN.ply`` (each in its own frame).
 
-This script reloads ``map.npz`` with :func:`services.mapping.io.load_map` (the loader the mapping service uses to
+This script reloads ``map/dense.npz`` with :func:`services.mapping.io.load_map` (the loader the mapping service uses to
 resume after a restart), prints each submap, queries the field (what the occupancy-to-point factors of the back end
 do, eq. 6-7), and writes the world mesh again::
 
     sigmaslam demo                                         # or: sigmaslam run DATASET CONFIG --out out/run
     python -m examples.04_load_saved_map out/demo          # writes out/demo/mesh_from_map.ply
-    python -m examples.04_load_saved_map out/demo/map.npz --out /tmp/map.ply
+    python -m examples.04_load_saved_map out/demo/map/dense.npz --out /tmp/map.ply
 """
 
 from __future__ import annotations
@@ -56,11 +56,11 @@ def describe_submap(sm, sensor) -> dict:
 
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("path", help="a run folder holding map.npz, or the map.npz file itself")
+    ap.add_argument("path", help="a run folder holding map/dense.npz, or that file itself")
     ap.add_argument("--out", metavar="PLY", help="mesh to write (default: <folder>/mesh_from_map.ply)")
     args = ap.parse_args(argv)
     path = Path(args.path)
-    map_file = path / "map.npz" if path.is_dir() else path
+    map_file = path / "map" / "dense.npz" if path.is_dir() else path
     out = Path(args.out) if args.out else map_file.parent / "mesh_from_map.ply"
 
     # 1. Load. The file holds every submap's voxel blocks, its pose T_WM, its keyframe binding T_KM and the sensor

@@ -1,6 +1,6 @@
 """The mapping service as a real process on real Zenoh (loopback router): depth + estimator states in,
 submap meshes out, keyframe updates move submaps, a frame without a state is dropped and counted,
-SIGTERM writes mesh.ply / map.npz / mapping.json."""
+SIGTERM writes mesh.ply / map/dense.npz / mapping.json."""
 
 from __future__ import annotations
 
@@ -138,7 +138,7 @@ def test_mapping_service_end_to_end(tmp_path):
     scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
     dist = scene.compute_distance(o3d.core.Tensor(v.astype(np.float32))).numpy()
     assert dist.mean() < 0.01, dist.mean()
-    assert len(load_map(out / "map.npz").submaps) == len(report["submaps"])
+    assert len(load_map(out / "map" / "dense.npz").submaps) == len(report["submaps"])
     # the near-surface field of every submap went out at exit (at least), with the final pose
     from shared.occupancy.message import field_of_message
     from shared.occupancy.query import interpolate

@@ -174,7 +174,7 @@ def run(dataset: str, out: Path, kill: list[str], rate: float, window_s: float, 
 def _kill_one(sup: Supervisor, probe: Probe, name: str, out: Path, window_s: float, restart_timeout_s: float) -> dict:
     child = next(c for c in sup.children if c.spec.name == name)
     if name == "mapping":  # kill it only once it has saved a checkpoint to resume from
-        wait_until(lambda: (out / "map" / "map.npz").exists(), 30.0)
+        wait_until(lambda: (out / "map" / "map" / "dense.npz").exists(), 30.0)
     old_pid = child.proc.pid
     t_kill = time.monotonic()
     os.kill(old_pid, signal.SIGKILL)

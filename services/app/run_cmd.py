@@ -127,7 +127,7 @@ def pipeline_services(cfg, dataset: str, out: Path, realtime: bool, record: bool
             if not record:
                 continue
             s = dataclasses.replace(s, argv=["record", "--out", str(out / "recording.mcap")])
-        elif s.argv[0] == "mapping":  # the map goes into the run folder: DIR/mesh.ply, DIR/submaps/, DIR/map.npz
+        elif s.argv[0] == "mapping":  # the map goes into the run folder: DIR/mesh.ply, DIR/submaps/, DIR/map/dense.npz
             # stopped right after the final trajectory, which it meshes and writes: give it time to finish
             s = dataclasses.replace(s, argv=["mapping", "--out", str(out)],
                                     stop_timeout_s=s.stop_timeout_s or MAPPING_STOP_TIMEOUT_S)

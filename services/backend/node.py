@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import time
+from pathlib import Path
 
 import numpy as np
 
@@ -32,6 +34,9 @@ from services.backend.imu_factors import ImuDataError
 from services.backend.loop.backend_loop import LoopClosingBackend, PublishedFrame
 from services.backend.loop.history import KeyframeHistory
 from services.backend.loop.loop_closer import LoopCloser, ThreadedLoopCloser
+from services.backend.loop.saved_map import SparseMapError, load_sparse
+from shared.config import ConfigError
+from shared.map_folder import SPARSE_FILE, run_map_dir, sparse_path
 from services.backend.o2p_terms import OccupancyTerms
 from services.backend.outputs import keyframes_message, landmarks_message, state_message
 from shared.lookup_camera import LookupCamera
@@ -143,6 +148,26 @@ class BackendShell:
 
 
 
+def saved_map_to_load(lc, restarted: bool) -> Path | None:
+    """The sparse map a back end starts from: after a restart, its run's own last checkpoint
+    (``loop.map_output``/map/sparse.npz, which holds the saved map it localised in, if any); else
+    ``loop.prior_map``; None for neither. A configured ``prior_map`` that is not there is an error (ConfigError:
+    the service stops with the message); a missing checkpoint only means starting afresh (logged)."""
+    if restarted and lc.map_output:
+        ckpt = run_map_dir(lc.map_output) / SPARSE_FILE
+        if ckpt.is_file():
+            log.warning("back end restarted: relocalising in this run's last saved map %s", ckpt)
+            return ckpt
+        log.warning("back end restarted without a saved map (%s): starting a new world frame", ckpt)
+    if not lc.prior_map:
+        return None
+    path = sparse_path(lc.prior_map)
+    if not path.is_file():
+        raise ConfigError(f"loop.prior_map: {path} not found (a run's folder with map/sparse.npz, or the map/ "
+                          "folder itself)")
+    return path
+
+
 class _LateBound:
     """A value handed to constructors before it exists, bound once right after (the root's one cycle)."""
 
@@ -199,7 +224,18 @@ class BackendNode(ProcessNode):
         window = _LateBound("the back end's estimator")
         history = runner = published = None
         if lc.enabled:
-            runner = ThreadedLoopCloser(LoopCloser(lc, cams), lc.synchronous)
+            closer = LoopCloser(lc, cams)
+            prior = saved_map_to_load(lc, restarted)
+            if prior is not None:
+                try:
+                    closer.load_prior(load_sparse(prior))
+                except SparseMapError as exc:
+                    if not restarted:
+                        raise ConfigError(f"loop.prior_map: {exc}") from exc
+                    log.warning("saved map not usable (%s): starting a new world frame", exc)
+                else:
+                    log.info("localising in the saved map %s (%d keyframes)", prior, len(closer.prior))
+            runner = ThreadedLoopCloser(closer, lc.synchronous)
             history = KeyframeHistory(listeners=[runner.submit_record])
             published = PublishedFrame(history, window, lc.correct_state, cfg.o2p.anchor_tolerance_ms)
         # no dense factors until the window has a metric scale (one camera: OccupancyTerms.window_factors)
@@ -208,6 +244,9 @@ class BackendNode(ProcessNode):
                                                on_marginalise=[history] if history is not None else []))
         self.shell = BackendShell(est, o2p, restarted)
         self.loop = LoopClosingBackend(self.shell, lc, history, runner, published) if lc.enabled else None
+        if self.loop is not None:
+            self.loop.session = {"source": str(cfg.rig.calibration), "restarted": bool(restarted),
+                                 "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
         used = ["on_features", "on_imu"]
         if self.shell.o2p is not None:
             used.append("on_map_input")

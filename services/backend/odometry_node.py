@@ -89,7 +89,8 @@ class OdometryNode(ProcessNode):
             self.dropped += 1
             log.warning("feature frame %d dropped (%d so far): %s", stamp, self.dropped, exc)
             return []
-        header = Header(stamp_ns=stamp, seq=self.seq, frame_id="W")
+        w = self.tracker.window  # its frame: 'W', or shared.map_folder.UNALIGNED_FRAME before a relocalisation
+        header = Header(stamp_ns=stamp, seq=self.seq, frame_id=(w.header.frame_id or "W") if w is not None else "W")
         self.seq += 1
         if st is None:  # no window (yet, or since a back-end restart): say so (a lockstep player waits for an answer);
             # after a restart the first such state says 'reset' (consumers drop their history), as the back end's did

@@ -69,5 +69,7 @@ class MappingConfig:
     field_period_s: float = param(2.0, "the current submap's near-surface field goes out on map/field this often (closed submaps once, when closed; <= 0: only closed ones)", "s")
     o2p_points: int = param(0, "> 0: pool this many lowest-sigma depth points per submap and publish them on map/o2p_points when it closes (map-to-map factors of the back end's o2p section); 0: off")
     vertex_colors: bool = param(True, "colour published mesh vertices by the map's uncertainty sigma_map (eq. 7; blue 2 cm .. red 20 cm)")
-    output_dir: str = param("", "folder for mesh.ply, submaps/*.ply and map.npz at exit ('' = write nothing)")
-    checkpoint_period_s: float = param(10.0, "with an output folder, map.npz is also saved (atomically: write, then rename) this often while running; a service the supervisor restarts resumes from it (0 = only at exit)", "s")
+    output_dir: str = param("", "folder for mesh.ply, submaps/*.ply and map/dense.npz at exit ('' = write nothing)")
+    prior_map: str = param("", "a saved map (a run's folder or its map/ folder, shared/map_folder.py) whose dense "
+                           "submaps this map starts from, frozen in the saved map's frame ('' = an empty map)")
+    checkpoint_period_s: float = param(10.0, "with an output folder, map/dense.npz is also saved (atomically: write, then rename) this often while running; a service the supervisor restarts resumes from it (0 = only at exit)", "s")

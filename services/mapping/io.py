@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
@@ -12,46 +11,13 @@ from shared.occupancy.blocks import BlockStore
 from services.mapping.config import SensorModelConfig, SubmapConfig
 from services.mapping.submaps import SubmapMapper
 from shared.config import from_dict, to_dict
+from shared.map_folder import atomic_write
 
 FORMAT = "sigmaslam-occupancy-map/1"
 
 
 class MapFileError(ValueError):
     """A map file that cannot be read."""
-
-
-def _atomic_write(path: Path, write) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as fh:
-            write(fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
-def remove_stale_temps(folder: str | Path) -> list[Path]:
-    """Delete ``.<name>.<pid>.tmp`` files of :func:`_atomic_write` left by processes that no longer run
-    (killed mid-save); returns what was removed. The completed files beside them are untouched."""
-    removed = []
-    for tmp in Path(folder).glob(".*.tmp") if Path(folder).is_dir() else []:
-        pid = tmp.name.rsplit(".", 2)[-2]
-        if not pid.isdigit() or int(pid) == os.getpid():
-            continue
-        try:
-            os.kill(int(pid), 0)
-            continue  # its writer is alive
-        except ProcessLookupError:
-            pass
-        except PermissionError:
-            continue
-        tmp.unlink(missing_ok=True)
-        removed.append(tmp)
-    return removed
 
 
 def save_map(mapper: SubmapMapper, path: str | Path) -> Path:
@@ -70,7 +36,7 @@ def save_map(mapper: SubmapMapper, path: str | Path) -> Path:
         for k, v in sm.store.arrays().items():
             arrays[f"s{sm.id}/{k}"] = v
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
-    _atomic_write(path, lambda fh: np.savez(fh, **arrays))
+    atomic_write(path, lambda fh: np.savez(fh, **arrays))
     return path
 
 
@@ -123,5 +89,5 @@ def write_ply(path: str | Path, vertices: np.ndarray, faces: np.ndarray, colors:
         fh.write(vert.tobytes())
         fh.write(face.tobytes())
 
-    _atomic_write(path, write)
+    atomic_write(path, write)
     return path

@@ -11,9 +11,9 @@ submap (``OccupancyField`` on ``map/field``, for the occupancy-to-point factors)
 submap closes, and for the current submap every ``field_period_s``. When the final trajectory has been
 applied (the stream is over) and again at exit (SIGTERM/SIGINT) if anything changed since, the map is
 meshed completely, published, and, if ``output_dir`` is set, written there: ``mesh.ply``
-(world), ``submaps/submap_NNN.ply`` (each in its own frame M), ``map.npz`` and ``mapping.json``. Writing
+(world), ``submaps/submap_NNN.ply`` (each in its own frame M), ``map/dense.npz`` and ``mapping.json``. Writing
 at the final trajectory keeps the finished map on disk even when the process is stopped hard soon after. With an
-output folder, ``map.npz`` is also checkpointed every ``checkpoint_period_s`` (atomic rename); a service
+output folder, ``map/dense.npz`` is also checkpointed every ``checkpoint_period_s`` (atomic rename); a service
 restarted by the supervisor resumes from that checkpoint (see :func:`resume_map`, docs/reliability.md).
 """
 
@@ -29,7 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from services.mapping.config import MappingConfig
-from services.mapping.io import MapFileError, load_map, remove_stale_temps, save_map, write_ply
+from services.mapping.io import MapFileError, load_map, save_map, write_ply
+from shared.map_folder import DENSE_FILE, dense_path, remove_stale_temps, run_map_dir
 from shared.occupancy.o2p_points import SubmapPointPool
 from services.mapping.poses import PoseBuffer
 from services.mapping.submaps import SubmapMapper
@@ -177,7 +178,7 @@ class MappingLoop:
         return out
 
     def write_outputs(self, out_dir: Path, report_only: bool = False) -> None:
-        """The map (mesh.ply, submaps/, map.npz) and mapping.json; with ``report_only`` only mapping.json."""
+        """The map (mesh.ply, submaps/, map/dense.npz) and mapping.json; with ``report_only`` only mapping.json."""
         out_dir.mkdir(parents=True, exist_ok=True)
         if not report_only:
             v, f = self.mapper.world_mesh()
@@ -185,7 +186,7 @@ class MappingLoop:
             for sm in self.mapper.submaps:
                 sv, sf = sm.mesher.mesh()
                 write_ply(out_dir / "submaps" / f"submap_{sm.id:03d}.ply", sv, sf)
-            save_map(self.mapper, out_dir / "map.npz")
+            save_map(self.mapper, run_map_dir(out_dir) / DENSE_FILE)
         ms = np.array(self.integrate_ms) if self.integrate_ms else np.array([np.nan])
         report = {"counts": dict(self.counts), "integrate_ms_p50": float(np.median(ms)),
                   "integrate_ms_p90": float(np.percentile(ms, 90)), "map_bytes": self.mapper.nbytes(),
@@ -197,14 +198,14 @@ class MappingLoop:
 
 def resume_map(loop: MappingLoop, out_dir: str | None) -> bool:
     """After a supervisor restart (``$SIGMASLAM_RESTARTS`` > 0), continue from the last checkpoint
-    ``<out_dir>/map.npz``: same submaps, ids continue, everything is re-meshed and re-published. A first
+    ``<out_dir>/map/dense.npz``: same submaps, ids continue, everything is re-meshed and re-published. A first
     start, or a restart without a readable checkpoint, begins an empty map (logged)."""
     if out_dir:
-        for tmp in remove_stale_temps(out_dir):
+        for tmp in remove_stale_temps(run_map_dir(out_dir)):
             log.warning("removed %s, left by a save that was killed", tmp)
     if restart_count() <= 0 or not out_dir:
         return False
-    path = Path(out_dir) / "map.npz"
+    path = run_map_dir(out_dir) / DENSE_FILE
     try:
         loop.mapper = load_map(path)
     except (MapFileError, FileNotFoundError) as exc:
@@ -218,6 +219,24 @@ def resume_map(loop: MappingLoop, out_dir: str | None) -> bool:
     print(f"mapping: resumed {len(loop.mapper.submaps)} submaps from {path}", flush=True)
     return True
 
+
+def load_prior_map(loop: MappingLoop, prior: str) -> bool:
+    """Start from the dense submaps of a saved map (``mapping.prior_map``: a run folder or its map/ folder): they
+    stay where they are, in the saved map's frame (frozen: the keyframes they followed belong to the run that made
+    them); new depth goes into new submaps, which follow this run's keyframes, in the map's frame once the back end
+    has relocalised. A map without a readable dense file starts empty (logged)."""
+    path = dense_path(prior)
+    try:
+        loop.mapper = load_map(path)
+    except (MapFileError, FileNotFoundError) as exc:
+        log.warning("mapping: no dense submaps from the saved map (%s): starting an empty map", exc)
+        return False
+    loop.mapper.estimator_reset()  # freeze them; the next depth frame starts a new submap
+    loop.mapper.remesh(None)
+    loop.to_publish.update(sm.id for sm in loop.mapper.submaps)
+    loop.counts["prior_submaps"] = len(loop.mapper.submaps)
+    print(f"mapping: {len(loop.mapper.submaps)} submaps of the saved map {path}", flush=True)
+    return True
 
 
 class MappingNode(ProcessNode):
@@ -242,7 +261,8 @@ class MappingNode(ProcessNode):
     def __init__(self, cfg: MappingConfig, out_dir: str | None = None, clock=time.monotonic) -> None:
         self.cfg, self.out_dir, self.clock = cfg, out_dir, clock
         self.loop = MappingLoop(cfg)
-        resume_map(self.loop, out_dir)
+        if not resume_map(self.loop, out_dir) and cfg.prior_map:
+            load_prior_map(self.loop, cfg.prior_map)
         depth = topics.DEPTH_STEREO if cfg.depth_topic == topics.DEPTH_STEREO.key else topics.DEPTH_FUSED
         self.inputs = tuple(dataclasses.replace(i, depth=cfg.state_buffer) if i.handler == "on_state" else i
                             for i in type(self).inputs if i.handler != "on_depth" or i.topic == depth)
@@ -286,7 +306,7 @@ class MappingNode(ProcessNode):
         if self.out_dir and cfg.checkpoint_period_s > 0 and now - self.last_checkpoint >= cfg.checkpoint_period_s:
             self.last_checkpoint = now
             with self.timer("checkpoint"):
-                save_map(loop.mapper, Path(self.out_dir) / "map.npz")
+                save_map(loop.mapper, run_map_dir(self.out_dir) / DENSE_FILE)
         return out
 
     def flush(self) -> list[Emit]:

@@ -2,7 +2,7 @@
 
 estimator/state, estimator/keyframes, depth/stereo or depth/fused (``mapping.depth_topic``),
 estimator/trajectory_final -> map/submap, map/field, map/o2p_points; with an output folder, mesh.ply, submaps/,
-map.npz and mapping.json there.
+map/dense.npz and mapping.json there.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ log = logging.getLogger("sigmaslam.mapping")
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("config", nargs="?", help="YAML system config (default: built-in defaults)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config field")
-    p.add_argument("--out", metavar="DIR", help="write mesh.ply, submaps/, map.npz here at exit (overrides mapping.output_dir)")
+    p.add_argument("--out", metavar="DIR", help="write mesh.ply, submaps/, map/dense.npz here at exit (overrides mapping.output_dir)")
 
 
 def main(args: argparse.Namespace) -> int:

@@ -121,9 +121,9 @@ def evaluate_sequence(seq: str, replica: Path, run_dir: Path, out: Path, hilti_p
     if runs:
         trajectory_figure(out / "trajectory.png", seq, gt.p_WS, runs)
     mesh = run_dir / "mesh.ply"
-    if not mesh.is_file() and (run_dir / "map.npz").is_file():
+    if not mesh.is_file() and (run_dir / "map" / "dense.npz").is_file():
         mesh = mesh_from_checkpoint(run_dir)
-        row["mesh_source"] = "map.npz checkpoint (the mapper stopped before writing mesh.ply)"
+        row["mesh_source"] = "map/dense.npz checkpoint (the mapper stopped before writing mesh.ply)"
     gt_mesh = replica / "mav0" / "scene" / "mesh.ply"
     if mesh.is_file() and gt_mesh.is_file():
         try:
@@ -136,10 +136,10 @@ def evaluate_sequence(seq: str, replica: Path, run_dir: Path, out: Path, hilti_p
 
 
 def mesh_from_checkpoint(run_dir: Path) -> Path:
-    """World mesh of the mapper's last checkpoint (DIR/map.npz) as DIR/mesh_from_checkpoint.ply."""
+    """World mesh of the mapper's last checkpoint (DIR/map/dense.npz) as DIR/mesh_from_checkpoint.ply."""
     from services.mapping.io import load_map, write_ply
 
-    mapper = load_map(run_dir / "map.npz")
+    mapper = load_map(run_dir / "map" / "dense.npz")
     mapper.remesh(None)
     v, f = mapper.world_mesh()
     return write_ply(run_dir / "mesh_from_checkpoint.ply", v, f)

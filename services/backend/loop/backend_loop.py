@@ -19,6 +19,7 @@ keyframe history (the estimator's marginalisation listener), the :class:`Threade
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from typing import TYPE_CHECKING, Callable
@@ -32,6 +33,7 @@ from services.backend.loop.history import KeyframeHistory
 from services.backend.loop.loop_closer import ThreadedLoopCloser
 from services.backend.loop.verification import FeatureSet
 from shared.geometry import inv_T
+from shared.map_folder import SPARSE_FILE, UNALIGNED_FRAME, run_map_dir
 from shared.messages import EstimatorState, FinalTrajectory, Header, KeyframeFeatures, Keyframes, Landmarks
 
 if TYPE_CHECKING:
@@ -109,11 +111,41 @@ class LoopClosingBackend:
         self.history, self.runner, self.published = history, runner, published
         self._stamps: list[int] = []
         self._T_pub: list[np.ndarray] = []
+        self._frame_ids: list[str] = []  # the frame each published pose is in (header.frame_id)
         self._generation = 0
         self.dropped_features = 0
         self._end_ns: int | None = None
         self._finished = False
         self._last_process = time.monotonic()
+        self._last_save_ns: int | None = None
+        self.session = {}  # what the saved map says about this run (source, start time)
+        self._first_state_ns: int | None = None
+
+    @property
+    def frame_id(self) -> str:
+        """The frame of the published poses: 'W', or :data:`UNALIGNED_FRAME` while a run localising in a saved map
+        has not relocalised yet."""
+        return "W" if self.runner.aligned else UNALIGNED_FRAME
+
+    def _save_due(self, stamp_ns: int) -> None:
+        """Checkpoint the sparse map every ``loop.map_checkpoint_period_s`` of sensor time (``loop.map_output``)."""
+        cfg = self.cfg
+        if not cfg.map_output or cfg.localise_only or cfg.map_checkpoint_period_s <= 0:
+            return
+        if self._last_save_ns is None:
+            self._last_save_ns = stamp_ns
+        elif stamp_ns - self._last_save_ns >= cfg.map_checkpoint_period_s * 1e9:
+            self._last_save_ns = stamp_ns
+            self.runner.submit_save(run_map_dir(cfg.map_output) / SPARSE_FILE, self.session)
+
+    def save_map(self) -> bool:
+        """Write the sparse map now and wait for it (the end of a run); False when not configured or not written."""
+        if not self.cfg.map_output or self.cfg.localise_only:
+            return False
+        before = self.runner.saved
+        self.runner.submit_save(run_map_dir(self.cfg.map_output) / SPARSE_FILE, self.session)
+        self.runner.drain()
+        return self.runner.saved > before
 
     @property
     def counts(self) -> dict[str, int]:
@@ -143,6 +175,10 @@ class LoopClosingBackend:
         if msgs is None or msgs[0].status in ("initialising", "reset"):
             return msgs
         state, kfs = msgs
+        self._save_due(int(state.header.stamp_ns))
+        if (frame_id := self.frame_id) != state.header.frame_id:
+            state = dataclasses.replace(state, header=dataclasses.replace(state.header, frame_id=frame_id))
+            msgs = state, kfs
         if not self.cfg.correct_state:
             return msgs
         T, gen, (g_ids, g_stamps, g_T) = self.runner.snapshot()  # correction and keyframes from the same solve
@@ -154,7 +190,8 @@ class LoopClosingBackend:
                 keep = ~np.isin(g_ids, ids)
                 ids, stamps = np.r_[g_ids[keep], ids], np.r_[g_stamps[keep], stamps]
                 poses = np.concatenate([g_T[keep], poses])
-            kfs = Keyframes(header=kfs.header, ids=np.asarray(ids, np.int64), stamps_ns=np.asarray(stamps, np.int64),
+            kfs = Keyframes(header=dataclasses.replace(kfs.header, frame_id=state.header.frame_id),
+                            ids=np.asarray(ids, np.int64), stamps_ns=np.asarray(stamps, np.int64),
                             T_WS=np.ascontiguousarray(poses, np.float64))
             self.published.note_published(kfs)
         return state, kfs
@@ -169,6 +206,7 @@ class LoopClosingBackend:
             return
         self._stamps.append(stamp)
         self._T_pub.append(np.array(state.T_WS))
+        self._frame_ids.append(state.header.frame_id)
         self.runner.submit_status(stamp, state.status)
 
     def take_landmarks(self) -> Landmarks | None:
@@ -194,21 +232,42 @@ class LoopClosingBackend:
         stamps = np.array(self._stamps, np.int64)
         T_pub = np.array(self._T_pub)
         if self.cfg.final_ba:
-            res = bundle_adjust(records, est.cameras, est.cfg.sigma_px, est.cfg.cauchy_k, closer.loops + late_loops,
+            loops = closer.loops + late_loops
+            anchors, T_init = [], None
+            if closer.prior is not None and closer.aligned:  # in the saved map's frame: its matches place the run
+                T_init = closer.correction()
+                anchors = [(new, closer.graph.estimate[old] @ T, cov) for old, new, T, cov in loops
+                           if old in closer.graph.fixed]
+            res = bundle_adjust(records, est.cameras, est.cfg.sigma_px, est.cfg.cauchy_k, loops,
                                 self.cfg.final_ba_iterations, loop_observations=closer.loop_observations + late_obs,
-                                map_to_map=closer.map_to_map_for_final())
-            T_final = follow_keyframes(stamps, T_pub, res.stamps_ns, res.T_WS)
+                                map_to_map=closer.map_to_map_for_final(), anchors=anchors, T_init=T_init)
+            T_final = self._follow(stamps, T_pub, res.stamps_ns, res.T_WS)
             n_kf = len(res.stamps_ns)
             log.info("final BA: %d keyframes, %d landmarks, %d observations, %d map-to-map, error %.1f -> %.1f", n_kf,
                      res.landmarks, res.observations, res.map_to_map, res.initial_error, res.final_error)
         else:  # the pose graph alone
             g_ids, g_stamps, g_T = closer.corrected_keyframes()
-            T_final = follow_keyframes(stamps, T_pub, g_stamps, g_T) if len(g_ids) else T_pub
+            T_final = self._follow(stamps, T_pub, g_stamps, g_T) if len(g_ids) else T_pub
             n_kf = len(g_ids)
-        return FinalTrajectory(header=Header(stamp_ns=int(stamps[-1]), seq=seq, frame_id="W"), stamps_ns=stamps,
+        return FinalTrajectory(header=Header(stamp_ns=int(stamps[-1]), seq=seq, frame_id=self.frame_id), stamps_ns=stamps,
                                T_WS=np.ascontiguousarray(T_final, np.float64), keyframes=int(n_kf),
                                loops_proposed=int(c["proposed"]), loops_verified=int(c["verified"]),
                                loops_accepted=int(c["accepted"]), relocalisations=int(c["relocalised"]))
+
+    def _follow(self, stamps: np.ndarray, T_pub: np.ndarray, kf_stamps: np.ndarray, kf_T: np.ndarray) -> np.ndarray:
+        """:func:`follow_keyframes` per published frame: a frame follows a keyframe published in the same frame (a
+        run that relocalised in a saved map published its first poses in another), so no pose is moved by a
+        correction taken in the other frame."""
+        ids = np.array(self._frame_ids[:len(stamps)])
+        if len(set(ids.tolist())) <= 1:
+            return follow_keyframes(stamps, T_pub, kf_stamps, kf_T)
+        out = np.array(T_pub, float)
+        for f in set(ids.tolist()):
+            sel = ids == f
+            kf = np.isin(kf_stamps, stamps[sel])
+            if kf.any():
+                out[sel] = follow_keyframes(stamps[sel], T_pub[sel], kf_stamps[kf], kf_T[kf])
+        return out
 
     def poll_end(self, stream_ends, idle_s: float = 2.0) -> FinalTrajectory | None:
         """Call while no frame is waiting, with the StreamEnd messages received since the last call: returns the
@@ -224,6 +283,8 @@ class LoopClosingBackend:
             return None
         self._finished = True
         t0 = time.perf_counter()
+        if self.save_map():
+            log.info("sparse map saved to %s", run_map_dir(self.cfg.map_output) / SPARSE_FILE)
         try:
             out = self.finish()
         except (RuntimeError, ValueError) as exc:
@@ -233,4 +294,6 @@ class LoopClosingBackend:
         return out
 
     def close(self) -> None:
+        if not self._finished and self.save_map():  # stopped before the stream ended: keep what was mapped
+            log.info("sparse map saved to %s at exit", run_map_dir(self.cfg.map_output) / SPARSE_FILE)
         self.runner.close()

@@ -42,6 +42,21 @@ class LoopConfig:
     synchronous: bool = param(False, "handle loop-closure events in the back end's own thread as they come, not in "
                               "the loop thread: reproducible runs over recorded data (evaluation), at the cost of "
                               "frames that wait for verification and pose-graph solves")
+    # --- saved maps (shared/map_folder.py, services/backend/loop/saved_map.py) ---
+    prior_map: str = param("", "a saved map (a run's folder or its map/ folder) to localise in: poses are published "
+                           "in its frame once relocalised ('' = none; `sigmaslam run --map DIR`)")
+    localise_only: bool = param(False, "with prior_map: localise in it without adding this run's keyframes to the "
+                                "map the back end saves")
+    map_output: str = param("", "folder whose map/sparse.npz the back end writes (keyframes, features, landmarks, "
+                            "pose graph) at the end and every map_checkpoint_period_s; a restarted back end "
+                            "resumes from it ('' = not saved; `sigmaslam run` sets its --out)")
+    map_checkpoint_period_s: float = param(5.0, "the sparse map is saved this often while running (sensor time; "
+                                           "0 = only at the end)", "s")
+    relocalise_confirmations: int = param(2, "matches to the saved map that must agree before the session is moved "
+                                          "into the map's frame (one wrong match must not move it)")
+    relocalise_agree_m: float = param(0.3, "matches agree when the map-from-session transforms they imply differ "
+                                      "by at most this much translation ...", "m")
+    relocalise_agree_deg: float = param(3.0, "... and this much rotation", "deg")
     queue_depth: int = param(200, "keyframe events waiting for the loop thread at most (oldest dropped, counted)")
     # --- final bundle adjustment ---
     final_ba: bool = param(True, "at the end of the stream, bundle-adjust all keyframes and publish "

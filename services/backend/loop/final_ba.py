@@ -35,26 +35,39 @@ class FinalBaResult:
 def bundle_adjust(records: list[KeyframeRecord], cameras, sigma_px: float = 1.0, cauchy_k: float = 2.0,
                   loops: list[tuple[int, int, np.ndarray, np.ndarray]] = (), max_iterations: int = 30,
                   prior_sigma_rot: float = 1e-3, prior_sigma_pos: float = 1e-3,
-                  loop_observations: list[tuple[int, int, np.ndarray, int]] = (), map_to_map=()) -> FinalBaResult:
+                  loop_observations: list[tuple[int, int, np.ndarray, int]] = (), map_to_map=(), anchors=(),
+                  T_init: np.ndarray | None = None) -> FinalBaResult:
     """``records`` of all keyframes (time order, no duplicates); ``cameras``: the estimator's BackendCamera
     list; ``loops``: (old state, new state, T_old_new, covariance 6x6); ``loop_observations``: (state, camera,
     normalised xy, landmark id) observations of old landmarks by loop keyframes (PnP inliers); ``map_to_map``:
-    services.backend.o2p_terms.MapToMap terms (those whose anchors are among the keyframes join)."""
+    services.backend.o2p_terms.MapToMap terms (those whose anchors are among the keyframes join); ``anchors``:
+    (state, T_WS, covariance 6x6) poses of keyframes in a saved map's frame (their matches to the map's fixed
+    keyframes): robust pose priors that place the whole run in the map's frame, the first keyframe's gauge prior
+    then only weak; ``T_init``: moves the records' poses, velocities and landmarks (window frame) to where the
+    optimisation starts (the map's frame as the pose graph has it)."""
     recs = sorted({r.state: r for r in records}.values(), key=lambda r: r.state)
     if len(recs) < 2:
         raise ValueError("the final bundle adjustment needs at least two keyframes")
     states = {r.state for r in recs}
+    anchors = [a for a in anchors if a[0] in states]
+    T0 = np.eye(4) if T_init is None else np.asarray(T_init, float)
     g, vals = gtsam.NonlinearFactorGraph(), gtsam.Values()
     for r in recs:
-        vals.insert(X(r.state), gtsam.Pose3(r.T_WS))
-        vals.insert(V(r.state), np.asarray(r.v_W, float))
+        vals.insert(X(r.state), gtsam.Pose3(T0 @ r.T_WS))
+        vals.insert(V(r.state), T0[:3, :3] @ np.asarray(r.v_W, float))
         vals.insert(B(r.state), r.bias)
         if r.imu_to_next is not None and r.next_state in states:
             g.add(r.imu_to_next)
     r0 = recs[0]
-    g.add(gtsam.PriorFactorPose3(X(r0.state), gtsam.Pose3(r0.T_WS), gtsam.noiseModel.Diagonal.Sigmas(
+    if anchors:  # the saved map's matches place the run; the first keyframe only weakly
+        prior_sigma_rot, prior_sigma_pos = 1.0, 100.0
+        for s, T, cov in anchors:
+            g.add(gtsam.PriorFactorPose3(X(s), gtsam.Pose3(np.asarray(T, float)), gtsam.noiseModel.Robust.Create(
+                gtsam.noiseModel.mEstimator.Cauchy.Create(3.0), gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, float)))))
+    g.add(gtsam.PriorFactorPose3(X(r0.state), gtsam.Pose3(T0 @ r0.T_WS), gtsam.noiseModel.Diagonal.Sigmas(
         np.array([prior_sigma_rot] * 3 + [prior_sigma_pos] * 3))))
-    g.add(gtsam.PriorFactorVector(V(r0.state), np.asarray(r0.v_W, float), gtsam.noiseModel.Isotropic.Sigma(3, 0.1)))
+    g.add(gtsam.PriorFactorVector(V(r0.state), T0[:3, :3] @ np.asarray(r0.v_W, float),
+                                  gtsam.noiseModel.Isotropic.Sigma(3, 0.1)))
     g.add(gtsam.PriorFactorConstantBias(B(r0.state), r0.bias, gtsam.noiseModel.Diagonal.Sigmas(
         np.array([0.1] * 3 + [0.01] * 3))))
     # landmarks: all observations across keyframes; the newest position estimate as the initial value
@@ -75,7 +88,7 @@ def bundle_adjust(records: list[KeyframeRecord], cameras, sigma_px: float = 1.0,
     for lm, lst in obs.items():
         if lm not in p_init or len({s for s, _, _ in lst}) < 2:
             continue
-        vals.insert(L(lm), np.asarray(p_init[lm], float))
+        vals.insert(L(lm), T0[:3, :3] @ np.asarray(p_init[lm], float) + T0[:3, 3])
         n_lm += 1
         for s, c, xy in lst:
             g.add(gtsam.GenericProjectionFactorCal3_S2(np.asarray(xy, float), noise[c], X(s), L(lm), cal, False,
@@ -87,7 +100,7 @@ def bundle_adjust(records: list[KeyframeRecord], cameras, sigma_px: float = 1.0,
                                                    gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, float)))
             g.add(gtsam.BetweenFactorPose3(X(old), X(new), gtsam.Pose3(T_rel), model))
     n_m2m = 0
-    T_of = {r.state: r.T_WS for r in recs}
+    T_of = {r.state: T0 @ r.T_WS for r in recs}
     for t in map_to_map:
         if t.state_m in states and t.state_o in states:
             f = t.build(X(t.state_m), X(t.state_o), T_of[t.state_m], T_of[t.state_o])

@@ -14,6 +14,13 @@ estimator's marginalisation hook) and the tracking status (:meth:`LoopCloser.not
   wait until the keyframes anchoring both submaps are pose-graph nodes, then join the graph like loops.
 * Relocalisation: after ``relocalise_after_s`` without tracking, the next keyframes are queried against the
   keyframes from before the loss regardless of age, so the trajectory after the gap is tied back to the map.
+* A saved map (:meth:`LoopCloser.load_prior`, services/backend/loop/saved_map.py): its keyframes join the database
+  and the pose graph as fixed nodes in the map's frame. Until the session is aligned to the map, each keyframe is
+  queried against the map's keyframes alone (any age); a verified match proposes T_map_window, and once
+  ``loop.relocalise_confirmations`` of them agree the session's nodes are moved into the map's frame and the matches
+  join the graph as loops (:attr:`LoopCloser.aligned`). From then on the published poses are in the map's frame, and
+  later matches to the map are ordinary loops to fixed nodes. :meth:`LoopCloser.sparse_map` gives the map to save:
+  the saved map's keyframes, unchanged, and this session's aligned keyframes.
 
 :class:`ThreadedLoopCloser` runs all of this in a thread of its own: the caller only enqueues.
 """
@@ -34,11 +41,16 @@ from services.backend.loop.covisibility import Covisibility
 from services.backend.loop.history import KeyframeRecord
 from services.backend.loop.place_recognition import PlaceDatabase
 from services.backend.loop.pose_graph import LoopConstraint, PoseGraph
+from services.backend.loop.saved_map import (LOOP, ODOMETRY, SparseMap, SparseMapError, build_map, concatenate,
+                                             save_sparse, vocabulary_id)
 from services.backend.loop.verification import FeatureSet, verify_pnp
 from services.backend.loop.vocabulary import DEFAULT_PATH, Vocabulary, l1_score
-from shared.geometry import inv_T
+from shared.geometry import inv_T, so3_log
 
 log = logging.getLogger("sigmaslam.loop")
+
+PRIOR_KEY_BASE = 1 << 40  # pose-graph keys of a saved map's keyframes: PRIOR_KEY_BASE + row (never a state index)
+PRIOR_STAMP_NS = -(1 << 62)  # their stamp in the place database: older than anything, whatever min_age_s
 
 
 @dataclass(frozen=True)
@@ -56,6 +68,7 @@ class LoopCloser:
     def __init__(self, cfg: LoopConfig, cameras, vocabulary: Vocabulary | None = None) -> None:
         self.cfg = cfg
         self.voc = vocabulary or Vocabulary.load(cfg.vocabulary or DEFAULT_PATH)
+        self.voc_id = vocabulary_id(self.voc)
         self.db = PlaceDatabase(self.voc.size)
         self.graph = PoseGraph(loop_cauchy_k=cfg.loop_cauchy_k, attitude_sigma_rad=np.deg2rad(cfg.attitude_sigma_deg))
         self.covisibility = Covisibility()
@@ -78,6 +91,36 @@ class LoopCloser:
         self._last_solve_ns = -(1 << 62)
         self._m2m_pending: list = []  # map-to-map terms waiting for their anchor keyframes to become nodes
         self.max_pending_map_to_map = 100
+        self.prior: SparseMap | None = None  # a saved map this session localises in (load_prior)
+        self.aligned = True  # the session's frame is the map's (always, without a saved map)
+        self.aligned_at_ns: int | None = None  # stamp of the keyframe whose match aligned the session
+        self._align_candidates: list[tuple[np.ndarray, VerifiedLoop, KeyframeRecord]] = []
+
+    # ------------------------------------------------------------------ a saved map
+    def load_prior(self, m: SparseMap) -> None:
+        """Localise in the saved map ``m``: its keyframes become fixed pose-graph nodes and database entries."""
+        if self.graph.keys:
+            raise RuntimeError("a saved map must be loaded before the first keyframe")
+        voc = m.meta.get("vocabulary")
+        if voc and voc != self.voc_id:
+            raise SparseMapError(f"the saved map was made with vocabulary {voc}, this back end has {self.voc_id} "
+                                 "(loop.vocabulary)")
+        for i in range(len(m)):
+            key = PRIOR_KEY_BASE + i
+            fs, p_W = m.features(i)
+            rec = KeyframeRecord(key, int(m.stamps_ns[i]), m.T_WS[i], np.zeros(3), None, {}, {})
+            self.graph.add_fixed_node(key, m.T_WS[i])
+            self.node_stamps[key] = int(m.stamps_ns[i])
+            if len(fs.landmark_ids) and np.isfinite(p_W[:, 0]).sum() >= self.cfg.min_inliers:
+                self._old[key] = (fs, np.asarray(p_W, float), rec)
+                self.db.add(key, PRIOR_STAMP_NS, self.voc.bag(fs.descriptors))
+        self.prior = m
+        self.aligned = False
+        self.counts["map_keyframes"] = len(m)
+        log.info("saved map loaded: %d keyframes, %d in the place database", len(m), len(self.db))
+
+    def _is_prior(self, key: int) -> bool:
+        return key >= PRIOR_KEY_BASE
 
     # ------------------------------------------------------------------ status
     def note_status(self, stamp_ns: int, status: str) -> None:
@@ -106,6 +149,9 @@ class LoopCloser:
                               ref, max_candidates=cfg.max_candidates if not reloc else 3 * cfg.max_candidates)
         if reloc:
             cands = [c for c in cands if c.stamp_ns < self._reloc_before]
+        if not self.aligned:  # not yet in the saved map's frame: only the map's keyframes can place it there
+            cands = [c for c in self.db.query(bag, stamp_ns, 0.0, cfg.min_score, 0.0, ref, 3 * cfg.max_candidates)
+                     if self._is_prior(c.key)]
         out = []
         for c in cands:
             self.counts["proposed"] += 1
@@ -120,7 +166,8 @@ class LoopCloser:
             xy = np.zeros((len(cams), 2))
             for cam in np.unique(cams):
                 xy[cams == cam] = self._undistort[cam](np.asarray(fs.uv, float)[res.query_index][cams == cam])
-            obs = (cams, xy, np.asarray(old_fs.landmark_ids, np.int64)[res.old_index])
+            # a saved map's landmark ids are another session's: its matches give no observations of this one's
+            obs = () if self._is_prior(c.key) else (cams, xy, np.asarray(old_fs.landmark_ids, np.int64)[res.old_index])
             loop = VerifiedLoop(c.key, int(stamp_ns), res.T_WS, res.covariance, res.inliers, reloc, obs)
             self._pending.append(loop)
             out.append(loop)
@@ -201,6 +248,8 @@ class LoopCloser:
     def _accept(self, lp: VerifiedLoop, rec: KeyframeRecord) -> bool:
         old = self._old[lp.old_state][2]
         T_old_new = inv_T(old.T_WS) @ lp.T_WS_query
+        if not self.aligned:
+            return self._try_align(lp, rec, T_old_new)
         if self.cfg.max_translation_jump_m > 0:
             predicted = self.graph.estimate[old.state] @ T_old_new
             if np.linalg.norm(predicted[:3, 3] - self.graph.estimate[rec.state][:3, 3]) > self.cfg.max_translation_jump_m:
@@ -214,6 +263,59 @@ class LoopCloser:
         self.counts["accepted"] += 1
         self._dirty = True
         return self._solve_if_due(rec.stamp_ns)
+
+    def _try_align(self, lp: VerifiedLoop, rec: KeyframeRecord, T_old_new: np.ndarray) -> bool:
+        """A match of this session's keyframe ``rec`` to the saved map: T_map_window = T_map_query T_window_query^-1.
+        Once ``relocalise_confirmations`` matches (this one and earlier ones) agree within ``relocalise_agree_m`` /
+        ``relocalise_agree_deg``, the session moves into the map's frame and the agreeing matches become loops."""
+        cfg = self.cfg
+        T_mw = lp.T_WS_query @ inv_T(rec.T_WS)
+        self._align_candidates = (self._align_candidates + [(T_mw, lp, rec)])[-10:]
+        agree = [(T, l, r) for T, l, r in self._align_candidates
+                 if np.linalg.norm(T[:3, 3] - T_mw[:3, 3]) <= cfg.relocalise_agree_m
+                 and np.rad2deg(np.linalg.norm(so3_log(T[:3, :3].T @ T_mw[:3, :3]))) <= cfg.relocalise_agree_deg]
+        self.counts["map_matches"] += 1
+        if len(agree) < max(1, cfg.relocalise_confirmations):
+            return False
+        self.graph.align_session(T_mw @ inv_T(self.correction()))  # from where the graph has the session now
+        for _, l, r in agree:
+            old = self._old[l.old_state][2]
+            T_on = inv_T(old.T_WS) @ l.T_WS_query
+            self.graph.add_loop(LoopConstraint(old.state, r.state, T_on, l.covariance))
+            self.loops.append((old.state, r.state, T_on, l.covariance))
+            self.counts["accepted"] += 1
+        self.aligned, self.aligned_at_ns = True, int(rec.stamp_ns)
+        self._align_candidates = []
+        self.counts["map_relocalised"] += 1
+        log.info("relocalised in the saved map at %d ns (%d agreeing matches): publishing in the map's frame",
+                 rec.stamp_ns, len(agree))
+        self._dirty = True
+        self._last_solve_ns = -(1 << 62)  # solve now: everything the session made moves into the map's frame
+        return self._solve_if_due(rec.stamp_ns)
+
+    def sparse_map(self, session: dict | None = None) -> SparseMap | None:
+        """The map to save: the saved map's keyframes as loaded and, once aligned (always, without a saved map),
+        this session's keyframes at their pose-graph estimates with their features and landmark positions moved
+        the same way; None when there is nothing to save."""
+        g = self.graph
+        meta = {"vocabulary": self.voc_id, "frame": "W",
+                "sessions": [{**(session or {}), "keyframes": len(g.keys), "aligned": bool(self.aligned)}]}
+        kfs, edges = [], []
+        if self.aligned:
+            for k in g.keys:
+                T_corr = g.estimate[k] @ inv_T(g.odom[k])  # window frame -> map frame at this node
+                fs, p_W = (self._old[k][0], self._old[k][1]) if k in self._old else (None, None)
+                p = None if p_W is None else p_W @ T_corr[:3, :3].T + T_corr[:3, 3]
+                kfs.append((k, self.node_stamps[k], g.estimate[k], fs, p))
+            edges = [(a, b, T, c, ODOMETRY) for a, b, T, c in g.edges]
+            edges += [(lp.old_key, lp.new_key, lp.T_old_new, lp.covariance, LOOP) for lp in g.loops
+                      if not self._is_prior(lp.old_key)]
+        session_map = build_map(kfs, edges, meta)
+        if self.prior is None:
+            return session_map if len(session_map) else None
+        links = [(int(self.prior.keys[lp.old_key - PRIOR_KEY_BASE]), lp.new_key, lp.T_old_new, lp.covariance, LOOP)
+                 for lp in g.loops if self._is_prior(lp.old_key) and lp.new_key in g.odom] if self.aligned else []
+        return concatenate(self.prior, session_map, np.eye(4), links)
 
     def _solve_if_due(self, stamp_ns: int) -> bool:
         """Solve the pose graph when loops were added and the last solve is ``min_solve_interval_s`` old (gtsam
@@ -246,7 +348,7 @@ class LoopCloser:
         return self.graph.correction()
 
     def corrected_keyframes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(states, stamps, corrected T_WS) of every pose-graph node."""
+        """(states, stamps, corrected T_WS) of every pose-graph node of this session (not a saved map's)."""
         keys = list(self.graph.keys)
         return (np.array(keys, np.int64), np.array([self.node_stamps[k] for k in keys], np.int64),
                 np.array([self.graph.estimate[k] for k in keys]).reshape(-1, 4, 4))
@@ -272,6 +374,8 @@ class ThreadedLoopCloser:
         self.errors = 0
         self.busy_s = 0.0  # time spent handling events (with ``synchronous``: inside the caller's calls)
         self._verified: list[VerifiedLoop] = []
+        self._aligned = closer.aligned
+        self.saved = 0  # sparse maps written
         self._thread = None
         if not synchronous:
             self._thread = threading.Thread(target=self._run, name="loop-closer", daemon=True)
@@ -300,6 +404,19 @@ class ThreadedLoopCloser:
 
     def submit_status(self, stamp_ns: int, status: str) -> None:
         self._put(("status", int(stamp_ns), status))
+
+    def submit_save(self, path, session: dict) -> None:
+        """Write the sparse map (:meth:`LoopCloser.sparse_map`) to ``path`` in the loop thread (never dropped)."""
+        if self.synchronous:
+            self._handle(("save", path, session))
+        else:
+            self._q.put(("save", path, session))
+
+    @property
+    def aligned(self) -> bool:
+        """Whether the published frame is the saved map's (always, without a saved map)."""
+        with self._lock:
+            return self._aligned
 
     def correction(self) -> np.ndarray:
         with self._lock:
@@ -357,6 +474,11 @@ class ThreadedLoopCloser:
                         self._verified.extend(found)
             elif kind == "status":
                 c.note_status(item[1], item[2])
+            elif kind == "save":
+                m = c.sparse_map(item[2])
+                if m is not None:
+                    save_sparse(m, item[1])
+                    self.saved += 1
             else:
                 (c.add_record if kind == "record" else c.add_map_to_map)(item[1])
                 corr = c.correction()
@@ -364,6 +486,7 @@ class ThreadedLoopCloser:
                 snap = c.corrected_keyframes() if solved else None
                 with self._lock:
                     self._correction = corr
+                    self._aligned = c.aligned
                     if solved:  # past keyframes moved: a new generation of corrected nodes
                         self._solves = len(c.solve_ms)
                         self._keyframes = snap

@@ -70,6 +70,31 @@ class PoseGraph:
         self._cauchy = loop_cauchy_k
         self._attitude = (gtsam.noiseModel.Isotropic.Sigma(2, attitude_sigma_rad) if attitude_sigma_rad > 0 else None)
         self.estimate: dict[int, np.ndarray] = {}
+        self.fixed: set[int] = set()  # nodes of a saved map (add_fixed_node): held where the map has them
+        self.edges: list[tuple[int, int, np.ndarray, np.ndarray]] = []  # odometry edges (from, to, T_rel, cov)
+
+    def add_fixed_node(self, key: int, T_WS: np.ndarray) -> None:
+        """A node of a saved map, held at ``T_WS`` (the map's frame) by a tight prior; not part of the session's
+        chain (:attr:`keys`). Once a graph has fixed nodes, the session's first node is only weakly anchored, so
+        that loops to the map's nodes can move the whole session into the map's frame (:meth:`align_session`)."""
+        key, T_WS = int(key), np.asarray(T_WS, float)
+        if key in self.odom:
+            raise ValueError(f"node {key} is already in the pose graph")
+        r, t = self._prior
+        self.graph.add(gtsam.PriorFactorPose3(_sym(key), gtsam.Pose3(T_WS),
+                                              gtsam.noiseModel.Diagonal.Sigmas(np.array([r] * 3 + [t] * 3))))
+        self.initial.insert(_sym(key), gtsam.Pose3(T_WS))
+        self.odom[key] = self.estimate[key] = T_WS
+        self.fixed.add(key)
+
+    def align_session(self, T: np.ndarray) -> None:
+        """Move the session's nodes' current estimates by ``T`` (T_map_session), the starting point of the next
+        solve: loops to fixed nodes then start near their solution instead of being down-weighted by their robust
+        kernel as outliers."""
+        T = np.asarray(T, float)
+        for k in self.keys:
+            self.estimate[k] = T @ self.estimate[k]
+            self.initial.update(_sym(k), gtsam.Pose3(self.estimate[k]))
 
     def add_node(self, key: int, T_WS: np.ndarray, rel_cov: np.ndarray | None = None,
                  T_rel: np.ndarray | None = None) -> None:
@@ -83,14 +108,17 @@ class PoseGraph:
                 raise ValueError(f"keyframe {key}: relative covariance to {prev} missing or not finite")
             T_rel = inv_T(self.odom[prev]) @ T_WS if T_rel is None else np.asarray(T_rel, float)
             self.graph.add(gtsam.BetweenFactorPose3(_sym(prev), _sym(key), gtsam.Pose3(T_rel), _noise(rel_cov)))
+            self.edges.append((prev, int(key), T_rel, np.asarray(rel_cov, float)))
             guess = self.estimate.get(prev, self.odom[prev]) @ T_rel  # follows the latest correction
         else:
-            r, t = self._prior
+            # the gauge: the first node where the window has it; with a saved map's nodes in the graph only weakly
+            # (metres, radians), so that loops to the map decide where the session is
+            r, t = (1.0, 100.0) if self.fixed else self._prior
             self.graph.add(gtsam.PriorFactorPose3(_sym(key), gtsam.Pose3(T_WS),
                                                   gtsam.noiseModel.Diagonal.Sigmas(np.array([r] * 3 + [t] * 3))))
             guess = T_WS
         self.initial.insert(_sym(key), gtsam.Pose3(guess))
-        if self._attitude is not None and self.keys:  # W's z is up (gravity along -z): keep the window's tilt
+        if self._attitude is not None and (self.keys or self.fixed):  # W's z is up (gravity along -z): keep the window's tilt
             self.graph.add(gtsam.AttitudeFactorPose3(_sym(key), gtsam.Unit3(_UP), self._attitude,
                                                      gtsam.Unit3(T_WS[:3, :3].T @ _UP)))
         self.odom[key] = T_WS
@@ -139,7 +167,7 @@ class PoseGraph:
             err = new
         values = opt.values()
         self.initial = values
-        self.estimate = {k: values.atPose3(_sym(k)).matrix() for k in self.keys}
+        self.estimate = {k: values.atPose3(_sym(k)).matrix() for k in (*self.fixed, *self.keys)}
         return dict(self.estimate)
 
     def correction(self) -> np.ndarray:
