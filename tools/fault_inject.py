@@ -94,13 +94,14 @@ def build(dataset: str, out: Path, rate: float, sets: list[str], nice: int = 10,
     overrides = [f"transport.namespace=sigmaslam/faults-{uuid.uuid4().hex[:8]}", f"transport.connect=[tcp/127.0.0.1:{port}]",
                  f"transport.router_listen=[tcp/127.0.0.1:{port}]", "depth.method=sgbm", "depth.rate_hz=5",
                  "mapping.depth_topic=depth/stereo", "mapping.checkpoint_period_s=2", "loop.enabled=false",
-                 "transport.stats_period_s=0.5", f"viewer.port={free_local_port()}", *sets]
+                 "transport.stats_period_s=0.5", f"viewer.port={free_local_port()}", f"loop.map_output={out.resolve()}",
+                 "loop.map_checkpoint_period_s=2", *sets]
     spec = dict(restart="on-failure", max_restarts=5, window_s=120.0, backoff_s=0.2)
     services = [ServiceSpec(name="frontend", argv=["frontend"], **spec),
                 ServiceSpec(name="backend", argv=["backend"], **spec),
                 ServiceSpec(name="odometry", argv=["odometry"], **spec),
                 ServiceSpec(name="depth", argv=["depth"], nice=nice, **spec),
-                ServiceSpec(name="mapping", argv=["mapping", "--out", str(out / "map")], nice=nice, **spec),
+                ServiceSpec(name="mapping", argv=["mapping", "--out", str(out)], nice=nice, **spec),
                 ServiceSpec(name="player", argv=["player", dataset, "--rate", f"{rate:g}",
                                                  "--wait-for", ",".join(PIPELINE + tuple(extra))], restart="never")]
     if "viewer" in extra:
@@ -174,7 +175,7 @@ def run(dataset: str, out: Path, kill: list[str], rate: float, window_s: float, 
 def _kill_one(sup: Supervisor, probe: Probe, name: str, out: Path, window_s: float, restart_timeout_s: float) -> dict:
     child = next(c for c in sup.children if c.spec.name == name)
     if name == "mapping":  # kill it only once it has saved a checkpoint to resume from
-        wait_until(lambda: (out / "map" / "map" / "dense.npz").exists(), 30.0)
+        wait_until(lambda: (out / "map" / "dense.npz").exists(), 30.0)
     old_pid = child.proc.pid
     t_kill = time.monotonic()
     os.kill(old_pid, signal.SIGKILL)

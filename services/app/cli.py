@@ -32,6 +32,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "viewer": ("services.viewer.service", "web viewer (viser): submap meshes, trajectories, live images, stats"),
     "depth": ("services.depth.service", "stereo + MVS depth with learned sigma, fused: sensors/frame -> depth/stereo, depth/fused"),
     "mapping": ("services.mapping.service", "occupancy submapping: depth + estimator poses -> map/submap meshes"),
+    "map": ("services.app.map_cmd", "saved maps: info DIR (what a map holds), merge A B OUT (one map of two)"),
     "eval": ("services.app.eval_cmd", "evaluations against ground truth: ate, mesh, depth, hilti, ablation (Table IV), suite"),
 }
 

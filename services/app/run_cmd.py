@@ -20,7 +20,14 @@ and the last state is in (or no state came for ``--settle-s``), it stops the ser
   ends early only shortens the span; ate.json says how many poses and which span). The ground truth is
   ``--gt PATH`` (EuRoC CSV or TUM ``.txt``), else the first of :data:`GT_CANDIDATES` found in DATASET; it is also
   the viewer's overlay unless ``viewer.ground_truth`` is set;
-- ``DIR/config.yaml``: the resolved config every service got.
+- ``DIR/config.yaml``: the resolved config every service got;
+- ``DIR/map/``: the saved map (docs/maps.md): ``sparse.npz`` from the back end (``loop.map_output``), ``dense.npz``
+  from the mapping service.
+
+``--map SAVED`` localises in a saved map (a run folder or its map/ folder): the back end relocalises against it and
+publishes in its frame from then on; the states before (``header.frame_id`` ``odom``) are left out of the
+trajectory files and counted in stats.json's ``localisation``; the mapping starts from the saved submaps; the map
+written to ``DIR/map/`` is the saved one extended by this run (not with ``--localise-only``: no sparse map written).
 
 ``--serve-s S`` then shows the run's final map and trajectories in the web viewer for S seconds.
 """
@@ -45,6 +52,7 @@ from services.app.supervisor import ServiceSpec, Supervisor, validate
 from services.system_config import load_system_config
 from shared import topics
 from shared.config import override, to_yaml
+from shared.map_folder import UNALIGNED_FRAME, sparse_path
 from shared.euroc import series_from_matrices, PoseSeries, read_trajectory, write_euroc_csv, write_tum
 from transport.node import Node
 from services.app.metrics.latency import ArrivalLog, first_arrivals, matched_latencies, summary
@@ -81,6 +89,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--realtime", action="store_true", help="play at sensor rate instead of lockstep")
     p.add_argument("--rate", type=float, default=0.0, metavar="R",
                    help="play at R times sensor rate instead of lockstep (overrides --realtime; 0: off)")
+    p.add_argument("--map", metavar="SAVED", default=None, help="localise in this saved map (a run's output folder "
+                   "or its map/ folder): poses in its frame once relocalised; DIR/map/ then holds it extended")
+    p.add_argument("--localise-only", action="store_true", help="with --map: do not extend the saved map (no "
+                   "DIR/map/sparse.npz is written)")
     p.add_argument("--record", action="store_true", help="also record every topic to DIR/recording.mcap")
     p.add_argument("--ros2-bag", metavar="BAG", default=None, help="also write the results as a ROS 2 bag (MCAP "
                    "storage, standard messages: services/app/ros2_export.py) to the new folder BAG; implies --record")
@@ -211,7 +223,8 @@ def _collect(node: Node, col: _Collector, sup_thread: threading.Thread, settle_s
 
 
 def _trajectory(states) -> PoseSeries:
-    good = [s for s in states if s.status not in ("initialising", "reset")]  # no pose in these
+    # no pose in 'initialising' and 'reset'; poses before a relocalisation in a saved map are in another frame
+    good = [s for s in states if s.status not in ("initialising", "reset") and s.header.frame_id != UNALIGNED_FRAME]
     stamps = np.array([s.header.stamp_ns for s in good], np.int64)
     order = np.argsort(stamps, kind="stable")
     T = np.array([s.T_WS for s in good]).reshape(-1, 4, 4)[order]
@@ -246,7 +259,21 @@ def stats_summary(col: _Collector) -> dict:
                                    else max(0, out["frames_sent"] - len(answered)))
     out["drops"] = {f"{svc}:{q}": v["dropped"] for svc, d in out["services"].items()
                     for q, v in d["queues"].items() if v["dropped"]}
+    out["localisation"] = localisation_summary(col.states)
     return out
+
+
+def localisation_summary(states) -> dict | None:
+    """How a run localising in a saved map got there: states before and after its relocalisation, and the sensor
+    time from the first state to the first one in the map's frame (None for a run without a saved map)."""
+    posed = [s for s in states if s.status not in ("initialising", "reset")]
+    before = sum(s.header.frame_id == UNALIGNED_FRAME for s in posed)
+    if not before:
+        return None
+    in_map = [s for s in posed if s.header.frame_id != UNALIGNED_FRAME]
+    first = int(states[0].header.stamp_ns)
+    return {"states_before_relocalisation": before, "states_in_map_frame": len(in_map),
+            "time_to_relocalise_s": (int(in_map[0].header.stamp_ns) - first) * 1e-9 if in_map else None}
 
 
 def find_ground_truth(dataset: Path) -> Path | None:
@@ -315,6 +342,18 @@ def main(args: argparse.Namespace) -> int:
     run_id = uuid.uuid4().hex[:8]
     overrides = [f"transport.namespace=sigmaslam/run-{run_id}", f"transport.connect=[tcp/127.0.0.1:{port}]",
                  f"transport.router_listen=[tcp/127.0.0.1:{port}]", *args.set]
+    saved = getattr(args, "map", None)
+    if saved:
+        if not sparse_path(saved).is_file():
+            print(f"sigmaslam run: --map {saved}: no saved map there ({sparse_path(saved)} not found)", flush=True)
+            return 2
+        saved = str(Path(saved).resolve())
+        overrides += [f"loop.prior_map={saved}", f"mapping.prior_map={saved}"]
+    if getattr(args, "localise_only", False):
+        if not saved:
+            print("sigmaslam run: --localise-only needs --map", flush=True)
+            return 2
+        overrides.append("loop.localise_only=true")
     cfg = load_system_config(args.config, overrides)
     if getattr(args, "ros2_bag", None):
         args.record = True
@@ -323,6 +362,8 @@ def main(args: argparse.Namespace) -> int:
                      "supervisor.start_router": True}
     if not cfg.rig.calibration:
         changes["rig.calibration"] = dataset
+    if not cfg.loop.map_output:  # the run's sparse map goes beside the mapping's dense one, in DIR/map/
+        changes["loop.map_output"] = str(out.resolve())
     if not (args.realtime or getattr(args, "rate", 0.0) > 0):  # lockstep: reproducible, the fast path waits for windows
         changes["backend.fast_path_waits_for_window"] = True
     if gt is not None and not cfg.viewer.ground_truth:
@@ -365,6 +406,12 @@ def main(args: argparse.Namespace) -> int:
         summary["loops"] = loop_summary(final)
         print(f"[sigmaslam run] final trajectory: {summary['loops']}", flush=True)
     (out / "stats.json").write_text(json.dumps(summary, indent=2))
+    if (loc := summary["localisation"]) is not None:
+        t = loc["time_to_relocalise_s"]
+        print("[sigmaslam run] saved map: " + (f"relocalised {t:.1f} s into the run; " if t is not None else
+                                                 "never relocalised; ")
+              + f"{loc['states_in_map_frame']} states in the map's frame, {loc['states_before_relocalisation']} "
+              "before (not in the trajectory files)", flush=True)
     lat = summary["state_latency_ms"]
     lat_text = f"pose latency p50 {lat['median']:.0f} ms, p99 {lat['p99']:.0f} ms" if lat.get("n") else "no latency"
     print(f"[sigmaslam run] {why}: {len(traj.stamps_ns)} poses in {wall:.1f} s "

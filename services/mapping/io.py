@@ -9,7 +9,7 @@ import numpy as np
 
 from shared.occupancy.blocks import BlockStore
 from services.mapping.config import SensorModelConfig, SubmapConfig
-from services.mapping.submaps import SubmapMapper
+from services.mapping.submaps import FROZEN, SubmapMapper
 from shared.config import from_dict, to_dict
 from shared.map_folder import atomic_write
 
@@ -62,6 +62,20 @@ def load_map(path: str | Path) -> SubmapMapper:
             sm.anchor_view = (sub["anchor_depth"], sub["anchor_K"], sub["anchor_T_MC"])
         sm.mesher.mark(sm.store, sm.store.refined_slots())
     return mapper
+
+
+def append_submaps(dst: SubmapMapper, src: SubmapMapper, T: np.ndarray) -> int:
+    """Add ``src``'s submaps to ``dst``, moved by ``T`` (``src``'s world frame in ``dst``'s), with new ids after
+    ``dst``'s and frozen (they follow no keyframe of ``dst``'s run); returns how many. Both maps must have the same
+    voxel size."""
+    if abs(dst.sensor.voxel_size_m - src.sensor.voxel_size_m) > 1e-9:
+        raise MapFileError(f"voxel sizes differ: {dst.sensor.voxel_size_m} m and {src.sensor.voxel_size_m} m")
+    for sm in src.submaps:
+        new = dst.new_submap(np.asarray(T, float) @ sm.T_WM, sm.anchor_stamp_ns)
+        new.store, new.n_frames, new.T_KM, new.anchor_view = sm.store, sm.n_frames, sm.T_KM, sm.anchor_view
+        new.keyframe_id = FROZEN
+        new.mesher.mark(new.store, new.store.refined_slots())
+    return len(src.submaps)
 
 
 def write_ply(path: str | Path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None) -> Path:

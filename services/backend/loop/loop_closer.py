@@ -163,9 +163,7 @@ class LoopCloser:
                 continue
             self.counts["verified"] += 1
             cams = np.asarray(fs.camera_index, np.int64)[res.query_index]
-            xy = np.zeros((len(cams), 2))
-            for cam in np.unique(cams):
-                xy[cams == cam] = self._undistort[cam](np.asarray(fs.uv, float)[res.query_index][cams == cam])
+            xy = self._normalised(fs)[res.query_index]
             # a saved map's landmark ids are another session's: its matches give no observations of this one's
             obs = () if self._is_prior(c.key) else (cams, xy, np.asarray(old_fs.landmark_ids, np.int64)[res.old_index])
             loop = VerifiedLoop(c.key, int(stamp_ns), res.T_WS, res.covariance, res.inliers, reloc, obs)
@@ -299,6 +297,7 @@ class LoopCloser:
         the same way; None when there is nothing to save."""
         g = self.graph
         meta = {"vocabulary": self.voc_id, "frame": "W",
+                "cameras": [{"T_SC": T.tolist(), "focal_px": float(f)} for T, f in zip(self._T_SC, self._focal)],
                 "sessions": [{**(session or {}), "keyframes": len(g.keys), "aligned": bool(self.aligned)}]}
         kfs, edges = [], []
         if self.aligned:
@@ -306,7 +305,7 @@ class LoopCloser:
                 T_corr = g.estimate[k] @ inv_T(g.odom[k])  # window frame -> map frame at this node
                 fs, p_W = (self._old[k][0], self._old[k][1]) if k in self._old else (None, None)
                 p = None if p_W is None else p_W @ T_corr[:3, :3].T + T_corr[:3, 3]
-                kfs.append((k, self.node_stamps[k], g.estimate[k], fs, p))
+                kfs.append((k, self.node_stamps[k], g.estimate[k], fs, p, None if fs is None else self._normalised(fs)))
             edges = [(a, b, T, c, ODOMETRY) for a, b, T, c in g.edges]
             edges += [(lp.old_key, lp.new_key, lp.T_old_new, lp.covariance, LOOP) for lp in g.loops
                       if not self._is_prior(lp.old_key)]
@@ -316,6 +315,14 @@ class LoopCloser:
         links = [(int(self.prior.keys[lp.old_key - PRIOR_KEY_BASE]), lp.new_key, lp.T_old_new, lp.covariance, LOOP)
                  for lp in g.loops if self._is_prior(lp.old_key) and lp.new_key in g.odom] if self.aligned else []
         return concatenate(self.prior, session_map, np.eye(4), links)
+
+    def _normalised(self, fs: FeatureSet) -> np.ndarray:
+        """Normalised coordinates (n,2) of a keyframe's distorted pixels."""
+        cams, uv = np.asarray(fs.camera_index, np.int64), np.asarray(fs.uv, float)
+        xy = np.zeros((len(cams), 2))
+        for c in np.unique(cams):
+            xy[cams == c] = self._undistort[c](uv[cams == c])
+        return xy
 
     def _solve_if_due(self, stamp_ns: int) -> bool:
         """Solve the pose graph when loops were added and the last solve is ``min_solve_interval_s`` old (gtsam

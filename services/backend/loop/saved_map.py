@@ -6,6 +6,8 @@ A :class:`SparseMap` holds, in the map's world frame ``W`` (gravity along -z, as
 - per keyframe its features (landmark id, camera, distorted pixel, ORB descriptor) and the position of each
   feature's landmark where the estimator had one (NaN where not): the loop closer's PnP verification reads these;
 - the pose graph's edges (odometry between consecutive keyframes and accepted loops: relative pose, covariance);
+- the rig: each camera's ``T_SC`` and focal length (meta["cameras"]), so that a map can be matched against another
+  (``sigmaslam map merge``) without the calibration files;
 - provenance: the format tag, the vocabulary it was made with (a different vocabulary cannot query it), the
   sessions (source dataset, keyframe count, creation time) and how often each session was aligned to the map.
 
@@ -46,6 +48,8 @@ class SparseMap:
     landmark_ids: np.ndarray  # (F,) int64
     camera_index: np.ndarray  # (F,) int64
     uv: np.ndarray  # (F,2) float32 distorted pixels
+    xy: np.ndarray  # (F,2) float64 the same features in normalised coordinates (undistorted): usable as queries
+    #                 without the camera model (sigmaslam map merge); meta["cameras"] has each camera's T_SC, focal
     descriptors: np.ndarray  # (F,32) uint8
     p_W: np.ndarray  # (F,3) float64 landmark positions in the map frame, NaN where unknown
     edges: np.ndarray  # (E,2) int64 (from key, to key)
@@ -57,11 +61,12 @@ class SparseMap:
     def __len__(self) -> int:
         return len(self.keys)
 
-    def features(self, i: int) -> tuple[FeatureSet, np.ndarray]:
-        """Keyframe ``i``'s (row, not id) features and their landmark positions (n,3)."""
+    def features(self, i: int, normalised: bool = False) -> tuple[FeatureSet, np.ndarray]:
+        """Keyframe ``i``'s (row, not id) features and their landmark positions (n,3); with ``normalised`` the
+        features' ``uv`` are the normalised coordinates ``xy``."""
         a, b = int(self.feat_offsets[i]), int(self.feat_offsets[i + 1])
-        return (FeatureSet(self.landmark_ids[a:b], self.camera_index[a:b], self.uv[a:b].astype(float),
-                           self.descriptors[a:b]), self.p_W[a:b])
+        uv = self.xy[a:b] if normalised else self.uv[a:b].astype(float)
+        return FeatureSet(self.landmark_ids[a:b], self.camera_index[a:b], uv, self.descriptors[a:b]), self.p_W[a:b]
 
     def summary(self) -> dict:
         """Counts and extent for ``sigmaslam map info``."""
@@ -89,21 +94,21 @@ def vocabulary_id(voc) -> dict:
 def empty_map(meta: dict | None = None) -> SparseMap:
     return SparseMap(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 4, 4)), np.zeros(0, np.int32),
                      np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2), np.float32),
-                     np.zeros((0, 32), np.uint8), np.zeros((0, 3)), np.zeros((0, 2), np.int64), np.zeros((0, 4, 4)),
+                     np.zeros((0, 2)), np.zeros((0, 32), np.uint8), np.zeros((0, 3)), np.zeros((0, 2), np.int64), np.zeros((0, 4, 4)),
                      np.zeros((0, 6, 6)), np.zeros(0, np.int8), dict(meta or {}))
 
 
-def build_map(keyframes: list[tuple[int, int, np.ndarray, FeatureSet | None, np.ndarray | None]],
+def build_map(keyframes: list[tuple[int, int, np.ndarray, FeatureSet | None, np.ndarray | None, np.ndarray | None]],
               edges: list[tuple[int, int, np.ndarray, np.ndarray, int]], meta: dict, session: int = 0) -> SparseMap:
-    """A map from keyframes ``(key, stamp, T_WS, features or None, p_W or None)`` and edges ``(from, to, T, cov,
-    kind)`` (edges to keys that are not keyframes are dropped)."""
+    """A map from keyframes ``(key, stamp, T_WS, features or None, p_W or None, normalised xy or None)`` and edges
+    ``(from, to, T, cov, kind)`` (edges to keys that are not keyframes are dropped)."""
     keys = [int(k[0]) for k in keyframes]
     if len(set(keys)) != len(keys):
         raise SparseMapError("duplicate keyframe ids")
     feats = [k[3] for k in keyframes]
     n = [0 if f is None else len(f.landmark_ids) for f in feats]
-    cat = (lambda get, shape, dtype: np.concatenate([np.asarray(get(f, p), dtype).reshape(shape)
-                                                     for (_, _, _, f, p) in keyframes if f is not None])
+    cat = (lambda get, shape, dtype: np.concatenate([np.asarray(get(f, p, xy), dtype).reshape(shape)
+                                                     for (_, _, _, f, p, xy) in keyframes if f is not None])
            if any(n) else np.zeros((0, *shape[1:]), dtype))
     ks = set(keys)
     edges = [e for e in edges if int(e[0]) in ks and int(e[1]) in ks]
@@ -111,10 +116,11 @@ def build_map(keyframes: list[tuple[int, int, np.ndarray, FeatureSet | None, np.
         keys=np.array(keys, np.int64), stamps_ns=np.array([int(k[1]) for k in keyframes], np.int64),
         T_WS=np.array([np.asarray(k[2], float) for k in keyframes]).reshape(-1, 4, 4),
         session=np.full(len(keys), session, np.int32), feat_offsets=np.r_[0, np.cumsum(n)].astype(np.int64),
-        landmark_ids=cat(lambda f, p: f.landmark_ids, (-1,), np.int64),
-        camera_index=cat(lambda f, p: f.camera_index, (-1,), np.int64),
-        uv=cat(lambda f, p: f.uv, (-1, 2), np.float32), descriptors=cat(lambda f, p: f.descriptors, (-1, 32), np.uint8),
-        p_W=cat(lambda f, p: p, (-1, 3), np.float64),
+        landmark_ids=cat(lambda f, p, xy: f.landmark_ids, (-1,), np.int64),
+        camera_index=cat(lambda f, p, xy: f.camera_index, (-1,), np.int64),
+        uv=cat(lambda f, p, xy: f.uv, (-1, 2), np.float32), xy=cat(lambda f, p, xy: xy, (-1, 2), np.float64),
+        descriptors=cat(lambda f, p, xy: f.descriptors, (-1, 32), np.uint8),
+        p_W=cat(lambda f, p, xy: p, (-1, 3), np.float64),
         edges=np.array([(int(e[0]), int(e[1])) for e in edges], np.int64).reshape(-1, 2),
         edge_T=np.array([np.asarray(e[2], float) for e in edges]).reshape(-1, 4, 4),
         edge_cov=np.array([np.asarray(e[3], float) for e in edges]).reshape(-1, 6, 6),
@@ -140,7 +146,7 @@ def concatenate(a: SparseMap, b: SparseMap, T_ab: np.ndarray = np.eye(4), links:
         session=np.r_[a.session, b.session + len(a.meta.get("sessions", []))].astype(np.int32),
         feat_offsets=np.r_[a.feat_offsets, b.feat_offsets[1:] + a.feat_offsets[-1]].astype(np.int64),
         landmark_ids=np.r_[a.landmark_ids, b.landmark_ids + lm_shift], camera_index=np.r_[a.camera_index, b.camera_index],
-        uv=np.concatenate([a.uv, b.uv]), descriptors=np.concatenate([a.descriptors, b.descriptors]),
+        uv=np.concatenate([a.uv, b.uv]), xy=np.concatenate([a.xy, b.xy]), descriptors=np.concatenate([a.descriptors, b.descriptors]),
         p_W=np.concatenate([a.p_W, p_b]),
         edges=np.concatenate([a.edges, b.edges + key_shift, np.array([e[:2] for e in link], np.int64).reshape(-1, 2)]),
         edge_T=np.concatenate([a.edge_T, b.edge_T, np.array([e[2] for e in link]).reshape(-1, 4, 4)]),
@@ -148,7 +154,8 @@ def concatenate(a: SparseMap, b: SparseMap, T_ab: np.ndarray = np.eye(4), links:
         edge_kind=np.r_[a.edge_kind, b.edge_kind, np.array([e[4] for e in link], np.int8)].astype(np.int8), meta=meta)
 
 
-_ARRAYS = ("keys", "stamps_ns", "T_WS", "session", "feat_offsets", "landmark_ids", "camera_index", "uv", "descriptors",
+_ARRAYS = ("keys", "stamps_ns", "T_WS", "session", "feat_offsets", "landmark_ids", "camera_index", "uv", "xy",
+           "descriptors",
            "p_W", "edges", "edge_T", "edge_cov", "edge_kind")
 
 
