@@ -36,8 +36,10 @@ def scaled_rig(scale: float) -> list[CameraCalib]:
 
 def make_dataset(out: str | Path, sequence: str = "V1_02", start_s: float = 0.0, seconds: float = 8.0,
                  scale: float = 0.5, real_imu: bool = False, seed: int = 0,
-                 blank_s: tuple[float, float] | None = None) -> Path:
-    """Write the dataset to ``out``; frames within ``blank_s`` (seconds from the start) are black."""
+                 blank_s: tuple[float, float] | None = None, room_span_s: tuple[float, float] | None = None) -> Path:
+    """Write the dataset to ``out``; frames within ``blank_s`` (seconds from the start) are black. The room is
+    sized around the path of ``room_span_s`` (start, end in seconds of the sequence; default: this stretch), so
+    that two stretches can share one room."""
     files = euroc_files(sequence)
     gt = read_euroc_csv(files["groundtruth"])
     t0 = int(gt.stamps_ns[0] + start_s * 1e9)
@@ -57,7 +59,11 @@ def make_dataset(out: str | Path, sequence: str = "V1_02", start_s: float = 0.0,
         imu_arr = np.c_[imu.stamps_ns, imu.omega_S, imu.acc_S]
     gt_stamps = np.arange(t0, t1, 5_000_000, dtype=np.int64)
     p = traj.position(gt_stamps)
-    room = fs.BoxRoom(lo=p.min(0) - [3.0, 3.0, 1.5], hi=p.max(0) + [3.0, 3.0, 1.5], seed=seed)
+    p_room = p
+    if room_span_s is not None:
+        sel = (gt.stamps_ns >= gt.stamps_ns[0] + room_span_s[0] * 1e9) & (gt.stamps_ns <= gt.stamps_ns[0] + room_span_s[1] * 1e9)
+        p_room = gt.p_WS[sel]
+    room = fs.BoxRoom(lo=p_room.min(0) - [3.0, 3.0, 1.5], hi=p_room.max(0) + [3.0, 3.0, 1.5], seed=seed)
     cams = scaled_rig(scale)
 
     def frame_iter():

@@ -207,7 +207,8 @@ class LoopClosingBackend:
         self._stamps.append(stamp)
         self._T_pub.append(np.array(state.T_WS))
         self._frame_ids.append(state.header.frame_id)
-        self.runner.submit_status(stamp, state.status)
+        # the pose only matters until a saved map's frame is reached (the closer aligns the session with it)
+        self.runner.submit_status(stamp, state.status, None if self.runner.aligned else np.array(state.T_WS))
 
     def take_landmarks(self) -> Landmarks | None:
         """As ``BackendShell.take_landmarks``, moved by the correction applied to the last state."""

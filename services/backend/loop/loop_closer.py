@@ -94,7 +94,9 @@ class LoopCloser:
         self.prior: SparseMap | None = None  # a saved map this session localises in (load_prior)
         self.aligned = True  # the session's frame is the map's (always, without a saved map)
         self.aligned_at_ns: int | None = None  # stamp of the keyframe whose match aligned the session
-        self._align_candidates: list[tuple[np.ndarray, VerifiedLoop, KeyframeRecord]] = []
+        self._align_candidates: list[tuple[np.ndarray, VerifiedLoop, int]] = []  # (T_map_window, match, stamp)
+        self._map_matches: dict[int, VerifiedLoop] = {}  # matches to the map waiting for their keyframe's state
+        self._published: dict[int, np.ndarray] = {}  # recent published poses (before alignment), by stamp
 
     # ------------------------------------------------------------------ a saved map
     def load_prior(self, m: SparseMap) -> None:
@@ -123,7 +125,20 @@ class LoopCloser:
         return key >= PRIOR_KEY_BASE
 
     # ------------------------------------------------------------------ status
-    def note_status(self, stamp_ns: int, status: str) -> None:
+    def note_status(self, stamp_ns: int, status: str, T_pub: np.ndarray | None = None) -> None:
+        """The fast path's published state at ``stamp_ns``: its status and, while a saved map's frame is not yet
+        reached, its pose ``T_pub`` (published frame: this closer's correction applied to the window's pose), with
+        which a keyframe's match to the map aligns the session at once, without waiting for the keyframe to leave
+        the window."""
+        if T_pub is not None and not self.aligned:
+            lp = self._map_matches.pop(int(stamp_ns), None)
+            if lp is not None:
+                T_W_query = inv_T(self.correction()) @ np.asarray(T_pub, float)  # the window's pose of the keyframe
+                self._align_candidate(lp.T_WS_query @ inv_T(T_W_query), lp, int(stamp_ns))
+            else:
+                self._published[int(stamp_ns)] = np.asarray(T_pub, float)
+                while len(self._published) > 64:
+                    self._published.pop(next(iter(self._published)))
         if status == "tracking":
             if self._lost_since is not None and stamp_ns - self._lost_since >= self.cfg.relocalise_after_s * 1e9:
                 self._reloc_before = self._lost_since
@@ -169,6 +184,13 @@ class LoopCloser:
             loop = VerifiedLoop(c.key, int(stamp_ns), res.T_WS, res.covariance, res.inliers, reloc, obs)
             self._pending.append(loop)
             out.append(loop)
+            if not self.aligned and self._is_prior(c.key):  # align as soon as the keyframe's state is known
+                T_pub = self._published.pop(int(stamp_ns), None)
+                if T_pub is None:
+                    self._map_matches[int(stamp_ns)] = loop
+                else:
+                    self._align_candidate(loop.T_WS_query @ inv_T(inv_T(self.correction()) @ T_pub), loop,
+                                          int(stamp_ns))
             log.info("loop verified: keyframe at %d ns sees state %d (%d inliers%s)", stamp_ns, c.key, res.inliers,
                      ", relocalisation" if reloc else "")
             break  # one verified loop per query keyframe is enough
@@ -247,7 +269,7 @@ class LoopCloser:
         old = self._old[lp.old_state][2]
         T_old_new = inv_T(old.T_WS) @ lp.T_WS_query
         if not self.aligned:
-            return self._try_align(lp, rec, T_old_new)
+            return self._try_align(lp, rec, T_old_new) if self._is_prior(lp.old_state) else False
         if self.cfg.max_translation_jump_m > 0:
             predicted = self.graph.estimate[old.state] @ T_old_new
             if np.linalg.norm(predicted[:3, 3] - self.graph.estimate[rec.state][:3, 3]) > self.cfg.max_translation_jump_m:
@@ -263,33 +285,36 @@ class LoopCloser:
         return self._solve_if_due(rec.stamp_ns)
 
     def _try_align(self, lp: VerifiedLoop, rec: KeyframeRecord, T_old_new: np.ndarray) -> bool:
-        """A match of this session's keyframe ``rec`` to the saved map: T_map_window = T_map_query T_window_query^-1.
-        Once ``relocalise_confirmations`` matches (this one and earlier ones) agree within ``relocalise_agree_m`` /
-        ``relocalise_agree_deg``, the session moves into the map's frame and the agreeing matches become loops."""
+        """A match of keyframe ``rec`` to the saved map, its keyframe now a node, while not aligned (its state's pose
+        never came): a guess from the node's window pose; a loop if that guess completes the alignment."""
+        if lp.query_stamp_ns in self._map_matches:  # not yet a guess (no state pose came for it)
+            del self._map_matches[lp.query_stamp_ns]
+            self._align_candidate(lp.T_WS_query @ inv_T(rec.T_WS), lp, rec.stamp_ns)
+        return self._accept(lp, rec) if self.aligned else False
+
+    def _align_candidate(self, T_mw: np.ndarray, lp: VerifiedLoop, stamp_ns: int) -> None:
+        """One guess of T_map_window from a match to the saved map. Once ``relocalise_confirmations`` guesses agree
+        within ``relocalise_agree_m`` / ``relocalise_agree_deg``, the session moves into the map's frame (the graph
+        is solved at once: the published poses follow); the matches join the graph as loops when their keyframes
+        become nodes (they wait in the pending loops)."""
         cfg = self.cfg
-        T_mw = lp.T_WS_query @ inv_T(rec.T_WS)
-        self._align_candidates = (self._align_candidates + [(T_mw, lp, rec)])[-10:]
-        agree = [(T, l, r) for T, l, r in self._align_candidates
-                 if np.linalg.norm(T[:3, 3] - T_mw[:3, 3]) <= cfg.relocalise_agree_m
-                 and np.rad2deg(np.linalg.norm(so3_log(T[:3, :3].T @ T_mw[:3, :3]))) <= cfg.relocalise_agree_deg]
         self.counts["map_matches"] += 1
+        self._align_candidates = (self._align_candidates + [(T_mw, lp, stamp_ns)])[-10:]
+        agree = [c for c in self._align_candidates
+                 if np.linalg.norm(c[0][:3, 3] - T_mw[:3, 3]) <= cfg.relocalise_agree_m
+                 and np.rad2deg(np.linalg.norm(so3_log(c[0][:3, :3].T @ T_mw[:3, :3]))) <= cfg.relocalise_agree_deg]
         if len(agree) < max(1, cfg.relocalise_confirmations):
-            return False
+            return
         self.graph.align_session(T_mw @ inv_T(self.correction()))  # from where the graph has the session now
-        for _, l, r in agree:
-            old = self._old[l.old_state][2]
-            T_on = inv_T(old.T_WS) @ l.T_WS_query
-            self.graph.add_loop(LoopConstraint(old.state, r.state, T_on, l.covariance))
-            self.loops.append((old.state, r.state, T_on, l.covariance))
-            self.counts["accepted"] += 1
-        self.aligned, self.aligned_at_ns = True, int(rec.stamp_ns)
-        self._align_candidates = []
+        self.aligned, self.aligned_at_ns = True, int(stamp_ns)
+        self._align_candidates, self._map_matches, self._published = [], {}, {}
         self.counts["map_relocalised"] += 1
         log.info("relocalised in the saved map at %d ns (%d agreeing matches): publishing in the map's frame",
-                 rec.stamp_ns, len(agree))
-        self._dirty = True
-        self._last_solve_ns = -(1 << 62)  # solve now: everything the session made moves into the map's frame
-        return self._solve_if_due(rec.stamp_ns)
+                 stamp_ns, len(agree))
+        if self.graph.keys:
+            t0 = time.perf_counter()
+            self.graph.optimise(self.cfg.pose_graph_iterations)
+            self.solve_ms.append(1e3 * (time.perf_counter() - t0))
 
     def sparse_map(self, session: dict | None = None) -> SparseMap | None:
         """The map to save: the saved map's keyframes as loaded and, once aligned (always, without a saved map),
@@ -409,8 +434,8 @@ class ThreadedLoopCloser:
     def submit_map_to_map(self, term) -> None:
         self._put(("m2m", term))
 
-    def submit_status(self, stamp_ns: int, status: str) -> None:
-        self._put(("status", int(stamp_ns), status))
+    def submit_status(self, stamp_ns: int, status: str, T_pub: np.ndarray | None = None) -> None:
+        self._put(("status", int(stamp_ns), status, T_pub))
 
     def submit_save(self, path, session: dict) -> None:
         """Write the sparse map (:meth:`LoopCloser.sparse_map`) to ``path`` in the loop thread (never dropped)."""
@@ -480,7 +505,10 @@ class ThreadedLoopCloser:
                     with self._lock:
                         self._verified.extend(found)
             elif kind == "status":
-                c.note_status(item[1], item[2])
+                aligned = c.aligned
+                c.note_status(item[1], item[2], item[3])
+                if c.aligned != aligned:  # the session moved into a saved map's frame: publish that
+                    self._publish(c)
             elif kind == "save":
                 m = c.sparse_map(item[2])
                 if m is not None:
@@ -488,18 +516,22 @@ class ThreadedLoopCloser:
                     self.saved += 1
             else:
                 (c.add_record if kind == "record" else c.add_map_to_map)(item[1])
-                corr = c.correction()
-                solved = len(c.solve_ms) != self._solves
-                snap = c.corrected_keyframes() if solved else None
-                with self._lock:
-                    self._correction = corr
-                    self._aligned = c.aligned
-                    if solved:  # past keyframes moved: a new generation of corrected nodes
-                        self._solves = len(c.solve_ms)
-                        self._keyframes = snap
-                        self.generation += 1
+                self._publish(c)
         except Exception:  # noqa: BLE001 - a bad keyframe must not kill loop closing; counted and logged
             self.errors += 1
             log.exception("loop closer: %s event failed", kind)
         finally:
             self.busy_s += time.perf_counter() - t0
+
+    def _publish(self, c: LoopCloser) -> None:
+        """The correction (and, after a solve, the corrected keyframes) for the back end's next state."""
+        corr = c.correction()
+        solved = len(c.solve_ms) != self._solves
+        snap = c.corrected_keyframes() if solved else None
+        with self._lock:
+            self._correction = corr
+            self._aligned = c.aligned
+            if solved:  # past keyframes moved: a new generation of corrected nodes
+                self._solves = len(c.solve_ms)
+                self._keyframes = snap
+                self.generation += 1

@@ -71,6 +71,8 @@ class PoseGraph:
         self._attitude = (gtsam.noiseModel.Isotropic.Sigma(2, attitude_sigma_rad) if attitude_sigma_rad > 0 else None)
         self.estimate: dict[int, np.ndarray] = {}
         self.fixed: set[int] = set()  # nodes of a saved map (add_fixed_node): held where the map has them
+        self._gauge = None  # (factor index, key, T, sigmas) of the session's first-node prior
+        self._T_session = np.eye(4)  # every align_session so far: where the first node goes when it comes later
         self.edges: list[tuple[int, int, np.ndarray, np.ndarray]] = []  # odometry edges (from, to, T_rel, cov)
 
     def add_fixed_node(self, key: int, T_WS: np.ndarray) -> None:
@@ -88,13 +90,20 @@ class PoseGraph:
         self.fixed.add(key)
 
     def align_session(self, T: np.ndarray) -> None:
-        """Move the session's nodes' current estimates by ``T`` (T_map_session), the starting point of the next
-        solve: loops to fixed nodes then start near their solution instead of being down-weighted by their robust
-        kernel as outliers."""
+        """Move the session by ``T`` (T_map_session): its nodes' current estimates (the starting point of the next
+        solve, so that loops to fixed nodes start near their solution instead of being down-weighted by their
+        robust kernel as outliers) and its first node's weak gauge prior (so that a solve before those loops join
+        keeps the session where it was moved)."""
         T = np.asarray(T, float)
+        self._T_session = T @ self._T_session
         for k in self.keys:
             self.estimate[k] = T @ self.estimate[k]
             self.initial.update(_sym(k), gtsam.Pose3(self.estimate[k]))
+        if self._gauge is not None:
+            i, key, T_prior, sigmas = self._gauge
+            self._gauge = (i, key, T @ T_prior, sigmas)
+            self.graph.replace(i, gtsam.PriorFactorPose3(_sym(key), gtsam.Pose3(T @ T_prior),
+                                                         gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
 
     def add_node(self, key: int, T_WS: np.ndarray, rel_cov: np.ndarray | None = None,
                  T_rel: np.ndarray | None = None) -> None:
@@ -114,9 +123,10 @@ class PoseGraph:
             # the gauge: the first node where the window has it; with a saved map's nodes in the graph only weakly
             # (metres, radians), so that loops to the map decide where the session is
             r, t = (1.0, 100.0) if self.fixed else self._prior
-            self.graph.add(gtsam.PriorFactorPose3(_sym(key), gtsam.Pose3(T_WS),
-                                                  gtsam.noiseModel.Diagonal.Sigmas(np.array([r] * 3 + [t] * 3))))
-            guess = T_WS
+            sigmas = np.array([r] * 3 + [t] * 3)
+            guess = self._T_session @ T_WS  # moved by an alignment made before the first node
+            self._gauge = (self.graph.size(), int(key), guess, sigmas)
+            self.graph.add(gtsam.PriorFactorPose3(_sym(key), gtsam.Pose3(guess), gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
         self.initial.insert(_sym(key), gtsam.Pose3(guess))
         if self._attitude is not None and (self.keys or self.fixed):  # W's z is up (gravity along -z): keep the window's tilt
             self.graph.add(gtsam.AttitudeFactorPose3(_sym(key), gtsam.Unit3(_UP), self._attitude,
@@ -173,6 +183,6 @@ class PoseGraph:
     def correction(self) -> np.ndarray:
         """T_W'W: maps the window's (odometry) frame to the corrected frame at the newest node."""
         if not self.keys:
-            return np.eye(4)
+            return self._T_session.copy()
         k = self.keys[-1]
         return self.estimate[k] @ inv_T(self.odom[k])
