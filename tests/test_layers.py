@@ -36,7 +36,8 @@ DEV_COMMANDS = {
     ("services/app/cli.py", "tools.dataset_convert"),  # sigmaslam convert: EuRoC <-> MCAP conversion
     ("services/app/eval_cmd.py", "tools.depth.evaluate"),  # sigmaslam eval depth: depth network evaluation
     ("services/app/eval_cmd.py", "tools.eval.ablation"),  # sigmaslam eval ablation: the paper's Table IV
-    ("services/app/eval_cmd.py", "tools.eval.suite"),  # sigmaslam eval suite: the paper's tables I, II, V
+    ("services/app/eval_cmd.py", "tools.eval.suite"),
+    ("services/app/eval_cmd.py", "tools.eval.relocalise"),  # sigmaslam eval relocalise: saved-map figures  # sigmaslam eval suite: the paper's tables I, II, V
     ("services/app/eval_cmd.py", "tools.depth.stereo_bench"),  # sigmaslam eval stereo: real-photograph stereo
 }
 

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from services.app.cli import SUBCOMMANDS
+from services.app.run_cmd import find_ground_truth
 from services.app.supervisor import ServiceSpec, Supervisor, validate
 from services.system_config import load_system_config
 from shared import topics
@@ -44,6 +45,7 @@ class Probe:
     def __init__(self) -> None:
         self.lock = threading.Lock()
         self.states: list[tuple[float, int, str]] = []  # (arrival, stamp, status)
+        self.poses: dict[int, tuple[np.ndarray, str]] = {}  # stamp -> (position, header.frame_id) of posed states
         self.frame_arrival: dict[int, float] = {}
         self.heartbeats: dict[str, tuple[float, int]] = {}  # service -> (arrival, pid) of the newest
         self.stats: dict[str, object] = {}
@@ -51,6 +53,29 @@ class Probe:
     def on_state(self, m) -> None:
         with self.lock:
             self.states.append((time.monotonic(), int(m.header.stamp_ns), m.status))
+            if m.status not in ("initialising", "reset"):
+                self.poses[int(m.header.stamp_ns)] = (np.array(m.T_WS)[:3, 3], m.header.frame_id)
+
+    def one_frame_ate(self, gt_path: Path, bounds_ns: dict[str, tuple[int, int]] = {}) -> dict | None:
+        """ATE (SE(3), one alignment) of every posed state published in the main frame ('W': not the temporary
+        frame of a back end that has not relocalised yet), and with that alignment the RMSE of each named span of
+        stamps in ``bounds_ns`` (e.g. before the first kill, after it)."""
+        from shared.euroc import read_trajectory
+        from shared.map_folder import UNALIGNED_FRAME
+        from shared.metrics.ate import compute_ate
+
+        with self.lock:
+            items = sorted((st, p) for st, (p, f) in self.poses.items() if f != UNALIGNED_FRAME)
+        if len(items) < 10:
+            return None
+        gt = read_trajectory(gt_path)
+        res = compute_ate(gt.stamps_ns, gt.p_WS, np.array([i[0] for i in items]), np.array([i[1] for i in items]))
+        out = {"rmse_m": res.rmse_m, "max_m": res.max_m, "matched": res.matched}
+        for name, (lo, hi) in bounds_ns.items():
+            e = res.errors_m[(res.stamps_ns >= lo) & (res.stamps_ns < hi)]
+            out[name] = {"rmse_m": float(np.sqrt(np.mean(e ** 2))) if len(e) else None,
+                         "max_m": float(e.max()) if len(e) else None, "matched": int(len(e))}
+        return out
 
     def on_frame(self, m) -> None:
         with self.lock:
@@ -126,7 +151,8 @@ def wait_until(pred, timeout_s: float, step: float = 0.05) -> bool:
 
 
 def run(dataset: str, out: Path, kill: list[str], rate: float, window_s: float, sets: list[str],
-        restart_timeout_s: float = 90.0, start_timeout_s: float = 180.0, during=None, extra: tuple[str, ...] = ()) -> dict:
+        restart_timeout_s: float = 90.0, start_timeout_s: float = 180.0, during=None, extra: tuple[str, ...] = (),
+        kill_after_s: float = 0.0) -> dict:
     """``during(node, probe) -> dict``, if given, is called after the baseline window (e.g. to publish bad
     input); its result goes into the report under 'during', then a 'measure' window follows."""
     out.mkdir(parents=True, exist_ok=True)
@@ -153,6 +179,8 @@ def run(dataset: str, out: Path, kill: list[str], rate: float, window_s: float, 
             report["baseline"] = probe.window(t, t + window_s)
             print(f"[faults] baseline: {report['baseline']['rate_hz']:.1f} states/s, latency p50 "
                   f"{report['baseline']['latency_p50_ms']} ms", flush=True)
+            if kill and kill_after_s > 0:
+                time.sleep(kill_after_s)
             for name in kill:
                 report["faults"].append(_kill_one(sup, probe, name, out, window_s, restart_timeout_s))
             if during is not None:
@@ -166,6 +194,20 @@ def run(dataset: str, out: Path, kill: list[str], rate: float, window_s: float, 
             report["queues"] = probe.queue_drops()
             report["stages"] = probe.stages()
             report["restarts"] = {c.spec.name: c.tracker.total_restarts for c in sup.children}
+            gt = find_ground_truth(Path(dataset))
+            if gt is not None:  # the whole run in one frame? one alignment over every state in 'W'
+                big = 1 << 62
+                spans = {"before_first_kill": (-big, min(f["kill_stamp_ns"] for f in report["faults"]))} if report["faults"] else {}
+                for f in report["faults"]:
+                    if f.get("restart_stamp_ns") is not None:
+                        spans[f"{f['service']}_down"] = (f["kill_stamp_ns"], f["restart_stamp_ns"])
+                        spans[f"after_{f['service']}_restart"] = (f["restart_stamp_ns"], big)
+                report["ate_one_alignment"] = probe.one_frame_ate(gt, spans)
+            with probe.lock:  # every posed state, for plots: stamp, position, frame
+                st = sorted(probe.poses)
+                np.savez(out / "states.npz", stamps_ns=np.array(st, np.int64),
+                         p=np.array([probe.poses[k][0] for k in st]).reshape(-1, 3),
+                         frame_id=np.array([probe.poses[k][1] for k in st]))
             sup.request_stop()
             th.join(timeout=cfg.supervisor.longest_stop_s() + cfg.supervisor.shutdown_timeout_s + 10)
     (out / "faults.json").write_text(json.dumps(report, indent=1))
@@ -176,14 +218,18 @@ def _kill_one(sup: Supervisor, probe: Probe, name: str, out: Path, window_s: flo
     child = next(c for c in sup.children if c.spec.name == name)
     if name == "mapping":  # kill it only once it has saved a checkpoint to resume from
         wait_until(lambda: (out / "map" / "dense.npz").exists(), 30.0)
+    if name == "backend" and load_system_config(sup.config_path).loop.enabled:  # likewise its sparse map
+        wait_until(lambda: (out / "map" / "sparse.npz").exists(), 60.0)
     old_pid = child.proc.pid
     t_kill = time.monotonic()
+    with probe.lock:
+        kill_stamp = probe.states[-1][1] if probe.states else -1  # the newest frame time when it was killed
     os.kill(old_pid, signal.SIGKILL)
     time.sleep(window_s)
     down = probe.window(t_kill, t_kill + window_s)
     back = wait_until(lambda: probe.heartbeats.get(name, (0, old_pid))[1] != old_pid, restart_timeout_s)
     t_back = probe.heartbeats.get(name, (None,))[0]
-    res = {"service": name, "old_pid": old_pid, "new_pid": probe.heartbeats.get(name, (0, None))[1] if back else None,
+    res = {"service": name, "old_pid": old_pid, "kill_stamp_ns": int(kill_stamp), "new_pid": probe.heartbeats.get(name, (0, None))[1] if back else None,
            "restarted": back, "restart_s": (t_back - t_kill) if back else None, "while_down": down}
     if back and name == "backend":
         # while the back end is down the fast path (odometry) goes on against its last window; the restarted back
@@ -197,8 +243,25 @@ def _kill_one(sup: Supervisor, probe: Probe, name: str, out: Path, window_s: flo
             after = [s for s in probe.states if s[0] > t_kill]
         res["first_status_after_restart"] = after[0][2] if after else None
         res["reset_seen"] = any(s[2] == "reset" for s in after)
+        res["restart_stamp_ns"] = next((s[1] for s in after if s[2] == "reset"), None)  # the new back end's first
         tr = tracking_after_reset(after)
         res["tracking_again_s"] = (tr[0] - t_kill) if tr else None
+        # with loop closure, the restarted back end relocalises in its run's last saved map: states in 'W' again
+        from shared.map_folder import UNALIGNED_FRAME
+
+        def back_in_frame() -> list:
+            with probe.lock:
+                after = sorted(st for st, (_, f) in probe.poses.items() if st > res["kill_stamp_ns"])
+                odom = [st for st in after if probe.poses[st][1] == UNALIGNED_FRAME]
+                return [st for st in after if odom and st > odom[0] and probe.poses[st][1] != UNALIGNED_FRAME]
+
+        if wait_until(lambda: bool(back_in_frame()), restart_timeout_s):
+            st = back_in_frame()[0]
+            with probe.lock:
+                arrival = next(a for a, s2, _ in probe.states if s2 == st)
+            res["relocalised_s"] = arrival - t_kill  # from the kill to the first state in the old frame again
+        else:
+            res["relocalised_s"] = None
     if back and name == "viewer":  # the restarted viewer serves its page again on the same port
         res["http_ok"] = wait_until(lambda: _http_ok(port), 30.0, 0.5) if (port := sup_port(sup)) else None
     if name == "recorder":
@@ -209,8 +272,8 @@ def _kill_one(sup: Supervisor, probe: Probe, name: str, out: Path, window_s: flo
     print(f"[faults] SIGKILL {name} (pid {old_pid}): restarted={back} in {res['restart_s']} s; while down "
           f"{down['rate_hz']:.1f} states/s (tracking {down['tracking_rate_hz']:.1f}), latency p50 "
           f"{down['latency_p50_ms']} ms; after {res['after']['rate_hz']:.1f} states/s"
-          + (f"; reset seen {res.get('reset_seen')}, tracking again after {res.get('tracking_again_s')} s"
-             if name == "backend" else ""), flush=True)
+          + (f"; reset seen {res.get('reset_seen')}, tracking again after {res.get('tracking_again_s')} s, "
+             f"in the old frame again after {res.get('relocalised_s')} s" if name == "backend" else ""), flush=True)
     return res
 
 
@@ -239,6 +302,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--with", dest="extra", default="", help="also run these (of %s)" % ",".join(OPTIONAL))
     p.add_argument("--rate", type=float, default=0.5, help="player speed, x sensor time")
     p.add_argument("--window-s", type=float, default=3.0, help="measurement window [s]")
+    p.add_argument("--kill-after-s", type=float, default=0.0, help="run this long after the baseline before the "
+                   "first kill (a back end killed later has a larger saved map to relocalise in) [s]")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     a = p.parse_args(argv)
     kill = [k for k in a.kill.split(",") if k]
@@ -246,7 +311,7 @@ def main(argv: list[str] | None = None) -> int:
     bad = [k for k in kill if k not in PIPELINE + tuple(extra)] + [k for k in extra if k not in OPTIONAL]
     if bad:
         p.error(f"--kill/--with: unknown or not started services {bad}")
-    rep = run(a.dataset, Path(a.out), kill, a.rate, a.window_s, a.set, extra=tuple(extra))
+    rep = run(a.dataset, Path(a.out), kill, a.rate, a.window_s, a.set, extra=tuple(extra), kill_after_s=a.kill_after_s)
     print(json.dumps({k: rep.get(k) for k in ("baseline", "measure", "restarts")}, indent=1), flush=True)
     return 0 if rep.get("started") and all(f["restarted"] for f in rep["faults"]) else 1
 

@@ -15,6 +15,8 @@ EVALS: dict[str, tuple[str, str]] = {
     "hilti": ("services.app.eval_hilti_cmd", "Hilti 2022 score from sparse control points (--control CSV, or sampled from --dataset GT)"),
     "ablation": ("tools.eval.ablation", "the paper's Table IV (o2p factors, depth sigma, fusion) + mono-inertial rows on replicas, in one process: markdown table"),
     "stereo": ("tools.depth.stereo_bench", "stereo network vs SGBM on real photographs with GT (Middlebury folders): EPE, bad-k, sigma calibration"),
+    "relocalise": ("tools.eval.relocalise", "map one replica, localise another in its saved map: share localised, time to "
+                   "relocalise, ATE in the map's frame"),
     "suite": ("tools.eval.suite", "the paper's tables I, II, V on replicas (runs the pipeline per sequence): markdown + PNG report"),
 }
 
