@@ -99,3 +99,19 @@ def test_sigkill_viewer_and_recorder(tmp_path):
     assert sum(1 for _ in read_recording(fixed)) > 100
     for p in (out / "recording.mcap", out / "recording.1.mcap", fixed):
         p.unlink()
+
+
+@pytest.mark.e2e
+def test_a_restarted_back_end_relocalises_in_its_runs_saved_map(tmp_path):
+    """With loop closure on, the back end checkpoints its sparse map (DIR/map/sparse.npz); killed mid-run, the
+    restarted one loads it, relocalises and publishes in the run's frame again: every pose published in 'W' over the
+    whole run fits the ground truth under one alignment."""
+    rc, rep, text = _inject(tmp_path / "resume", "--kill", "backend", "--rate", "0.5", "--kill-after-s", "10",
+                            "--set", "loop.enabled=true")
+    assert rc == 0, text[-3000:]
+    be = rep["faults"][0]
+    assert be["reset_seen"] and "relocalising in this run's last saved map" in text, text[-3000:]
+    assert be["relocalised_s"] is not None, (be, text[-3000:])
+    ate = rep["ate_one_alignment"]
+    assert ate["after_backend_restart"]["matched"] >= 20, ate
+    assert ate["rmse_m"] < 0.1 and ate["after_backend_restart"]["rmse_m"] < 0.1, ate

@@ -97,6 +97,7 @@ class LoopCloser:
         self._align_candidates: list[tuple[np.ndarray, VerifiedLoop, int]] = []  # (T_map_window, match, stamp)
         self._map_matches: dict[int, VerifiedLoop] = {}  # matches to the map waiting for their keyframe's state
         self._published: dict[int, np.ndarray] = {}  # recent published poses (before alignment), by stamp
+        self._tracking_since: int | None = None  # the first 'tracking' state's stamp
 
     # ------------------------------------------------------------------ a saved map
     def load_prior(self, m: SparseMap) -> None:
@@ -139,6 +140,8 @@ class LoopCloser:
                 self._published[int(stamp_ns)] = np.asarray(T_pub, float)
                 while len(self._published) > 64:
                     self._published.pop(next(iter(self._published)))
+        if status == "tracking" and self._tracking_since is None:
+            self._tracking_since = int(stamp_ns)
         if status == "tracking":
             if self._lost_since is not None and stamp_ns - self._lost_since >= self.cfg.relocalise_after_s * 1e9:
                 self._reloc_before = self._lost_since
@@ -299,6 +302,9 @@ class LoopCloser:
         become nodes (they wait in the pending loops)."""
         cfg = self.cfg
         self.counts["map_matches"] += 1
+        if self._tracking_since is not None and stamp_ns < self._tracking_since + cfg.relocalise_settle_s * 1e9:
+            self.counts["map_matches_before_settled"] += 1
+            return
         self._align_candidates = (self._align_candidates + [(T_mw, lp, stamp_ns)])[-10:]
         agree = [c for c in self._align_candidates
                  if np.linalg.norm(c[0][:3, 3] - T_mw[:3, 3]) <= cfg.relocalise_agree_m
