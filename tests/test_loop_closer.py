@@ -18,28 +18,33 @@ from services.backend.loop.config import LoopConfig
 from services.backend.loop.history import KeyframeHistory
 from services.backend.loop.loop_closer import LoopCloser, ThreadedLoopCloser
 from services.backend.loop.verification import FeatureSet
-from shared.geometry import inv_T
+from shared.geometry import inv_T, so3_exp
 
 IMU_NOISE = dict(gyro_nd=1.7e-4, acc_nd=2e-3, gyro_rw=1.9e-5, acc_rw=3e-3)
 
 
-def _run(t_end, blank=(np.inf, np.inf), seed=5, threaded=False, acc_bias=(0.05, -0.03, 0.02)):
+def _run(t_end, blank=(np.inf, np.inf), seed=5, threaded=False, acc_bias=(0.05, -0.03, 0.02), prior=None,
+         T_off=np.eye(4), t_start=0.5, cfg=LoopConfig(min_age_s=8.0)):
+    """The estimator (initialised at the ground truth moved by ``T_off``, a yaw and a shift: its own frame) and the
+    loop closer (localising in the saved map ``prior`` if given) over the simulated flight from ``t_start``."""
     rng = np.random.default_rng(seed)
     tr = sim.Trajectory()
     pts = sim.landmarks_cylinder(600, seed=6)
     codes = rng.integers(0, 256, (len(pts), 32), dtype=np.uint8)
     cams = sim.rig(2)
     bcams = [BackendCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams]
-    closer = LoopCloser(LoopConfig(min_age_s=8.0), bcams)
+    closer = LoopCloser(cfg, bcams)
+    if prior is not None:
+        closer.load_prior(prior)
     runner = ThreadedLoopCloser(closer, synchronous=threaded == "sync") if threaded else None
     hist = KeyframeHistory(listeners=[runner.submit_record if threaded else closer.add_record])
     est = WindowedVioEstimator(BackendConfig(compute_covariance=False), bcams, on_marginalise=[hist])
     st, om, ac = sim.imu(tr, 0.0, t_end + 0.1, 200.0, rng, gyro_bias=(0.002, -0.001, 0.003), acc_bias=acc_bias,
                          **IMU_NOISE)
-    t0 = 0.5
-    T0 = tr.T_WS(np.array([t0]))[0]
-    est.initialise(int(t0 * 1e9), T0[:3, :3], tr.velocity(np.array([t0]))[0], np.zeros(3), np.zeros(3), static=True,
-                   p_W=T0[:3, 3])
+    t0 = t_start
+    T0 = T_off @ tr.T_WS(np.array([t0]))[0]
+    est.initialise(int(t0 * 1e9), T0[:3, :3], T_off[:3, :3] @ tr.velocity(np.array([t0]))[0], np.zeros(3),
+                   np.zeros(3), static=True, p_W=T0[:3, 3])
     times = np.arange(t0, t_end, 0.1)
     gt = tr.T_WS(times)
     out, j = [], 0
@@ -58,8 +63,8 @@ def _run(t_end, blank=(np.inf, np.inf), seed=5, threaded=False, acc_bias=(0.05, 
             fs = FeatureSet(ids, c, uv, codes[ids] ^ flips)
             (runner.submit_features if threaded else closer.add_keyframe_features)(stamp, fs)
         r = est.process_frame(stamp, ids, c, uv, is_keyframe=kf)
-        (runner.submit_status if threaded else closer.note_status)(stamp, r.status)
         corr = runner.correction() if threaded else closer.correction()
+        (runner.submit_status if threaded else closer.note_status)(stamp, r.status, corr @ r.T_WS)
         out.append((r.T_WS, corr @ r.T_WS, r.status))
     if threaded:
         assert runner.drain()
@@ -133,3 +138,27 @@ def test_synchronous_runner_has_no_thread_and_survives_a_bad_event():
     runner.submit_record(object())  # not a keyframe record: counted and logged, the caller goes on
     assert runner.errors == 1 and runner.busy_s > 0  # its time is accounted for (eval ablation subtracts it)
     runner.close()
+
+
+@pytest.mark.e2e  # the estimator and the loop closer over two simulated flights
+def test_a_second_session_localises_in_the_first_ones_saved_map():
+    """Session one maps the flight's first 14 s and saves its map; session two starts at 8 s in a frame of its own
+    (yawed by 1.2 rad and shifted by metres) with that map loaded: once two matches agree it publishes in the map's
+    frame (the ground truth's here), and its saved map is the first one extended."""
+    times, gt, out, closer, est = _run(14.0)
+    saved = closer.sparse_map({"source": "sim"})
+    assert saved is not None and len(saved) > 10 and closer.aligned
+    T_off = np.eye(4)
+    T_off[:3, :3], T_off[:3, 3] = so3_exp([0.0, 0.0, 1.2]), [3.0, -2.0, 0.5]
+    times, gt, out, closer2, est2 = _run(16.0, prior=saved, T_off=T_off, t_start=8.0)  # same landmark codes
+    assert closer2.aligned and closer2.counts["map_relocalised"] == 1, dict(closer2.counts)
+    t_align = (closer2.aligned_at_ns - times[0] * 1e9) * 1e-9
+    assert t_align < 4.0, t_align
+    after = [i for i, t in enumerate(times) if t * 1e9 > closer2.aligned_at_ns + 1e9]
+    err = [np.linalg.norm(out[i][1][:3, 3] - gt[i][:3, 3]) for i in after]
+    raw = [np.linalg.norm(out[i][0][:3, 3] - gt[i][:3, 3]) for i in after]
+    assert len(err) > 20 and max(err) < 0.15 and min(raw) > 1.0, (max(err), min(raw))
+    extended = closer2.sparse_map({"source": "sim 2"})
+    assert len(extended) > len(saved) and len(extended.meta["sessions"]) == 2
+    assert np.array_equal(extended.T_WS[:len(saved)], saved.T_WS)  # the saved map did not move
+    assert int(np.sum(extended.edge_kind == 1)) >= 2  # the matches tie the sessions
