@@ -121,8 +121,8 @@ def test_pose_graph_moves_the_session_onto_fixed_map_nodes():
 def test_align_maps_finds_the_offset_between_two_maps_of_one_place():
     voc = Vocabulary.load(DEFAULT_PATH)
     T_ab = _T([0.0, 0.0, -0.6], [1.5, 2.0, -0.2])  # map b's frame in map a's
-    a = _scene_map(seed=0)
-    b = _scene_map(T_frame=inv_T(T_ab), seed=3)
+    a = _scene_map(seed=0, every=5)
+    b = _scene_map(T_frame=inv_T(T_ab), seed=3, every=5)
     res = align_maps(a, b, voc, LoopConfig())
     assert res.T_ab is not None and res.agreeing >= 2, res
     assert np.linalg.norm(res.T_ab[:3, 3] - T_ab[:3, 3]) < 0.05
@@ -131,6 +131,6 @@ def test_align_maps_finds_the_offset_between_two_maps_of_one_place():
         i, j = int(np.flatnonzero(a.keys == k_a)[0]), int(np.flatnonzero(b.keys == k_b)[0])
         assert np.linalg.norm((inv_T(a.T_WS[i]) @ T_ab @ b.T_WS[j])[:3, 3] - T_rel[:3, 3]) < 0.05
     # a map of another place (other landmarks and codes) is not found in a
-    far = _scene_map(seed=4)
+    far = _scene_map(seed=4, every=10)
     far.descriptors[:] = np.random.default_rng(5).integers(0, 256, far.descriptors.shape, dtype=np.uint8)
     assert align_maps(a, far, voc, LoopConfig()).T_ab is None

@@ -4,8 +4,8 @@
 words from their descriptors, the same vocabulary), verifies the best candidates by PnP of ``b``'s features
 (stored in normalised coordinates, so no camera model is needed) against ``a``'s landmark positions, and turns
 each verified match into a guess of ``T_ab`` (``b``'s frame in ``a``'s). The guess that most other guesses agree
-with (within ``relocalise_agree_m`` / ``relocalise_agree_deg``) wins when at least ``relocalise_confirmations``
-agree; the agreeing matches become the loop edges that tie the two maps in the merged one
+with (within ``relocalise_agree_m`` / ``relocalise_agree_deg``) is chosen when at least ``relocalise_confirmations``
+agree, and ``T_ab`` is the mean of the guesses that agree with it; the agreeing matches become the loop edges that tie the two maps in the merged one
 (:func:`services.backend.loop.saved_map.concatenate`). Transport-free: ``sigmaslam map merge`` calls it.
 """
 
@@ -42,6 +42,15 @@ def _cameras(m: SparseMap) -> tuple[np.ndarray, np.ndarray]:
 def _agree(T1: np.ndarray, T2: np.ndarray, cfg: LoopConfig) -> bool:
     return (np.linalg.norm(T1[:3, 3] - T2[:3, 3]) <= cfg.relocalise_agree_m
             and np.rad2deg(np.linalg.norm(so3_log(T1[:3, :3].T @ T2[:3, :3]))) <= cfg.relocalise_agree_deg)
+
+
+def _mean_pose(Ts: list[np.ndarray]) -> np.ndarray:
+    """The mean of nearby poses: mean translation, the rotation nearest the mean rotation matrix (chordal mean)."""
+    U, _, Vt = np.linalg.svd(np.mean([T[:3, :3] for T in Ts], axis=0))
+    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, np.mean([T[:3, 3] for T in Ts], axis=0)
+    return T
 
 
 def align_maps(a: SparseMap, b: SparseMap, voc: Vocabulary, cfg: LoopConfig = LoopConfig(),
@@ -86,7 +95,7 @@ def align_maps(a: SparseMap, b: SparseMap, voc: Vocabulary, cfg: LoopConfig = Lo
     out.agreeing = len(support[best])
     if out.agreeing < max(1, cfg.relocalise_confirmations):
         return out
-    out.T_ab = guesses[best][0]
+    out.T_ab = _mean_pose([g[0] for g in support[best]])
     out.links = [(int(a.keys[i]), int(b.keys[j]), inv_T(a.T_WS[i]) @ res.T_WS, res.covariance, LOOP)
                  for _, i, j, res in support[best]]
     return out
