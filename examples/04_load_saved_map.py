@@ -57,11 +57,12 @@ def describe_submap(sm, sensor) -> dict:
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("path", help="a run folder holding map/dense.npz, or that file itself")
-    ap.add_argument("--out", metavar="PLY", help="mesh to write (default: <folder>/mesh_from_map.ply)")
+    ap.add_argument("--out", metavar="PLY", help="mesh to write (default: <run folder>/mesh_from_map.ply)")
     args = ap.parse_args(argv)
     path = Path(args.path)
     map_file = path / "map" / "dense.npz" if path.is_dir() else path
-    out = Path(args.out) if args.out else map_file.parent / "mesh_from_map.ply"
+    run_dir = map_file.parent.parent  # the run folder: DIR/map/dense.npz
+    out = Path(args.out) if args.out else run_dir / "mesh_from_map.ply"
 
     # 1. Load. The file holds every submap's voxel blocks, its pose T_WM, its keyframe binding T_KM and the sensor
     #    model it was built with; meshes are not stored but rebuilt from the field.
@@ -69,7 +70,7 @@ def main(argv: list[str] | None = None) -> dict:
     vs = mapper.sensor.voxel_size_m
     print(f"{map_file}: {len(mapper.submaps)} submaps, {vs * 100:g} cm voxels, l_min {mapper.sensor.l_min}, "
           f"{mapper.nbytes() / 1e6:.1f} MB")
-    report = map_file.parent / "mapping.json"  # written beside it by the mapping service (counts, timings)
+    report = run_dir / "mapping.json"  # written by the mapping service into the run folder (counts, timings)
     if report.is_file():
         counts = json.loads(report.read_text()).get("counts", {})
         print(f"mapping.json counts: {counts}")

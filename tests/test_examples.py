@@ -67,7 +67,7 @@ def test_04_load_saved_map(tmp_path, capsys):
         mapper.integrate(depth, np.full_like(depth, sigma), K, make_T(np.eye(3), [0.1 * i, 0, 0]), np.eye(4),
                          i * 50_000_000)
     run = tmp_path / "run"
-    save_map(mapper, run / "map.npz")
+    save_map(mapper, run / "map" / "dense.npz")  # where a run's mapping writes it
 
     facts = load("04_load_saved_map").main([str(run)])
     out = capsys.readouterr().out
@@ -83,7 +83,7 @@ def test_04_load_saved_map(tmp_path, capsys):
     assert facts["vertices"] == sm["vertices"] and ext[0] > 2.0 and ext[1] > 1.5 and ext[2] < 0.05
 
     other = tmp_path / "elsewhere.ply"
-    facts2 = load("04_load_saved_map").main([str(run / "map.npz"), "--out", str(other)])
+    facts2 = load("04_load_saved_map").main([str(run / "map" / "dense.npz"), "--out", str(other)])
     assert other.is_file() and facts2["faces"] == facts["faces"]
 
 

@@ -52,7 +52,8 @@ def test_a_second_run_localises_in_the_first_runs_map(tmp_path):
     stats = json.loads((tmp_path / "run_b" / "stats.json").read_text())
     loc = stats["localisation"]
     assert loc is not None and loc["time_to_relocalise_s"] is not None, (loc, log[-3000:])
-    assert loc["time_to_relocalise_s"] < (b1 - b0) / 2, loc
+    # tracking, loop.relocalise_settle_s (2 s), then two agreeing matches
+    assert loc["time_to_relocalise_s"] < 0.75 * (b1 - b0), loc
     assert "relocalised" in log
     # the first run's alignment to the ground truth, applied to the second run's poses: in one frame
     gt = read_trajectory(data_a / "mav0" / "state_groundtruth_estimate0" / "data.csv")

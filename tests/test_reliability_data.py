@@ -73,7 +73,7 @@ def test_map_save_killed_mid_write_leaves_the_previous_complete_map(tmp_path):
     # the kills landed at least once while a new file was being written (else the test proved nothing)
     assert mid_write >= 1 or tries < 3, mid_write
     # the mapping service removes the killed writers' temporary files at start, keeping the map
-    from services.mapping.io import remove_stale_temps
+    from shared.map_folder import remove_stale_temps
 
     stale = list(tmp_path.glob(".map.npz.*.tmp"))
     assert sorted(remove_stale_temps(tmp_path)) == sorted(stale)

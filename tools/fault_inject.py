@@ -218,7 +218,8 @@ def _kill_one(sup: Supervisor, probe: Probe, name: str, out: Path, window_s: flo
     child = next(c for c in sup.children if c.spec.name == name)
     if name == "mapping":  # kill it only once it has saved a checkpoint to resume from
         wait_until(lambda: (out / "map" / "dense.npz").exists(), 30.0)
-    if name == "backend" and load_system_config(sup.config_path).loop.enabled:  # likewise its sparse map
+    if name == "backend" and load_system_config(sup.config_path).loop.enabled:  # likewise its sparse map (with
+        # loop closure off the back end saves none and cannot relocalise)
         wait_until(lambda: (out / "map" / "sparse.npz").exists(), 60.0)
     old_pid = child.proc.pid
     t_kill = time.monotonic()
@@ -255,7 +256,8 @@ def _kill_one(sup: Supervisor, probe: Probe, name: str, out: Path, window_s: flo
                 odom = [st for st in after if probe.poses[st][1] == UNALIGNED_FRAME]
                 return [st for st in after if odom and st > odom[0] and probe.poses[st][1] != UNALIGNED_FRAME]
 
-        if wait_until(lambda: bool(back_in_frame()), restart_timeout_s):
+        if load_system_config(sup.config_path).loop.enabled and wait_until(lambda: bool(back_in_frame()),
+                                                                         restart_timeout_s):
             st = back_in_frame()[0]
             with probe.lock:
                 arrival = next(a for a, s2, _ in probe.states if s2 == st)

@@ -94,6 +94,9 @@ def merge_maps(a: str | Path, b: str | Path, out: str | Path, cfg=None) -> dict:
     from services.mapping.io import append_submaps, load_map, save_map
 
     cfg = cfg or LoopConfig()
+    for folder in (a, b):
+        if not sparse_path(folder).is_file():
+            raise FileNotFoundError(f"{folder}: no saved sparse map ({sparse_path(folder)} not found)")
     ma, mb = load_sparse(sparse_path(a)), load_sparse(sparse_path(b))
     voc = Vocabulary.load(cfg.vocabulary or DEFAULT_PATH)
 
