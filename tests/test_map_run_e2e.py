@@ -72,7 +72,7 @@ def test_a_second_run_localises_in_the_first_runs_map(tmp_path):
 
     # --localise-only: no map written; a missing map: exit 2 and the reason
     rc, log = _run(["run", str(data_b), "--out", str(tmp_path / "run_c"), "--map", str(tmp_path / "run_a"),
-                    "--localise-only", *common, "--player-arg=--max-frames=60"])
+                    "--localise-only", *common, "--player-arg=--max-frames=120"])
     assert rc == 0, log[-3000:]
     assert not (tmp_path / "run_c" / "map" / "sparse.npz").exists()
     rc, log = _run(["run", str(data_b), "--out", str(tmp_path / "run_d"), "--map", str(tmp_path / "nothing")])

@@ -98,6 +98,7 @@ class LoopCloser:
         self._map_matches: dict[int, VerifiedLoop] = {}  # matches to the map waiting for their keyframe's state
         self._published: dict[int, np.ndarray] = {}  # recent published poses (before alignment), by stamp
         self._tracking_since: int | None = None  # the first 'tracking' state's stamp
+        self._latest_ns: int | None = None  # the newest state stamp seen (note_status)
 
     # ------------------------------------------------------------------ a saved map
     def load_prior(self, m: SparseMap) -> None:
@@ -142,6 +143,7 @@ class LoopCloser:
                     self._published.pop(next(iter(self._published)))
         if status == "tracking" and self._tracking_since is None:
             self._tracking_since = int(stamp_ns)
+        self._latest_ns = max(int(stamp_ns), self._latest_ns or int(stamp_ns))
         if status == "tracking":
             if self._lost_since is not None and stamp_ns - self._lost_since >= self.cfg.relocalise_after_s * 1e9:
                 self._reloc_before = self._lost_since
@@ -290,20 +292,28 @@ class LoopCloser:
     def _try_align(self, lp: VerifiedLoop, rec: KeyframeRecord, T_old_new: np.ndarray) -> bool:
         """A match of keyframe ``rec`` to the saved map, its keyframe now a node, while not aligned (its state's pose
         never came): a guess from the node's window pose; a loop if that guess completes the alignment."""
-        if lp.query_stamp_ns in self._map_matches:  # not yet a guess (no state pose came for it)
+        if lp.query_stamp_ns in self._map_matches:  # no guess yet (no state pose came, or it came unsettled)
             del self._map_matches[lp.query_stamp_ns]
-            self._align_candidate(lp.T_WS_query @ inv_T(rec.T_WS), lp, rec.stamp_ns)
+            self._align_candidate(lp.T_WS_query @ inv_T(rec.T_WS), lp, rec.stamp_ns, self._latest_ns)
         return self._accept(lp, rec) if self.aligned else False
 
-    def _align_candidate(self, T_mw: np.ndarray, lp: VerifiedLoop, stamp_ns: int) -> None:
-        """One guess of T_map_window from a match to the saved map. Once ``relocalise_confirmations`` guesses agree
+    def _align_candidate(self, T_mw: np.ndarray, lp: VerifiedLoop, stamp_ns: int, pose_at_ns: int | None = None) -> None:
+        """One guess of T_map_window from a match to the saved map, the keyframe's window pose as estimated at
+        ``pose_at_ns`` (default: its own stamp, the published pose). Once ``relocalise_confirmations`` guesses agree
         within ``relocalise_agree_m`` / ``relocalise_agree_deg``, the session moves into the map's frame (the graph
         is solved at once: the published poses follow); the matches join the graph as loops when their keyframes
-        become nodes (they wait in the pending loops)."""
+        become nodes (they wait in the pending loops). A pose estimated in the first ``relocalise_settle_s`` of
+        tracking is not trusted: the match waits for its keyframe to leave the window (``_try_align``), whose pose
+        the window has refined by then."""
         cfg = self.cfg
         self.counts["map_matches"] += 1
-        if self._tracking_since is not None and stamp_ns < self._tracking_since + cfg.relocalise_settle_s * 1e9:
+        at = stamp_ns if pose_at_ns is None else pose_at_ns
+        if self._tracking_since is not None and at < self._tracking_since + cfg.relocalise_settle_s * 1e9:
             self.counts["map_matches_before_settled"] += 1
+            if pose_at_ns is None:  # a published pose: try again with the node's pose
+                self._map_matches[int(stamp_ns)] = lp
+                while len(self._map_matches) > 200:
+                    self._map_matches.pop(next(iter(self._map_matches)))
             return
         self._align_candidates = (self._align_candidates + [(T_mw, lp, stamp_ns)])[-10:]
         agree = [c for c in self._align_candidates
