@@ -135,6 +135,11 @@ class ProcessNode:
         depth)."""
         return {}
 
+    def after_publish(self) -> list[Emit]:
+        """Work a trigger message left for after its outputs are published (off the latency path), done before
+        the next trigger message: called by both runners right after the trigger's handler; may emit."""
+        return []
+
     def tick(self) -> list[Emit]:
         """Periodic work: called by the Zenoh runner while no trigger message is pending, by the in-process runner
         after each source message's messages; may emit."""
@@ -197,6 +202,13 @@ class InProcessRunner:
         key = (id(node), id(inp))
         self._newest[key] = max(self._newest.get(key, -1), int(msg.header.stamp_ns))
         self._emit(out)
+        if inp.role == "trigger":
+            t0, c0 = time.perf_counter(), time.thread_time()
+            after = node.after_publish()
+            if type(node).after_publish is not ProcessNode.after_publish:
+                self.times.setdefault((node.name, "after_publish"), []).append(
+                    (time.perf_counter() - t0, time.thread_time() - c0))
+            self._emit(after)
 
     def _push(self, topic: Topic, msg: Message) -> None:
         heapq.heappush(self._heap, (int(msg.header.stamp_ns), next(self._seq), topic, msg))

@@ -129,3 +129,29 @@ def test_a_rejected_message_is_counted_and_the_node_goes_on():
     runner = InProcessRunner([picky])
     runner.run(_source(6))
     assert len(picky.seen) == 3 and runner.rejected == {("picky", "sensors/frame"): 3}
+
+
+class LatePoser(Poser):
+    """Emits the state from its handler and leaves work for after_publish, which logs when it runs."""
+
+    name = "late_poser"
+
+    def __init__(self) -> None:
+        self.log = []
+
+    def on_frame(self, f):
+        self.log.append(("frame", f.header.stamp_ns))
+        return super().on_frame(f)
+
+    def after_publish(self):
+        self.log.append(("after", self.log[-1][1]))
+        return []
+
+
+def test_after_publish_runs_after_each_trigger_before_the_next():
+    node, waiter = LatePoser(), Waiter()
+    runner = InProcessRunner([node, waiter])
+    runner.run(_source(3))
+    assert node.log == [(k, 1_000_000_000 + i * 50_000_000) for i in range(3) for k in ("frame", "after")]
+    assert [ok for _, ok in waiter.handled] == [True] * 3  # what the handler emitted still arrives
+    assert len(runner.times[("late_poser", "after_publish")]) == 3

@@ -199,3 +199,35 @@ def test_normalised_gain_removes_a_global_gain():
     assert abs(na.mean() - 110.0) < 1.0 and abs(nb.mean() - 110.0) < 1.0
     assert np.abs(na.astype(int) - nb.astype(int)).max() <= 1
     assert normalised_gain(np.zeros((4, 4), np.uint8), 110.0).max() == 0  # a black frame stays black
+
+
+def test_deferred_detection_leaves_keyframes_and_tracks_unchanged(stereo_seq):
+    """With may_defer, a frame that is not a keyframe comes out with its tracked features only; its new features
+    (detected by finish_frame, after the output is sent) are carried from the next frame on. Keyframes, ids and
+    every tracked observation are those of the tracker that detects at once."""
+    room, cams, poses, images = stereo_seq
+    cfg = dataclasses.replace(FrontendConfig(), kf_min_parallax_px=4.0)
+    _, now = run_sequence(cams, poses, images, cfg)
+    tr = MultiCameraTracker(cfg, cams)
+    later = []
+    for k, (T, ims) in enumerate(zip(poses, images)):
+        R = fs.relative_rotation(poses[k - 1], T) if k else None
+        later.append(tr.process(int(round(k * DT * 1e9)), ims, R, may_defer=True))
+        if k % 2:  # the node calls finish_frame after publishing; else the next process() does it first
+            tr.finish_frame()
+    assert [o.is_keyframe for o in later] == [o.is_keyframe for o in now]
+    assert 1 < sum(o.is_keyframe for o in now) < len(now)
+    deferred = 0
+    for a, b in zip(now, later):
+        if a.is_keyframe:
+            assert np.array_equal(a.landmark_ids, b.landmark_ids) and np.array_equal(a.uv, b.uv)
+            continue
+        # the deferred output is the immediate one less the features new in this frame
+        assert set(b.landmark_ids.tolist()) <= set(a.landmark_ids.tolist())
+        fresh = a.counts.get("detected", 0)
+        deferred += b.counts.get("detection_deferred", 0)
+        assert len(a.landmark_ids) - len(b.landmark_ids) >= (fresh > 0)
+        keep = np.isin(a.landmark_ids, b.landmark_ids)
+        assert np.array_equal(a.uv[keep], b.uv)
+    assert deferred == sum(not o.is_keyframe for o in now)
+    assert sum(o.counts.get("detected", 0) for o in now[1:] if not o.is_keyframe) > 0

@@ -9,7 +9,7 @@ The node's declared inputs become subscribers (their queue policy and depth), it
 blocks on the trigger input; before each trigger message it drains the side inputs (first those the trigger waits
 for, up to ``node.wait_s`` until one is stamped at or after the trigger, then the others in declared order), sheds
 a backlog with the node's ``shed`` method when the trigger input declares one, and times the trigger's handler as
-the node's stage in ``stats/<name>``; with ``node.trigger_period_s`` it takes a trigger message at most that often
+the node's stage in ``stats/<name>``, publishes what it returned, then calls the node's ``after_publish``; with ``node.trigger_period_s`` it takes a trigger message at most that often
 (a keep-latest trigger queue then drops the ones in between, counted). While no trigger message comes it drains the side inputs, hands the idle
 inputs (end of stream) to the node and calls its ``tick``. What the handlers return is published in order. A node without a trigger
 input handles every input as it arrives and ticks between (every ``POLL_S / 10``). At a stop, what the side and
@@ -121,5 +121,6 @@ def run_node(node: ProcessNode, cfg: TransportConfig, stopped=None, ready=None) 
             with timer:
                 emits = w.handle(trigger, msg)
             w.publish(emits)
+            w.publish(node.after_publish())
         w.drain([*waited, *side, *idle])  # what arrived before the stop is handled before the node closes
         w.publish(node.close())

@@ -23,6 +23,10 @@ class FrontendConfig:
     klt_levels: int = param(3, "KLT pyramid levels above the full image")
     klt_iterations: int = param(10, "KLT iterations per level")
     fb_max_error_px: float = param(0.7, "forward-backward tracking error above which a track is dropped", "px")
+    defer_detection: bool = param(True, "on a frame that is not a keyframe, while the estimator tracks, publish the "
+                                  "tracked features first and detect and match new ones after (off the latency "
+                                  "path; the window takes keyframes only, so it sees the same features). Needs "
+                                  "kf_max_interval_s <= backend.max_keyframe_interval_s")
     use_gyro_prior: bool = param(True, "start KLT at the position predicted by the gyro-integrated rotation")
     normalise_gain: bool = param(False, "scale every image to the same mean brightness before tracking and matching "
                                  "(KLT assumes constant brightness: auto-exposure jumps and left/right gain "

@@ -52,6 +52,7 @@ class FrontendNode(ProcessNode):
         self.names = [c.name for c in cameras]
         self.gyro = GyroIntegrator()
         self.gyro_bias = np.zeros(3)
+        self.estimator_status = ""  # the newest state's status: detection is deferred only while 'tracking'
         self.last_stamp: int | None = None
         self.dropped = 0
         self.seq = 0
@@ -61,6 +62,7 @@ class FrontendNode(ProcessNode):
 
     def on_state(self, state: EstimatorState) -> None:
         self.gyro_bias = np.asarray(state.gyro_bias, float)
+        self.estimator_status = str(state.status)
 
     def on_frame(self, frame: MultiCameraFrame) -> list[Emit]:
         msg = self.process(frame)
@@ -73,6 +75,12 @@ class FrontendNode(ProcessNode):
                 out.append(Emit(topics.KEYFRAME_FEATURES, kff))
         out.append(Emit(topics.FEATURES, msg))
         return out
+
+    def after_publish(self) -> list[Emit]:
+        """New features of a frame whose detection waited until its features were sent."""
+        with self.timer("detect_after"):
+            self.tracker.finish_frame()
+        return []
 
     def images_in_rig_order(self, frame: MultiCameraFrame):
         names = list(frame.camera_names)
@@ -88,7 +96,8 @@ class FrontendNode(ProcessNode):
         try:
             images = self.images_in_rig_order(frame)
             R = None if self.last_stamp is None else self.gyro.rotation(self.last_stamp, stamp, self.gyro_bias)
-            out = self.tracker.process(stamp, images, R)
+            defer = self.cfg.defer_detection and self.estimator_status == "tracking"
+            out = self.tracker.process(stamp, images, R, may_defer=defer)
         except FrontendInputError as exc:
             self.dropped += 1
             log.warning("frame %d dropped (%d so far): %s", stamp, self.dropped, exc)

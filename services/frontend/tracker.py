@@ -94,6 +94,7 @@ class MultiCameraTracker:
         self._pairs = overlapping_pairs(self.cameras, cfg.min_view_overlap_cos)
         self._R_SC = [np.asarray(c.T_SC, float)[:3, :3] for c in cameras]
         self._next_id = int(first_landmark_id)
+        self._deferred: list[np.ndarray] | None = None  # images of a frame whose detection waits (finish_frame)
         self._last_stamp: int | None = None
         self._kf_id = -1
         self._kf_stamp: int | None = None
@@ -129,8 +130,16 @@ class MultiCameraTracker:
         return ids
 
     # ------------------------------------------------------------------ per frame
-    def process(self, stamp_ns: int, images, R_S_prev_cur: np.ndarray | None = None) -> TrackerOutput:
-        """Track, reject, detect and match for one frame; ``R_S_prev_cur`` = R_S(prev)S(cur) from the gyro."""
+    def process(self, stamp_ns: int, images, R_S_prev_cur: np.ndarray | None = None,
+                may_defer: bool = False) -> TrackerOutput:
+        """Track, reject, detect and match for one frame; ``R_S_prev_cur`` = R_S(prev)S(cur) from the gyro.
+
+        With ``may_defer``, a frame that is not a keyframe is returned with its tracked features only: detecting and
+        matching new ones waits for :meth:`finish_frame` (called after the output is sent, off the latency path;
+        else at the start of the next frame). The tracker's state is the same either way; only that frame's output
+        lacks the new features, which the next frames carry as tracked ones (a window that takes keyframes only
+        never sees the difference)."""
+        self.finish_frame()
         images = self._check(stamp_ns, images)
         cfg = self.cfg
         if cfg.normalise_gain:
@@ -143,6 +152,34 @@ class MultiCameraTracker:
                 self._track_temporal(i, cam, st, images[i], R_rel if use_prior else None, counts)
             st.image = images[i]
         self._check_cross_camera(counts)
+        self._R_S_kf_cur = self._R_S_kf_cur @ R_rel
+        # new features change the decision only when the last keyframe had none (see _keyframe_decision)
+        decided = bool(self._kf_obs) and any(len(ids) for ids, _ in self._kf_obs)
+        is_kf = self._keyframe_decision(stamp_ns, counts) if decided else False
+        self._last_stamp = int(stamp_ns)
+        if may_defer and decided and not is_kf:
+            self._deferred = images
+            counts["detection_deferred"] += 1
+            return self._output(stamp_ns, False, counts)
+        self._detect_and_match(images, counts)
+        if not decided:
+            is_kf = self._keyframe_decision(stamp_ns, counts)
+        if is_kf:
+            self._start_keyframe(stamp_ns, images)
+        return self._output(stamp_ns, is_kf, counts)
+
+    def finish_frame(self) -> int:
+        """Detect and match new features in the last frame if :meth:`process` deferred it; their count."""
+        images, self._deferred = self._deferred, None
+        if images is None:
+            return 0
+        counts: collections.Counter = collections.Counter()
+        self._detect_and_match(images, counts)
+        self.totals.update(counts)
+        return counts["detected"]
+
+    def _detect_and_match(self, images: list[np.ndarray], counts) -> None:
+        cfg = self.cfg
         for i, (cam, st) in enumerate(zip(self.cameras, self._cams)):
             new_uv = detect_spread(images[i], st.uv, cfg.max_features_per_camera, cfg.grid_cols, cfg.grid_rows,
                                    cfg.min_distance_px, cfg.fast_threshold, cfg.border_px)
@@ -151,11 +188,8 @@ class MultiCameraTracker:
                 st.append(ids, new_uv)
                 counts["detected"] += len(new_uv)
                 self._match_into_others(i, ids, new_uv, counts)
-        self._R_S_kf_cur = self._R_S_kf_cur @ R_rel
-        is_kf = self._keyframe_decision(stamp_ns, counts)
-        if is_kf:
-            self._start_keyframe(stamp_ns, images)
-        self._last_stamp = int(stamp_ns)
+
+    def _output(self, stamp_ns: int, is_kf: bool, counts) -> TrackerOutput:
         ids = np.concatenate([st.ids for st in self._cams])
         cam_idx = np.concatenate([np.full(len(st.ids), i, np.int16) for i, st in enumerate(self._cams)])
         uv = np.concatenate([st.uv for st in self._cams]).reshape(-1, 2).astype(np.float32)
