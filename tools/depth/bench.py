@@ -39,6 +39,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sources", type=int, default=4)
     p.add_argument("--stereo-weights", default=str(weights.WEIGHTS_DIR / "stereo.pt"),
                    help="stereo weights to time (an SGBM-guided network's time includes its SGBM)")
+    p.add_argument("--precision", choices=("float32", "bfloat16"), default="float32",
+                   help="the stereo network's arithmetic (depth.stereo_precision; MVS stays float32)")
     p.add_argument("--out", default="out/depth/bench.json")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
@@ -55,7 +57,8 @@ def main(argv: list[str] | None = None) -> int:
         f_src = torch.cat([mv.encoder(t(left)[None, None])[0] for _ in range(a.sources)])[None]
 
         def stereo():
-            u, su = st(t(left)[None, None], t(right)[None, None])
+            with weights.inference("cpu", a.precision):
+                u, su = (x.float() for x in st(t(left)[None, None], t(right)[None, None]))
             return disparity_to_depth(u[0].numpy(), su[0].numpy() * st_meta["gain"], K_RECT[0, 0], BASELINE_M)
 
         def mvs():
@@ -68,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
                "stereo_net": _time(stereo, a.runs), "mvs_net": _time(mvs, a.runs),
                "fusion": _time(lambda: fuse(*d1, *d2), a.runs)}
     res["total_networks_fusion"] = {k: res["stereo_net"][k] + res["mvs_net"][k] + res["fusion"][k] for k in ("cpu_ms", "wall_ms")}
-    res["config"] = {"stereo_weights": a.stereo_weights, "stereo_arch": st_meta["arch"], "runs": a.runs, "threads": a.threads, "sources": a.sources, "size": [512, 384],
+    res["config"] = {"stereo_weights": a.stereo_weights, "stereo_arch": st_meta["arch"], "runs": a.runs, "threads": a.threads, "precision": a.precision, "sources": a.sources, "size": [512, 384],
                      "torch": torch.__version__}
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     Path(a.out).write_text(json.dumps(res, indent=1))

@@ -35,6 +35,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--border-margin-px", type=int, default=None, help="replica: depth dropped on the black rectification "
                    "border and this far around it, as the pipeline does (default depth.border_margin_px; -1: keep all)")
     p.add_argument("--threads", type=int, default=1, help="torch threads (CPU times are process time: use 1)")
+    p.add_argument("--precision", choices=("float32", "bfloat16"), default="float32",
+                   help="the stereo network's arithmetic (depth.stereo_precision; MVS stays float32)")
     p.add_argument("--stereo-weights", default="", help="default: services/depth/weights/stereo.pt")
     p.add_argument("--mvs-weights", default="", help="default: services/depth/weights/mvs.pt")
     p.add_argument("--out", default="out/depth/eval", help="output folder")
@@ -181,7 +183,8 @@ def main(args: argparse.Namespace) -> int:
         tt = lambda a: torch.from_numpy(np.asarray(a)).float()
         with torch.inference_mode():
             t = time.process_time()
-            u, su = st_net(tt(left)[None, None], tt(right)[None, None])
+            with weights.inference("cpu", args.precision):
+                u, su = (x.float() for x in st_net(tt(left)[None, None], tt(right)[None, None]))
             d_st, s_st = disparity_to_depth(u[0].numpy(), su[0].numpy() * st_meta["gain"], f_px, baseline)
             times["stereo_net"].append(time.process_time() - t)
             acc["stereo_net"].append((d_st, s_st, gt))

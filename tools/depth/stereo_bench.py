@@ -64,6 +64,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fit", type=float, default=0.9, help="a pair is shrunk when its largest disparity exceeds this "
                    "fraction of the network's range")
     p.add_argument("--threads", type=int, default=1, help="torch threads (CPU times are process time: use 1)")
+    p.add_argument("--precision", choices=("float32", "bfloat16"), default="float32",
+                   help="the stereo network's arithmetic (depth.stereo_precision; MVS stays float32)")
     p.add_argument("--no-plots", action="store_true", help="skip the per-scene pictures")
     p.add_argument("--out", default="out/depth/stereo", help="output folder")
 
@@ -100,7 +102,7 @@ def scene_scale(scene: StereoScene, net_range: float, fit: float) -> float:
 
 
 def run_methods(scene: StereoScene, nets: list[tuple[str, object, float]], fit: float, sigma_sgbm_px: float,
-                device: str = "cpu") -> dict[str, dict]:
+                device: str = "cpu", precision: str = "float32") -> dict[str, dict]:
     """{method: {'disp', 'sigma', 'cpu_s'}} at the ground truth's resolution and pixel units."""
     import cv2
 
@@ -124,7 +126,7 @@ def run_methods(scene: StereoScene, nets: list[tuple[str, object, float]], fit: 
             runs.append((f"{label}@{net.max_disparity}", None))
         for name, search in runs:
             c0 = time.process_time()
-            u, su = predict_disparity(net, left, right, device, search)
+            u, su = predict_disparity(net, left, right, device, search, precision)
             out[name] = {"disp": back(u), "sigma": back(su * gain), "cpu_s": time.process_time() - c0, "scale": s}
     c0 = time.process_time()
     sg = sgbm_disparity(left, right, SgbmParams(num_disparities=n_disp))
@@ -147,7 +149,8 @@ def scene_metrics(scene: StereoScene, results: dict[str, dict]) -> dict[str, dic
     return rows
 
 
-def euroc_agreement(dataset: Path, nets: list[tuple[str, object, float]], frames: int, device: str = "cpu") -> dict:
+def euroc_agreement(dataset: Path, nets: list[tuple[str, object, float]], frames: int, device: str = "cpu",
+                    precision: str = "float32") -> dict:
     """Per network: agreement with SGBM on real EuRoC frames rectified as the depth service does."""
     from services.depth.config import DepthConfig
     from services.depth.pipeline import pipeline_for_rig
@@ -172,7 +175,7 @@ def euroc_agreement(dataset: Path, nets: list[tuple[str, object, float]], frames
         ok = np.isfinite(sg) & valid
         sgbm_cov.append(ok.sum() / max(1, valid.sum()))
         for label, net, gain in nets:
-            u, su = predict_disparity(net, left, right, device)
+            u, su = predict_disparity(net, left, right, device, precision=precision)
             d = np.abs(u[ok] - sg[ok])
             diff[label].append(d)
             z[label].append(d / (su[ok] * gain))
@@ -297,7 +300,7 @@ def main(args: argparse.Namespace) -> int:
     sigma_sgbm = DepthConfig().heuristic_sigma_coeff
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    report: dict = {"scenes": {}, "scales": {}, "sgbm_sigma_px": sigma_sgbm,
+    report: dict = {"scenes": {}, "scales": {}, "sgbm_sigma_px": sigma_sgbm, "precision": args.precision,
                     "weights": [str(p) for p in args.weights] or ["services/depth/weights/stereo.pt"]}
     for i, d in enumerate(dirs):
         try:
@@ -305,7 +308,7 @@ def main(args: argparse.Namespace) -> int:
         except StereoSceneError as exc:
             print(f"eval stereo: skipping {d}: {exc}")
             continue
-        results = run_methods(scene, nets, args.fit, sigma_sgbm)
+        results = run_methods(scene, nets, args.fit, sigma_sgbm, precision=args.precision)
         rows = scene_metrics(scene, results)
         report["scenes"][scene.name] = rows
         report["scales"][scene.name] = {"scale": results["sgbm"]["scale"], "max_disparity": scene.max_disparity}
@@ -321,7 +324,7 @@ def main(args: argparse.Namespace) -> int:
     report["mean"] = mean_rows(report["scenes"])
     euroc = _default(args.euroc, DEFAULT_EUROC)
     if euroc is not None:
-        report["euroc"] = euroc_agreement(euroc, nets, args.euroc_frames)
+        report["euroc"] = euroc_agreement(euroc, nets, args.euroc_frames, precision=args.precision)
     (out / "metrics.json").write_text(json.dumps(report, indent=1))
     md = markdown(report)
     (out / "table.md").write_text(md)
