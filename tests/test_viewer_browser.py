@@ -186,6 +186,9 @@ def test_viewer_page_draws_meshes_and_controls_work(stack):
     assert wait_for(lambda: viewer_queues()[topics.SUBMAP.key][1] == 1, 10, 0.2), viewer_queues()
     q = viewer_queues()
     assert q[topics.SUBMAP.key][0] >= 5 and q[topics.STATE.key][0] > 20 and q[topics.LANDMARKS.key][0] >= 2, q
-    assert all(dropped == 0 for key, (_, dropped) in q.items() if key != topics.SUBMAP.key), q
+    # images come through keep-latest queues (the page shows the newest one): on a loaded machine older ones are
+    # skipped and counted, by design; every other input must arrive whole
+    images = {topics.SUBMAP.key, topics.FRAME.key, topics.DEPTH_STEREO.key, topics.DEPTH_FUSED.key}
+    assert all(dropped == 0 for key, (_, dropped) in q.items() if key not in images), q
     assert stack["viewer"].p.poll() is None
     assert not errors, errors
