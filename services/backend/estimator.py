@@ -237,10 +237,12 @@ class WindowedVioEstimator:
     def _motion_only_frame(self, n: int, k: int) -> FrameResult:
         """Non-keyframe: solve the newest state alone against the fixed window, report it, drop it."""
         lms = [lm for lm in self._in_graph if n in self._obs[lm]]
-        proj = [self._projection(lm, n, j, c, xy) for lm in lms for j, (c, xy) in enumerate(self._obs[lm][n])]
-        proj += self._still.get(n, [])
+        seen = [(self.values.atPoint3(L(lm)), c, xy) for lm in lms for c, xy in self._obs[lm][n]]
+        pts = self._vision.fixed_points(np.array([p for p, _, _ in seen]).reshape(-1, 3),
+                                        np.array([xy for _, _, xy in seen]).reshape(-1, 2), [c for _, c, _ in seen])
         try:
-            upd = optimise_latest(self.values, k, n, self._imu_factors[n], proj, lms, self.cfg.lm_max_iterations)
+            upd = optimise_latest(self.values, n, [self._imu_factors[n], *self._still.get(n, [])], pts,
+                                  self.cfg.lm_max_iterations)
             self.values.update(upd)
         except RuntimeError as exc:  # keep the IMU prediction
             self.failed_optimisations += 1

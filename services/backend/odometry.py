@@ -18,7 +18,7 @@ import dataclasses
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import B, L, V, X
+from gtsam.symbol_shorthand import B, V, X
 
 from services.backend.cameras import BackendCamera
 from services.backend.config import BackendConfig
@@ -130,14 +130,13 @@ class FrameTracker:
         values.insert(X(FRAME), gtsam.Pose3(T))
         values.insert(V(FRAME), np.asarray(v, float))
         values.insert(B(FRAME), bias)
-        for lm in lms:
-            values.insert(L(lm), self._points[lm])
         xy = self.vision.undistort(cams[known], uv[known])
-        proj = [self.vision.factor(p, int(c), X(FRAME), L(int(i))) for i, c, p in zip(ids[known], cams[known], xy)]
+        pts = self.vision.fixed_points(np.array([self._points[int(i)] for i in ids[known]]).reshape(-1, 3), xy,
+                                       cams[known])
         factor = imu_factor(pim, (X(KEYFRAME), V(KEYFRAME), B(KEYFRAME)), (X(FRAME), V(FRAME), B(FRAME)))
         solved = True
         try:
-            values.update(optimise_latest(values, KEYFRAME, FRAME, factor, proj, lms, self.cfg.lm_max_iterations))
+            values.update(optimise_latest(values, FRAME, [factor], pts, self.cfg.lm_max_iterations))
         except RuntimeError:  # keep the IMU prediction
             self.failed_solves += 1
             solved = False

@@ -11,6 +11,7 @@ import gtsam
 import numpy as np
 
 from services.backend.cameras import BackendCamera
+from services.backend.motion_only import FixedPoints
 
 
 class ProjectionModel:
@@ -18,6 +19,8 @@ class ProjectionModel:
 
     def __init__(self, cameras: list[BackendCamera], sigma_px: float, cauchy_k: float) -> None:
         self.cameras = list(cameras)
+        self.sigma_px, self.cauchy_k = float(sigma_px), float(cauchy_k)
+        self._T_SC = np.array([c.T_SC for c in self.cameras], float)
         self._cal = gtsam.Cal3_S2(1.0, 1.0, 0.0, 0.0, 0.0)
         self._body_P_cam = [gtsam.Pose3(c.T_SC) for c in self.cameras]
         self._noise = [gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(cauchy_k),
@@ -28,6 +31,13 @@ class ProjectionModel:
         """Reprojection factor of normalised coordinates ``xy`` (2,) seen by ``camera`` from pose ``pose_key``."""
         return gtsam.GenericProjectionFactorCal3_S2(xy, self._noise[camera], pose_key, landmark_key, self._cal,
                                                     False, False, self._body_P_cam[camera])
+
+    def fixed_points(self, p_W: np.ndarray, xy: np.ndarray, camera: np.ndarray) -> FixedPoints:
+        """The same reprojection terms for landmarks held fixed at ``p_W`` (M,3), observed at normalised ``xy``
+        (M,2) by ``camera`` (M,): what a motion-only solve (services/backend/motion_only.py) takes."""
+        sigma = np.array([self.sigma_px / c.focal_px for c in self.cameras])
+        return FixedPoints(np.asarray(p_W, float).reshape(-1, 3), np.asarray(xy, float).reshape(-1, 2),
+                           np.asarray(camera, np.int64).reshape(-1), self._T_SC, sigma, self.cauchy_k)
 
     def undistort(self, camera_index: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """(M,2) normalised coordinates of distorted pixels ``uv`` (M,2), each by its camera."""
