@@ -181,3 +181,20 @@ def test_stop_timeout_per_service(tmp_path):
     assert hasty.proc.returncode == -signal.SIGKILL
     with pytest.raises(ConfigError, match="stop_timeout_s"):
         validate(SupervisorConfig(services=[ServiceSpec(name="x", argv=["record"], stop_timeout_s=-1.0)]), {"record": None})
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="scheduling classes are Linux's")
+def test_child_setup_sets_niceness_and_scheduling_class():
+    """What the supervisor runs in each child before exec: the niceness added and SCHED_IDLE / SCHED_BATCH."""
+    import os
+
+    code = ("import os, sys; from services.app.supervisor import _child_setup; "
+            "_child_setup(os.getppid(), int(sys.argv[1]), sys.argv[2]); "
+            "print(os.sched_getscheduler(0), os.nice(0))")
+    base = os.nice(0)
+    for sched, nice, policy in (("idle", 0, os.SCHED_IDLE), ("batch", 3, os.SCHED_BATCH), ("normal", 2, os.SCHED_OTHER)):
+        out = subprocess.run([sys.executable, "-c", code, str(nice), sched], cwd=REPO, env=child_env(),
+                             capture_output=True, text=True, timeout=60)
+        assert out.returncode == 0, out.stderr
+        got_policy, got_nice = map(int, out.stdout.split())
+        assert got_policy == policy and got_nice == base + nice, (sched, out.stdout)

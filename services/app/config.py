@@ -23,6 +23,11 @@ class ServiceSpec:
     backoff_max_s: float = param(10.0, "longest delay before a restart", "s")
     nice: int = param(0, "OS scheduling niceness added to the process (0..19); e.g. 10 for depth and mapping so "
                       "that, on a loaded CPU, the estimator's processes get the cores first")
+    sched: Literal["normal", "batch", "idle"] = param("normal", "Linux scheduling class of the process: 'idle' "
+                                                      "(SCHED_IDLE) runs it only on CPU time no normal process "
+                                                      "wants, so that on two cores depth, mapping and the viewer "
+                                                      "never delay a pose; 'batch' (SCHED_BATCH) is for long "
+                                                      "computations; ignored elsewhere than Linux")
     stop_timeout_s: float = param(0.0, "after SIGTERM, SIGKILL this service if still alive after this long "
                                   "(0: the supervisor's shutdown_timeout_s); the mapping meshes and writes its map "
                                   "when stopped, so it gets longer", "s")

@@ -104,11 +104,14 @@ def validate(cfg: SupervisorConfig, known_commands: dict[str, object] | None = N
 
 # ----------------------------------------------------------------------------- processes
 
-def _child_setup(parent_pid: int, nice: int = 0) -> None:
-    """preexec_fn: lower the child's priority by ``nice``; SIGTERM it when the supervisor dies (Linux prctl
-    PR_SET_PDEATHSIG)."""
+def _child_setup(parent_pid: int, nice: int = 0, sched: str = "normal") -> None:
+    """preexec_fn: lower the child's priority by ``nice`` and put it in scheduling class ``sched`` (Linux); SIGTERM
+    it when the supervisor dies (Linux prctl PR_SET_PDEATHSIG)."""
     if nice > 0:
         os.nice(nice)
+    policy = {"batch": getattr(os, "SCHED_BATCH", None), "idle": getattr(os, "SCHED_IDLE", None)}.get(sched)
+    if policy is not None:
+        os.sched_setscheduler(0, policy, os.sched_param(0))
     if sys.platform.startswith("linux"):
         import ctypes
 
@@ -165,7 +168,7 @@ class Supervisor:
         env = self._env()
         env[RESTARTS_ENV] = str(child.tracker.total_restarts)  # > 0: a restart (the back end reports 'reset')
         child.proc = subprocess.Popen(child.argv, env=env, start_new_session=True,
-                                      preexec_fn=lambda: _child_setup(parent, child.spec.nice))
+                                      preexec_fn=lambda: _child_setup(parent, child.spec.nice, child.spec.sched))
         child.restart_at = None
         self._status(child, f"started pid {child.proc.pid}")
 

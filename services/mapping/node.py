@@ -248,9 +248,11 @@ class MappingNode(ProcessNode):
     inputs = (
         Input(topics.STATE, "on_state", policy="all", note="poses by stamp (mapping.state_buffer of them)"),
         Input(topics.KEYFRAMES, "on_keyframes", note="submap poses follow their keyframes"),
-        Input(topics.DEPTH_STEREO, "on_depth", when="mapping.depth_topic = depth/stereo (default)",
+        # 16 frames (~1.6 s at 10 Hz, ~25 MB) absorb a mesh or checkpoint pause without dropping depth
+        Input(topics.DEPTH_STEREO, "on_depth", depth=16, when="mapping.depth_topic = depth/stereo (default)",
               note="depth to integrate"),
-        Input(topics.DEPTH_FUSED, "on_depth", when="mapping.depth_topic = depth/fused", note="depth to integrate"),
+        Input(topics.DEPTH_FUSED, "on_depth", depth=16, when="mapping.depth_topic = depth/fused",
+              note="depth to integrate"),
         Input(topics.TRAJECTORY_FINAL, "on_final", note="submaps move onto it (mapping.follow_final)"),
     )
     outputs = (topics.SUBMAP, topics.MAP_FIELD, topics.MAP_O2P_POINTS)
