@@ -39,13 +39,14 @@ import numpy as np
 from services.backend.loop.config import LoopConfig
 from services.backend.loop.covisibility import Covisibility
 from services.backend.loop.history import KeyframeRecord
+from services.backend.loop.guesses import agree, mean_pose
 from services.backend.loop.place_recognition import PlaceDatabase
 from services.backend.loop.pose_graph import LoopConstraint, PoseGraph
 from services.backend.loop.saved_map import (LOOP, ODOMETRY, SparseMap, SparseMapError, build_map, concatenate,
                                              save_sparse, vocabulary_id)
 from services.backend.loop.verification import FeatureSet, verify_pnp
 from services.backend.loop.vocabulary import DEFAULT_PATH, Vocabulary, l1_score
-from shared.geometry import inv_T, so3_log
+from shared.geometry import inv_T
 
 log = logging.getLogger("sigmaslam.loop")
 
@@ -316,17 +317,16 @@ class LoopCloser:
                     self._map_matches.pop(next(iter(self._map_matches)))
             return
         self._align_candidates = (self._align_candidates + [(T_mw, lp, stamp_ns)])[-10:]
-        agree = [c for c in self._align_candidates
-                 if np.linalg.norm(c[0][:3, 3] - T_mw[:3, 3]) <= cfg.relocalise_agree_m
-                 and np.rad2deg(np.linalg.norm(so3_log(c[0][:3, :3].T @ T_mw[:3, :3]))) <= cfg.relocalise_agree_deg]
-        if len(agree) < max(1, cfg.relocalise_confirmations):
+        agreeing = [c for c in self._align_candidates if agree(c[0], T_mw, cfg)]
+        if len(agreeing) < max(1, cfg.relocalise_confirmations):
             return
+        T_mw = mean_pose([c[0] for c in agreeing])  # the agreeing guesses' mean (one guess's error is halved)
         self.graph.align_session(T_mw @ inv_T(self.correction()))  # from where the graph has the session now
         self.aligned, self.aligned_at_ns = True, int(stamp_ns)
         self._align_candidates, self._map_matches, self._published = [], {}, {}
         self.counts["map_relocalised"] += 1
         log.info("relocalised in the saved map at %d ns (%d agreeing matches): publishing in the map's frame",
-                 stamp_ns, len(agree))
+                 stamp_ns, len(agreeing))
         if self.graph.keys:
             t0 = time.perf_counter()
             self.graph.optimise(self.cfg.pose_graph_iterations)

@@ -17,10 +17,11 @@ import numpy as np
 
 from services.backend.loop.config import LoopConfig
 from services.backend.loop.place_recognition import PlaceDatabase
+from services.backend.loop.guesses import agree, mean_pose
 from services.backend.loop.saved_map import LOOP, SparseMap, SparseMapError
 from services.backend.loop.verification import verify_pnp
 from services.backend.loop.vocabulary import Vocabulary, l1_score
-from shared.geometry import inv_T, so3_log
+from shared.geometry import inv_T
 
 
 @dataclass
@@ -37,20 +38,6 @@ def _cameras(m: SparseMap) -> tuple[np.ndarray, np.ndarray]:
     if not cams:
         raise SparseMapError("the map does not record its cameras (saved before maps carried them)")
     return np.array([c["T_SC"] for c in cams], float), np.array([c["focal_px"] for c in cams], float)
-
-
-def _agree(T1: np.ndarray, T2: np.ndarray, cfg: LoopConfig) -> bool:
-    return (np.linalg.norm(T1[:3, 3] - T2[:3, 3]) <= cfg.relocalise_agree_m
-            and np.rad2deg(np.linalg.norm(so3_log(T1[:3, :3].T @ T2[:3, :3]))) <= cfg.relocalise_agree_deg)
-
-
-def _mean_pose(Ts: list[np.ndarray]) -> np.ndarray:
-    """The mean of nearby poses: mean translation, the rotation nearest the mean rotation matrix (chordal mean)."""
-    U, _, Vt = np.linalg.svd(np.mean([T[:3, :3] for T in Ts], axis=0))
-    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, np.mean([T[:3, 3] for T in Ts], axis=0)
-    return T
 
 
 def align_maps(a: SparseMap, b: SparseMap, voc: Vocabulary, cfg: LoopConfig = LoopConfig(),
@@ -90,12 +77,12 @@ def align_maps(a: SparseMap, b: SparseMap, voc: Vocabulary, cfg: LoopConfig = Lo
                 break
     if not guesses:
         return out
-    support = [[g for g in guesses if _agree(g[0], h[0], cfg)] for h in guesses]
+    support = [[g for g in guesses if agree(g[0], h[0], cfg)] for h in guesses]
     best = int(np.argmax([len(s) for s in support]))
     out.agreeing = len(support[best])
     if out.agreeing < max(1, cfg.relocalise_confirmations):
         return out
-    out.T_ab = _mean_pose([g[0] for g in support[best]])
+    out.T_ab = mean_pose([g[0] for g in support[best]])
     out.links = [(int(a.keys[i]), int(b.keys[j]), inv_T(a.T_WS[i]) @ res.T_WS, res.covariance, LOOP)
                  for _, i, j, res in support[best]]
     return out
