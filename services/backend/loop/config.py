@@ -57,9 +57,10 @@ class LoopConfig:
     relocalise_agree_m: float = param(0.3, "matches agree when the map-from-session transforms they imply differ "
                                       "by at most this much translation ...", "m")
     relocalise_agree_deg: float = param(3.0, "... and this much rotation", "deg")
-    relocalise_settle_s: float = param(2.0, "matches to a saved map from the first seconds of tracking do not align the "
-                                       "run: a window just initialised (a restart in motion) has not settled its "
-                                       "scale and velocity", "s")
+    relocalise_settle_s: float = param(2.0, "a match to a saved map from the first seconds of tracking gives its guess "
+                                       "only when its keyframe leaves the window, with the refined pose: a window "
+                                       "just initialised (a restart in motion) has not settled its scale and "
+                                       "velocity", "s")
     queue_depth: int = param(200, "keyframe events waiting for the loop thread at most (oldest dropped, counted)")
     # --- final bundle adjustment ---
     final_ba: bool = param(True, "at the end of the stream, bundle-adjust all keyframes and publish "
