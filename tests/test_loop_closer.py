@@ -16,7 +16,8 @@ from services.backend.config import BackendConfig
 from services.backend.estimator import BackendCamera, WindowedVioEstimator
 from services.backend.loop.config import LoopConfig
 from services.backend.loop.history import KeyframeHistory
-from services.backend.loop.loop_closer import LoopCloser, ThreadedLoopCloser
+from services.backend.loop.loop_closer import LoopCloser
+from services.backend.loop.loop_thread import ThreadedLoopCloser
 from services.backend.loop.verification import FeatureSet
 from shared.geometry import inv_T, so3_exp
 

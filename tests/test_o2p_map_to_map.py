@@ -13,7 +13,8 @@ from services.backend.o2p_config import O2PConfig
 from services.backend.loop.config import LoopConfig
 from services.backend.loop.final_ba import bundle_adjust
 from services.backend.loop.history import KeyframeRecord
-from services.backend.loop.loop_closer import LoopCloser, ThreadedLoopCloser
+from services.backend.loop.loop_closer import LoopCloser
+from services.backend.loop.loop_thread import ThreadedLoopCloser
 from services.backend.loop.pose_graph import PoseGraph
 from tests.test_o2p_terms import S, err, map_to_map_term
 

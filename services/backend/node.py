@@ -33,7 +33,8 @@ from services.backend.frame_result import FrameResult
 from services.backend.imu_factors import ImuDataError
 from services.backend.loop.backend_loop import LoopClosingBackend, PublishedFrame
 from services.backend.loop.history import KeyframeHistory
-from services.backend.loop.loop_closer import LoopCloser, ThreadedLoopCloser
+from services.backend.loop.loop_closer import LoopCloser
+from services.backend.loop.loop_thread import ThreadedLoopCloser
 from services.backend.loop.saved_map import SparseMapError, load_sparse
 from shared.config import ConfigError
 from shared.map_folder import SPARSE_FILE, run_map_dir, sparse_path

@@ -30,7 +30,7 @@ from gtsam.symbol_shorthand import X
 from services.backend.loop.config import LoopConfig
 from services.backend.loop.final_ba import bundle_adjust, follow_keyframes
 from services.backend.loop.history import KeyframeHistory
-from services.backend.loop.loop_closer import ThreadedLoopCloser
+from services.backend.loop.loop_thread import ThreadedLoopCloser
 from services.backend.loop.verification import FeatureSet
 from shared.geometry import inv_T
 from shared.map_folder import SPARSE_FILE, UNALIGNED_FRAME, run_map_dir

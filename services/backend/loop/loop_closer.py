@@ -22,15 +22,14 @@ estimator's marginalisation hook) and the tracking status (:meth:`LoopCloser.not
   later matches to the map are ordinary loops to fixed nodes. :meth:`LoopCloser.sparse_map` gives the map to save:
   the saved map's keyframes, unchanged, and this session's aligned keyframes.
 
-:class:`ThreadedLoopCloser` runs all of this in a thread of its own: the caller only enqueues.
+:class:`services.backend.loop.loop_thread.ThreadedLoopCloser` runs all of this in a thread of its own: the
+caller only enqueues.
 """
 
 from __future__ import annotations
 
 import collections
 import logging
-import queue
-import threading
 import time
 from dataclasses import dataclass
 
@@ -39,11 +38,11 @@ import numpy as np
 from services.backend.loop.config import LoopConfig
 from services.backend.loop.covisibility import Covisibility
 from services.backend.loop.history import KeyframeRecord
-from services.backend.loop.guesses import agree, mean_pose
+from services.backend.loop.map_localiser import MapLocaliser
 from services.backend.loop.place_recognition import PlaceDatabase
 from services.backend.loop.pose_graph import LoopConstraint, PoseGraph
 from services.backend.loop.saved_map import (LOOP, ODOMETRY, SparseMap, SparseMapError, build_map, concatenate,
-                                             save_sparse, vocabulary_id)
+                                             vocabulary_id)
 from services.backend.loop.verification import FeatureSet, verify_pnp
 from services.backend.loop.vocabulary import DEFAULT_PATH, Vocabulary, l1_score
 from shared.geometry import inv_T
@@ -93,13 +92,13 @@ class LoopCloser:
         self._m2m_pending: list = []  # map-to-map terms waiting for their anchor keyframes to become nodes
         self.max_pending_map_to_map = 100
         self.prior: SparseMap | None = None  # a saved map this session localises in (load_prior)
-        self.aligned = True  # the session's frame is the map's (always, without a saved map)
-        self.aligned_at_ns: int | None = None  # stamp of the keyframe whose match aligned the session
-        self._align_candidates: list[tuple[np.ndarray, VerifiedLoop, int]] = []  # (T_map_window, match, stamp)
-        self._map_matches: dict[int, VerifiedLoop] = {}  # matches to the map waiting for their keyframe's state
-        self._published: dict[int, np.ndarray] = {}  # recent published poses (before alignment), by stamp
-        self._tracking_since: int | None = None  # the first 'tracking' state's stamp
-        self._latest_ns: int | None = None  # the newest state stamp seen (note_status)
+        self._localiser: MapLocaliser | None = None  # until the session is in the saved map's frame
+        self.aligned_at_ns: int | None = None  # stamp of the keyframe whose match aligned it to the saved map
+
+    @property
+    def aligned(self) -> bool:
+        """Whether the session's frame is the saved map's (always, without a saved map)."""
+        return self._localiser is None
 
     # ------------------------------------------------------------------ a saved map
     def load_prior(self, m: SparseMap) -> None:
@@ -120,7 +119,7 @@ class LoopCloser:
                 self._old[key] = (fs, np.asarray(p_W, float), rec)
                 self.db.add(key, PRIOR_STAMP_NS, self.voc.bag(fs.descriptors))
         self.prior = m
-        self.aligned = False
+        self._localiser = MapLocaliser(self.cfg, self.counts)
         self.counts["map_keyframes"] = len(m)
         log.info("saved map loaded: %d keyframes, %d in the place database", len(m), len(self.db))
 
@@ -133,18 +132,9 @@ class LoopCloser:
         reached, its pose ``T_pub`` (published frame: this closer's correction applied to the window's pose), with
         which a keyframe's match to the map aligns the session at once, without waiting for the keyframe to leave
         the window."""
-        if T_pub is not None and not self.aligned:
-            lp = self._map_matches.pop(int(stamp_ns), None)
-            if lp is not None:
-                T_W_query = inv_T(self.correction()) @ np.asarray(T_pub, float)  # the window's pose of the keyframe
-                self._align_candidate(lp.T_WS_query @ inv_T(T_W_query), lp, int(stamp_ns))
-            else:
-                self._published[int(stamp_ns)] = np.asarray(T_pub, float)
-                while len(self._published) > 64:
-                    self._published.pop(next(iter(self._published)))
-        if status == "tracking" and self._tracking_since is None:
-            self._tracking_since = int(stamp_ns)
-        self._latest_ns = max(int(stamp_ns), self._latest_ns or int(stamp_ns))
+        if self._localiser is not None:
+            T_W = None if T_pub is None else inv_T(self.correction()) @ np.asarray(T_pub, float)  # window pose
+            self._align(self._localiser.note_state(stamp_ns, status, T_W), stamp_ns)
         if status == "tracking":
             if self._lost_since is not None and stamp_ns - self._lost_since >= self.cfg.relocalise_after_s * 1e9:
                 self._reloc_before = self._lost_since
@@ -165,14 +155,15 @@ class LoopCloser:
         ref = float(l1_score(bag, self._prev_bag)) if self._prev_bag is not None else None
         self._prev_bag = bag
         reloc = self._reloc_before is not None
-        min_age = 0.0 if reloc else cfg.min_age_s
-        cands = self.db.query(bag, stamp_ns, min_age, cfg.min_score, 0.0 if reloc else cfg.min_normalised,
-                              ref, max_candidates=cfg.max_candidates if not reloc else 3 * cfg.max_candidates)
-        if reloc:
-            cands = [c for c in cands if c.stamp_ns < self._reloc_before]
         if not self.aligned:  # not yet in the saved map's frame: only the map's keyframes can place it there
             cands = [c for c in self.db.query(bag, stamp_ns, 0.0, cfg.min_score, 0.0, ref, 3 * cfg.max_candidates)
                      if self._is_prior(c.key)]
+        else:
+            min_age = 0.0 if reloc else cfg.min_age_s
+            cands = self.db.query(bag, stamp_ns, min_age, cfg.min_score, 0.0 if reloc else cfg.min_normalised,
+                                  ref, max_candidates=cfg.max_candidates if not reloc else 3 * cfg.max_candidates)
+            if reloc:
+                cands = [c for c in cands if c.stamp_ns < self._reloc_before]
         out = []
         for c in cands:
             self.counts["proposed"] += 1
@@ -190,13 +181,8 @@ class LoopCloser:
             loop = VerifiedLoop(c.key, int(stamp_ns), res.T_WS, res.covariance, res.inliers, reloc, obs)
             self._pending.append(loop)
             out.append(loop)
-            if not self.aligned and self._is_prior(c.key):  # align as soon as the keyframe's state is known
-                T_pub = self._published.pop(int(stamp_ns), None)
-                if T_pub is None:
-                    self._map_matches[int(stamp_ns)] = loop
-                else:
-                    self._align_candidate(loop.T_WS_query @ inv_T(inv_T(self.correction()) @ T_pub), loop,
-                                          int(stamp_ns))
+            if self._localiser is not None:  # a match to the map (the only candidates): align when it can
+                self._align(self._localiser.note_match(stamp_ns, loop), stamp_ns)
             log.info("loop verified: keyframe at %d ns sees state %d (%d inliers%s)", stamp_ns, c.key, res.inliers,
                      ", relocalisation" if reloc else "")
             break  # one verified loop per query keyframe is enough
@@ -291,42 +277,23 @@ class LoopCloser:
         return self._solve_if_due(rec.stamp_ns)
 
     def _try_align(self, lp: VerifiedLoop, rec: KeyframeRecord, T_old_new: np.ndarray) -> bool:
-        """A match of keyframe ``rec`` to the saved map, its keyframe now a node, while not aligned (its state's pose
-        never came): a guess from the node's window pose; a loop if that guess completes the alignment."""
-        if lp.query_stamp_ns in self._map_matches:  # no guess yet (no state pose came, or it came unsettled)
-            del self._map_matches[lp.query_stamp_ns]
-            self._align_candidate(lp.T_WS_query @ inv_T(rec.T_WS), lp, rec.stamp_ns, self._latest_ns)
+        """A match of keyframe ``rec`` to the saved map, its keyframe now a node, while not aligned: a guess from the
+        node's window pose if its state gave none; a loop if the session is aligned by then."""
+        self._align(self._localiser.note_node(rec.stamp_ns, rec.T_WS), rec.stamp_ns)
         return self._accept(lp, rec) if self.aligned else False
 
-    def _align_candidate(self, T_mw: np.ndarray, lp: VerifiedLoop, stamp_ns: int, pose_at_ns: int | None = None) -> None:
-        """One guess of T_map_window from a match to the saved map, the keyframe's window pose as estimated at
-        ``pose_at_ns`` (default: its own stamp, the published pose). Once ``relocalise_confirmations`` guesses agree
-        within ``relocalise_agree_m`` / ``relocalise_agree_deg``, the session moves into the map's frame (the graph
-        is solved at once: the published poses follow); the matches join the graph as loops when their keyframes
-        become nodes (they wait in the pending loops). A pose estimated in the first ``relocalise_settle_s`` of
-        tracking is not trusted: the match waits for its keyframe to leave the window (``_try_align``), whose pose
-        the window has refined by then."""
-        cfg = self.cfg
-        self.counts["map_matches"] += 1
-        at = stamp_ns if pose_at_ns is None else pose_at_ns
-        if self._tracking_since is not None and at < self._tracking_since + cfg.relocalise_settle_s * 1e9:
-            self.counts["map_matches_before_settled"] += 1
-            if pose_at_ns is None:  # a published pose: try again with the node's pose
-                self._map_matches[int(stamp_ns)] = lp
-                while len(self._map_matches) > 200:
-                    self._map_matches.pop(next(iter(self._map_matches)))
+    def _align(self, T_map_window: np.ndarray | None, stamp_ns: int) -> None:
+        """Move the session into the saved map's frame by ``T_map_window`` (None: not yet) and solve the graph, so
+        that the published poses follow; the matches join the graph as loops when their keyframes become nodes
+        (they wait in the pending loops)."""
+        if T_map_window is None:
             return
-        self._align_candidates = (self._align_candidates + [(T_mw, lp, stamp_ns)])[-10:]
-        agreeing = [c for c in self._align_candidates if agree(c[0], T_mw, cfg)]
-        if len(agreeing) < max(1, cfg.relocalise_confirmations):
-            return
-        T_mw = mean_pose([c[0] for c in agreeing])  # the agreeing guesses' mean (one guess's error is halved)
-        self.graph.align_session(T_mw @ inv_T(self.correction()))  # from where the graph has the session now
-        self.aligned, self.aligned_at_ns = True, int(stamp_ns)
-        self._align_candidates, self._map_matches, self._published = [], {}, {}
+        n = self._localiser.last_agreeing
+        self.graph.align_session(T_map_window @ inv_T(self.correction()))  # from where the graph has it now
+        self._localiser, self.aligned_at_ns = None, int(stamp_ns)
         self.counts["map_relocalised"] += 1
         log.info("relocalised in the saved map at %d ns (%d agreeing matches): publishing in the map's frame",
-                 stamp_ns, len(agreeing))
+                 stamp_ns, n)
         if self.graph.keys:
             t0 = time.perf_counter()
             self.graph.optimise(self.cfg.pose_graph_iterations)
@@ -400,154 +367,3 @@ class LoopCloser:
         keys = list(self.graph.keys)
         return (np.array(keys, np.int64), np.array([self.node_stamps[k] for k in keys], np.int64),
                 np.array([self.graph.estimate[k] for k in keys]).reshape(-1, 4, 4))
-
-
-class ThreadedLoopCloser:
-    """Runs a :class:`LoopCloser` in its own thread; ``submit_*`` only enqueue (oldest dropped when full).
-
-    With ``synchronous`` (``loop.synchronous``) there is no thread: every event is handled in the caller's
-    thread as it is submitted, so a run over recorded data gives the same trajectory every time (evaluation);
-    the live back end keeps the thread, so that ``estimator/state`` never waits for a pose-graph solve."""
-
-    def __init__(self, closer: LoopCloser, synchronous: bool = False) -> None:
-        self.closer = closer
-        self.synchronous = synchronous
-        self._q: queue.Queue = queue.Queue()
-        self._lock = threading.Lock()
-        self._correction = np.eye(4)
-        self._keyframes = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 4, 4)))
-        self.generation = 0  # increases after every pose-graph solve
-        self._solves = 0
-        self.dropped = 0
-        self.errors = 0
-        self.busy_s = 0.0  # time spent handling events (with ``synchronous``: inside the caller's calls)
-        self._verified: list[VerifiedLoop] = []
-        self._aligned = closer.aligned
-        self.saved = 0  # sparse maps written
-        self._thread = None
-        if not synchronous:
-            self._thread = threading.Thread(target=self._run, name="loop-closer", daemon=True)
-            self._thread.start()
-
-    def _put(self, item) -> None:
-        if self.synchronous:
-            self._handle(item)
-            return
-        if self._q.qsize() >= self.closer.cfg.queue_depth:
-            try:
-                self._q.get_nowait()
-                self.dropped += 1
-            except queue.Empty:
-                pass
-        self._q.put(item)
-
-    def submit_features(self, stamp_ns: int, fs: FeatureSet) -> None:
-        self._put(("features", int(stamp_ns), fs))
-
-    def submit_record(self, rec: KeyframeRecord) -> None:
-        self._put(("record", rec))
-
-    def submit_map_to_map(self, term) -> None:
-        self._put(("m2m", term))
-
-    def submit_status(self, stamp_ns: int, status: str, T_pub: np.ndarray | None = None) -> None:
-        self._put(("status", int(stamp_ns), status, T_pub))
-
-    def submit_save(self, path, session: dict) -> None:
-        """Write the sparse map (:meth:`LoopCloser.sparse_map`) to ``path`` in the loop thread (never dropped)."""
-        if self.synchronous:
-            self._handle(("save", path, session))
-        else:
-            self._q.put(("save", path, session))
-
-    @property
-    def aligned(self) -> bool:
-        """Whether the published frame is the saved map's (always, without a saved map)."""
-        with self._lock:
-            return self._aligned
-
-    def correction(self) -> np.ndarray:
-        with self._lock:
-            return self._correction.copy()
-
-    def corrected_keyframes(self) -> tuple[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        """(generation, (states, stamps, T_WS)) of the pose-graph nodes as of the latest correction."""
-        with self._lock:
-            return self.generation, self._keyframes
-
-    def take_verified(self) -> list[VerifiedLoop]:
-        """Loops verified since the last call (the back end's o2p terms learn the old landmarks a keyframe sees)."""
-        with self._lock:
-            out, self._verified = self._verified, []
-        return out
-
-    def snapshot(self) -> tuple[np.ndarray, int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        """(correction, generation, corrected keyframes) of one and the same solve (the loop thread may finish
-        another between two separate calls)."""
-        with self._lock:
-            return self._correction.copy(), self.generation, self._keyframes
-
-    def drain(self, timeout_s: float = 30.0) -> bool:
-        """Wait until everything submitted so far is processed."""
-        if self.synchronous:  # nothing waits
-            return True
-        done = threading.Event()
-        self._q.put(("mark", done))
-        return done.wait(timeout_s)
-
-    def close(self) -> None:
-        if self._thread is not None:
-            self._q.put(("stop",))
-            self._thread.join(timeout=10)
-
-    def _run(self) -> None:
-        while True:
-            item = self._q.get()
-            if item[0] == "stop":
-                return
-            if item[0] == "mark":
-                item[1].set()
-                continue
-            self._handle(item)
-
-    def _handle(self, item) -> None:
-        """One event: features, status, a keyframe record or a map-to-map term; publishes the correction."""
-        c, kind = self.closer, item[0]
-        t0 = time.perf_counter()
-        try:
-            if kind == "features":
-                found = c.add_keyframe_features(item[1], item[2])
-                if found:
-                    with self._lock:
-                        self._verified.extend(found)
-            elif kind == "status":
-                aligned = c.aligned
-                c.note_status(item[1], item[2], item[3])
-                if c.aligned != aligned:  # the session moved into a saved map's frame: publish that
-                    self._publish(c)
-            elif kind == "save":
-                m = c.sparse_map(item[2])
-                if m is not None:
-                    save_sparse(m, item[1])
-                    self.saved += 1
-            else:
-                (c.add_record if kind == "record" else c.add_map_to_map)(item[1])
-                self._publish(c)
-        except Exception:  # noqa: BLE001 - a bad keyframe must not kill loop closing; counted and logged
-            self.errors += 1
-            log.exception("loop closer: %s event failed", kind)
-        finally:
-            self.busy_s += time.perf_counter() - t0
-
-    def _publish(self, c: LoopCloser) -> None:
-        """The correction (and, after a solve, the corrected keyframes) for the back end's next state."""
-        corr = c.correction()
-        solved = len(c.solve_ms) != self._solves
-        snap = c.corrected_keyframes() if solved else None
-        with self._lock:
-            self._correction = corr
-            self._aligned = c.aligned
-            if solved:  # past keyframes moved: a new generation of corrected nodes
-                self._solves = len(c.solve_ms)
-                self._keyframes = snap
-                self.generation += 1
