@@ -76,11 +76,11 @@ def _cost(values: gtsam.Values, n: int, factors, pts: FixedPoints | None) -> flo
     return c
 
 
-def _columns(factor: gtsam.GaussianFactor, wanted: dict[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """Columns of the factor's Jacobian that belong to the ``wanted`` keys (key -> offset in the unknowns) and
-    where they go."""
+def _columns(keys, wanted: dict[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Columns of a factor's Jacobian (its variables ``keys``, in order) that belong to the ``wanted`` keys
+    (key -> offset in the unknowns) and where they go."""
     src, dst, col = [], [], 0
-    for key in factor.keys():
+    for key in keys:
         d = _DIMS[gtsam.Symbol(key).chr()]
         if key in wanted:
             src += range(col, col + d)
@@ -107,12 +107,11 @@ def optimise_latest(values: gtsam.Values, n: int, factors: list[gtsam.NonlinearF
     wanted = {X(n): 0, V(n): 6, B(n): 9}
     cur = _subset(values, {k for f in factors for k in f.keys()} | set(wanted))
     cost = _cost(cur, n, factors, points)
+    columns = [_columns(f.keys(), wanted) for f in factors]
     for _ in range(max(1, iterations)):
         H, g = np.zeros((15, 15)), np.zeros(15)
-        for f in factors:
-            lf = f.linearize(cur)
-            A, b = lf.jacobian()
-            src, dst = _columns(lf, wanted)
+        for f, (src, dst) in zip(factors, columns):
+            A, b = f.linearize(cur).jacobian()
             A_n = np.zeros((A.shape[0], 15))
             A_n[:, dst] = A[:, src]
             H += A_n.T @ A_n

@@ -60,7 +60,8 @@ class FrameTracker:
         self.imu = ImuBuffer()
         self.vision = ProjectionModel(cameras, cfg.sigma_px, cfg.cauchy_k)
         self.window: EstimatorWindow | None = None
-        self._points: dict[int, np.ndarray] = {}
+        self._lm_ids = np.zeros(0, np.int64)  # the window's landmark ids, sorted
+        self._lm_p = np.zeros((0, 3))  # their positions in W, in that order
         self.failed_solves = 0
         # the anchor's pre-integration, extended frame by frame up to the last IMU sample used (a frame integrates
         # only the samples since the previous one, however old the anchor)
@@ -75,14 +76,16 @@ class FrameTracker:
         if self.window is not None and msg.header.stamp_ns < self.window.header.stamp_ns:
             return False
         self.window = msg
-        self._points = {int(i): p for i, p in zip(np.asarray(msg.landmark_ids), np.asarray(msg.p_W, float))}
+        ids = np.asarray(msg.landmark_ids, np.int64)
+        order = np.argsort(ids, kind="stable")
+        self._lm_ids, self._lm_p = ids[order], np.asarray(msg.p_W, float).reshape(-1, 3)[order]
         self.imu.prune_before(int(msg.header.stamp_ns))
         self._pim, self._pim_end_ns = None, -1
         return True
 
     def reset(self) -> None:
         """Forget the window (the back end restarted: its next windows start a new history)."""
-        self.window, self._points = None, {}
+        self.window, self._lm_ids, self._lm_p = None, np.zeros(0, np.int64), np.zeros((0, 3))
         self._pim, self._pim_end_ns = None, -1
 
     def _preintegrate(self, bias, k_ns: int, stamp_ns: int) -> gtsam.PreintegratedCombinedMeasurements:
@@ -114,12 +117,13 @@ class FrameTracker:
         if stamp_ns < k_ns:
             raise StaleFrame(f"frame {stamp_ns} ns is older than the window's newest keyframe {k_ns} ns")
         ids, cams, uv, usable = observation_arrays(landmark_ids, camera_index, uv, len(self.vision.cameras))
-        known = usable & np.isin(ids, np.asarray(w.landmark_ids))
-        lms = sorted({int(i) for i in ids[known]})
-        status = "tracking" if len(lms) >= self.cfg.min_landmarks_tracking else "imu_only"
+        row = np.minimum(np.searchsorted(self._lm_ids, ids), max(len(self._lm_ids) - 1, 0))
+        known = usable & (self._lm_ids[row] == ids) if len(self._lm_ids) else np.zeros(len(ids), bool)
+        n_lms = len(np.unique(ids[known]))  # window landmarks seen (a landmark may be seen by several cameras)
+        status = "tracking" if n_lms >= self.cfg.min_landmarks_tracking else "imu_only"
         if stamp_ns == k_ns:  # the keyframe itself: the window's estimate
             return TrackedState(stamp_ns, np.asarray(w.T_WS, float), np.asarray(w.v_W, float),
-                                np.asarray(w.gyro_bias, float), np.asarray(w.acc_bias, float), status, len(lms), True)
+                                np.asarray(w.gyro_bias, float), np.asarray(w.acc_bias, float), status, n_lms, True)
         bias = make_bias(w.gyro_bias, w.acc_bias)
         pim = self._preintegrate(bias, k_ns, stamp_ns)
         T, v = predict(pim, np.asarray(w.T_WS, float), np.asarray(w.v_W, float), bias)
@@ -131,8 +135,7 @@ class FrameTracker:
         values.insert(V(FRAME), np.asarray(v, float))
         values.insert(B(FRAME), bias)
         xy = self.vision.undistort(cams[known], uv[known])
-        pts = self.vision.fixed_points(np.array([self._points[int(i)] for i in ids[known]]).reshape(-1, 3), xy,
-                                       cams[known])
+        pts = self.vision.fixed_points(self._lm_p[row[known]], xy, cams[known])
         factor = imu_factor(pim, (X(KEYFRAME), V(KEYFRAME), B(KEYFRAME)), (X(FRAME), V(FRAME), B(FRAME)))
         solved = True
         try:
@@ -142,4 +145,4 @@ class FrameTracker:
             solved = False
         b = values.atConstantBias(B(FRAME))
         return TrackedState(stamp_ns, values.atPose3(X(FRAME)).matrix(), np.asarray(values.atVector(V(FRAME))),
-                            np.asarray(b.gyroscope()), np.asarray(b.accelerometer()), status, len(lms), solved)
+                            np.asarray(b.gyroscope()), np.asarray(b.accelerometer()), status, n_lms, solved)

@@ -78,8 +78,9 @@ class FrontendNode(ProcessNode):
 
     def after_publish(self) -> list[Emit]:
         """New features of a frame whose detection waited until its features were sent."""
-        with self.timer("detect_after"):
-            self.tracker.finish_frame()
+        if self.tracker.detection_pending:  # timed only when there is something to do (not after keyframes)
+            with self.timer("detect_after"):
+                self.tracker.finish_frame()
         return []
 
     def images_in_rig_order(self, frame: MultiCameraFrame):

@@ -168,6 +168,11 @@ class MultiCameraTracker:
             self._start_keyframe(stamp_ns, images)
         return self._output(stamp_ns, is_kf, counts)
 
+    @property
+    def detection_pending(self) -> bool:
+        """Whether :meth:`process` left the last frame's detection for :meth:`finish_frame`."""
+        return self._deferred is not None
+
     def finish_frame(self) -> int:
         """Detect and match new features in the last frame if :meth:`process` deferred it; their count."""
         images, self._deferred = self._deferred, None

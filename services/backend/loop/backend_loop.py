@@ -119,7 +119,9 @@ class LoopClosingBackend:
         self._last_process = time.monotonic()
         self._last_save_ns: int | None = None
         self.session = {}  # what the saved map says about this run (source, start time)
-        self._first_state_ns: int | None = None
+        # where this run's sparse map goes (None: nowhere: no loop.map_output, or loop.localise_only)
+        self._map_file = (run_map_dir(cfg.map_output) / SPARSE_FILE
+                          if cfg.map_output and not cfg.localise_only else None)
 
     @property
     def frame_id(self) -> str:
@@ -129,21 +131,21 @@ class LoopClosingBackend:
 
     def _save_due(self, stamp_ns: int) -> None:
         """Checkpoint the sparse map every ``loop.map_checkpoint_period_s`` of sensor time (``loop.map_output``)."""
-        cfg = self.cfg
-        if not cfg.map_output or cfg.localise_only or cfg.map_checkpoint_period_s <= 0:
+        period_s = self.cfg.map_checkpoint_period_s
+        if self._map_file is None or period_s <= 0:
             return
         if self._last_save_ns is None:
             self._last_save_ns = stamp_ns
-        elif stamp_ns - self._last_save_ns >= cfg.map_checkpoint_period_s * 1e9:
+        elif stamp_ns - self._last_save_ns >= period_s * 1e9:
             self._last_save_ns = stamp_ns
-            self.runner.submit_save(run_map_dir(cfg.map_output) / SPARSE_FILE, self.session)
+            self.runner.submit_save(self._map_file, self.session)
 
     def save_map(self) -> bool:
         """Write the sparse map now and wait for it (the end of a run); False when not configured or not written."""
-        if not self.cfg.map_output or self.cfg.localise_only:
+        if self._map_file is None:
             return False
         before = self.runner.saved
-        self.runner.submit_save(run_map_dir(self.cfg.map_output) / SPARSE_FILE, self.session)
+        self.runner.submit_save(self._map_file, self.session)
         self.runner.drain()
         return self.runner.saved > before
 
@@ -285,7 +287,7 @@ class LoopClosingBackend:
         self._finished = True
         t0 = time.perf_counter()
         if self.save_map():
-            log.info("sparse map saved to %s", run_map_dir(self.cfg.map_output) / SPARSE_FILE)
+            log.info("sparse map saved to %s", self._map_file)
         try:
             out = self.finish()
         except (RuntimeError, ValueError) as exc:
@@ -296,5 +298,5 @@ class LoopClosingBackend:
 
     def close(self) -> None:
         if not self._finished and self.save_map():  # stopped before the stream ended: keep what was mapped
-            log.info("sparse map saved to %s at exit", run_map_dir(self.cfg.map_output) / SPARSE_FILE)
+            log.info("sparse map saved to %s at exit", self._map_file)
         self.runner.close()
