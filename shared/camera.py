@@ -211,6 +211,17 @@ def camera_to_sensor_yaml(calib: CameraCalib) -> dict:
             "distortion_coefficients": list(c.dist_coeffs)}
 
 
+def write_rig_yaml(path: str | Path, cameras: list[CameraCalib], comment: str = "") -> Path:
+    """A rig YAML file of ``cameras`` (what :func:`load_rig` and ``rig.calibration`` read), with an optional
+    ``comment`` line on top; returns the path."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    body = yaml.safe_dump({"cameras": [{"name": c.name, **camera_to_sensor_yaml(c)} for c in cameras]},
+                          sort_keys=False)
+    p.write_text("".join(f"# {line}\n" for line in comment.splitlines()) + body)
+    return p
+
+
 def read_sensor_yaml_file(path: str | Path) -> dict:
     """Read an ASL/Kalibr sensor.yaml (tolerates OpenCV's ``%YAML:1.0`` first line)."""
     p = Path(path)

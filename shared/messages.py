@@ -247,5 +247,8 @@ class EstimatorWindow(Message):
     T_corr: object = array_field("correction T_W'W from W into the published frame W'", "float64", (4, 4))
     landmark_ids: object = array_field("ids of the window's triangulated landmarks (the frontend's)", "int64", ("N",))
     p_W: object = array_field("their positions in W [m]", "float64", ("N", 3))
+    T_SC: object = array_field("each camera's extrinsic as the back end refines it (backend.refine_extrinsics), rig "
+                               "order; none (0 of them) when it uses the calibration's", "float64", ("C", 4, 4),
+                               default_factory=lambda: np.zeros((0, 4, 4)))
     status: str = scalar_field("'tracking' or 'imu_only' (the keyframe's), 'initialising' (no state yet) or 'reset' "
                                "(a restarted back end: forget the old window; no state)", default="tracking")

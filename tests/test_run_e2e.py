@@ -63,3 +63,37 @@ def test_run_default_replica(tmp_path):
     assert ate["ate_rmse_m"] < 0.05, ate  # measured 0.017 m in-process (docs/estimator.md)
     stats = json.loads((out / "stats.json").read_text())
     assert stats["states"].get("tracking", 0) > 450 and stats["states"].get("imu_only", 0) < 10
+
+
+@pytest.mark.e2e
+def test_run_refines_a_perturbed_calibration_and_writes_it(tmp_path):
+    """``backend.refine_extrinsics`` through the real processes: a calibration off by 1 deg / 1 cm per camera; the
+    run writes DIR/extrinsics_refined.yaml (a rig file ``rig.calibration`` reads) nearer the truth than it started."""
+    from shared.camera import load_rig, write_rig_yaml
+    from shared.geometry import inv_T, pose_error
+    from tools.vio.extrinsics_bench import perturbed_rig
+
+    data = e2e_dataset.make_dataset(tmp_path / "data", "V1_02", start_s=0.0, seconds=7.0, real_imu=False)
+    true = load_rig(data)
+    given = write_rig_yaml(tmp_path / "perturbed.yaml", perturbed_rig(true, 1.0, 0.01, seed=0))
+    out = tmp_path / "run"
+    proc = subprocess.run([sys.executable, "-m", "services.app.cli", "run", str(data), "--out", str(out),
+                           "--timeout-s", "600", "--settle-s", "5", "--set", f"rig.calibration={given}",
+                           "--set", "backend.refine_extrinsics=true"], cwd=REPO, env=child_env(),
+                          capture_output=True, text=True, timeout=900)
+    log = proc.stdout + proc.stderr
+    assert proc.returncode == 0, log[-3000:]
+    assert "refined extrinsics in" in log, log[-3000:]
+    refined = load_rig(out / "extrinsics_refined.yaml")
+    assert [c.name for c in refined] == [c.name for c in true]
+    stats = json.loads((out / "stats.json").read_text())
+    assert [d["camera"] for d in stats["extrinsics_refined"]] == [c.name for c in true]
+
+    def rel(rig):  # cam1 in cam0: what the stereo matches see at once
+        return inv_T(rig[0].T_SC) @ rig[1].T_SC
+
+    t0, r0 = pose_error(rel(load_rig(given)), rel(true))
+    t1, r1 = pose_error(rel(refined), rel(true))
+    assert r1 < 0.25 * r0 and t1 < 0.5 * t0, (np.degrees([r0, r1]), [t0, t1])
+    for g, r, t in zip(load_rig(given), refined, true):  # each camera's rotation in the IMU frame: the gyro's
+        assert pose_error(r.T_SC, t.T_SC)[1] < 0.6 * pose_error(g.T_SC, t.T_SC)[1]

@@ -161,6 +161,11 @@ class _Collector:
     end: object | None = None
     last_state_time: float = 0.0
     arrivals: ArrivalLog = dataclasses.field(default_factory=ArrivalLog)  # frame and state arrival times
+    extrinsics: np.ndarray | None = None  # (C,4,4) the newest refined T_SC (backend.refine_extrinsics), else None
+
+    def on_window(self, msg) -> None:
+        if len(msg.T_SC):
+            self.extrinsics = np.array(msg.T_SC, float)
 
 
 PROGRESS_EVERY_S = 10.0  # wall time between two progress lines of a run [s]
@@ -183,6 +188,7 @@ def _collect(node: Node, col: _Collector, sup_thread: threading.Thread, settle_s
     node.subscriber(topics.STATE, policy="latest", depth=1, handler=col.arrivals.handler("state"))
     stats = node.subscriber(topics.STATS, policy="all", depth=10_000)
     ends = node.subscriber(topics.STREAM_END)
+    node.subscriber(topics.WINDOW, policy="latest", depth=1, handler=col.on_window)
     t0 = next_report = time.monotonic()
     while not node.stopped:
         if time.monotonic() >= next_report:  # a line now and then, so a long run is never silent
@@ -402,6 +408,8 @@ def main(args: argparse.Namespace) -> int:
     summary = stats_summary(col)
     summary.update({"end_reason": why, "wall_s": wall, "poses": len(traj.stamps_ns)})
     final_traj = write_final(out, final) if final is not None else None
+    if col.extrinsics is not None:
+        summary["extrinsics_refined"] = write_refined_extrinsics(out, cfg.rig, col.extrinsics)
     if final is not None:
         summary["loops"] = loop_summary(final)
         print(f"[sigmaslam run] final trajectory: {summary['loops']}", flush=True)
@@ -446,6 +454,31 @@ def main(args: argparse.Namespace) -> int:
         print(f"[sigmaslam run] serving the final map at {url} for {args.serve_s:.0f} s (Ctrl-C stops)", flush=True)
         serve_run(out, args.config, [*([f"viewer.ground_truth={gt}"] if gt else []), *args.set], args.serve_s)
     return rc
+
+
+def write_refined_extrinsics(out: Path, rig_cfg, T_SC: np.ndarray) -> list[dict]:
+    """DIR/extrinsics_refined.yaml: the rig of ``rig_cfg`` with the back end's refined ``T_SC`` (C,4,4), a rig YAML
+    that ``rig.calibration`` reads; prints and returns each camera's change from the calibration."""
+    from shared.camera import write_rig_yaml
+    from shared.geometry import pose_error
+    from shared.rig import load_rig_config
+
+    cams = load_rig_config(rig_cfg)
+    if len(cams) != len(T_SC):
+        print(f"[sigmaslam run] refined extrinsics of {len(T_SC)} cameras for a rig of {len(cams)}: not written",
+              flush=True)
+        return []
+    refined = [dataclasses.replace(c, T_SC=T) for c, T in zip(cams, T_SC)]
+    path = write_rig_yaml(out / "extrinsics_refined.yaml", refined,
+                          f"{rig_cfg.calibration or 'the default rig'} with each T_SC refined online by sigmaslam run")
+    changes = []
+    for c, T in zip(cams, T_SC):
+        dt, dr = pose_error(c.T_SC, T)
+        changes.append({"camera": c.name, "rotation_deg": float(np.degrees(dr)), "translation_m": float(dt)})
+    print(f"[sigmaslam run] refined extrinsics in {path}: " + ", ".join(
+        f"{d['camera']} moved {d['rotation_deg']:.2f} deg, {1e3 * d['translation_m']:.1f} mm" for d in changes),
+        flush=True)
+    return changes
 
 
 def _write_ate(out: Path, traj: PoseSeries, final_traj: PoseSeries | None, gt: Path) -> None:

@@ -44,6 +44,17 @@ class BackendConfig:
                                              "(0 = none)", "m/s")
     mono_init_ransac_px: float = param(1.0, "one camera, moving start: RANSAC threshold of the two-view geometry and "
                                        "PnP of the rebuild", "px")
+    # --- online extrinsic refinement (services/backend/extrinsics.py) ---
+    refine_extrinsics: bool = param(False, "estimate each camera's extrinsic T_SC in the window, starting from the "
+                                    "calibration file's (its prior sigmas below); the refined T_SC is used by the "
+                                    "fast path and written by `sigmaslam run` (extrinsics_refined.yaml)")
+    extrinsic_prior_sigma_rot_deg: float = param(2.0, "how far the calibration's camera rotation may be off (1 sigma "
+                                                 "per axis): the first prior on T_SC", "deg")
+    extrinsic_prior_sigma_trans_m: float = param(0.02, "how far the calibration's camera position may be off (1 "
+                                                 "sigma per axis)", "m")
+    extrinsic_walk_rot_deg: float = param(0.005, "random walk of the camera rotation per keyframe: bounds how "
+                                          "confident the carried T_SC prior gets (extrinsics.py)", "deg")
+    extrinsic_walk_trans_m: float = param(5e-5, "random walk of the camera position per keyframe", "m")
     # --- IMU (continuous-time densities; an ImuCalib passed to the estimator overrides them) ---
     gravity_m_s2: float = param(9.81, "magnitude of gravity along -z of W", "m/s^2")
     gyro_noise_density: float = param(1.6968e-4 * 5, "gyro white-noise density (inflated over the datasheet)", "rad/s/sqrt(Hz)")

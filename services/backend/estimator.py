@@ -42,6 +42,7 @@ from gtsam.symbol_shorthand import B, L, V, X
 from services.backend import init as vio_init
 from services.backend.cameras import BackendCamera, camera_from_calib  # noqa: F401 (re-exported)
 from services.backend.config import BackendConfig
+from services.backend.extrinsics import carried_covariance, extrinsic_key, extrinsic_priors, prior_sigmas
 from services.backend.frame_result import FrameResult, to_message_covariance
 from services.backend.imu_factors import ImuBuffer, imu_factor, make_bias, make_params, predict
 from services.backend.motion_only import optimise_latest
@@ -81,6 +82,12 @@ class WindowedVioEstimator:
         self._vision = ProjectionModel(self.cameras, cfg.sigma_px, cfg.cauchy_k)
         self._T_SC = np.array([c.T_SC for c in self.cameras])
         self._focal = np.array([c.focal_px for c in self.cameras])
+        # online extrinsic refinement (extrinsics.py): E(c) variables, their priors and carried covariances
+        self._refine = bool(cfg.refine_extrinsics)
+        self._extrinsic_cov = np.array([np.diag(prior_sigmas(np.deg2rad(cfg.extrinsic_prior_sigma_rot_deg),
+                                                             cfg.extrinsic_prior_sigma_trans_m) ** 2)] * len(cameras))
+        self._extrinsic_walk = prior_sigmas(np.deg2rad(cfg.extrinsic_walk_rot_deg), cfg.extrinsic_walk_trans_m)
+        self._extrinsic_priors: list[gtsam.NonlinearFactor] = []
         self.values = gtsam.Values()
         self.keyframes: list[int] = []        # state indices of the window's keyframes, oldest first
         self.stamps: dict[int, int] = {}
@@ -130,6 +137,11 @@ class WindowedVioEstimator:
                                     pose_sig, sv, bias_sig)
         self._prior_cov = np.diag(np.r_[pose_sig, [sv] * 3, bias_sig] ** 2)  # marginal_prior's order
         self.keyframes = [n]
+        if self._refine:
+            for c, T in enumerate(self._T_SC):
+                if not self.values.exists(extrinsic_key(c)):
+                    self.values.insert(extrinsic_key(c), gtsam.Pose3(T))
+            self._extrinsic_priors = extrinsic_priors(self._T_SC, self._extrinsic_cov)
         self.initialised = True
         self._first_frame_pending = True  # the next frame at this stamp attaches to this state
 
@@ -203,6 +215,9 @@ class WindowedVioEstimator:
             graph = self._build_graph(n)
             params.setOrdering(self._schur_ordering())
             self.values = gtsam.LevenbergMarquardtOptimizer(graph, self.values, params).optimize()
+        if self._refine:
+            self._use_extrinsics(np.array([self.values.atPose3(extrinsic_key(c)).matrix()
+                                           for c in range(len(self.cameras))]))
         # a non-keyframe state leaves the window after this frame, and its observations with it: rejection
         # (a pass over every observation of the window) is only worth it when the frame stays
         if (keyframe or self.cfg.reject_outliers_every_frame) and self._reject_outliers():
@@ -321,7 +336,8 @@ class WindowedVioEstimator:
         key = (lm, n, j)
         f = self._proj_cache.get(key)
         if f is None:
-            f = self._vision.factor(xy, c, X(n), L(lm))
+            f = (self._vision.factor_with_extrinsic(xy, c, X(n), extrinsic_key(c), L(lm)) if self._refine
+                 else self._vision.factor(xy, c, X(n), L(lm)))
             self._proj_cache[key] = f
         return f
 
@@ -332,11 +348,16 @@ class WindowedVioEstimator:
         for n in self.stamps:
             for key in _state_keys(n):
                 order.push_back(key)
+        if self._refine:  # the extrinsics touch every observation: eliminated last
+            for c in range(len(self.cameras)):
+                order.push_back(extrinsic_key(c))
         return order
 
     def _build_graph(self, n: int) -> gtsam.NonlinearFactorGraph:
         g = gtsam.NonlinearFactorGraph()
         for f in self._priors:
+            g.add(f)
+        for f in self._extrinsic_priors:
             g.add(f)
         for k in self.keyframes[1:]:
             g.add(self._imu_factors[k])
@@ -399,18 +420,42 @@ class WindowedVioEstimator:
         old, new = self.keyframes[0], self.keyframes[1]
         for listener in self._on_marginalise:
             listener.on_marginalise(self, old, new)
-        cov = self.joint_marginal(_state_keys(new))
-        if cov is None or not np.all(np.isfinite(cov)):
-            # no marginals this time: the new oldest state keeps the anchoring the old one had (a loose default
-            # here would free the window's tilt and position for the rest of the run)
-            cov = self._prior_cov
-            self.prior_carried += 1
-        self._prior_cov = cov
-        self._priors = [marginal_prior(self.values, new, cov)]
+        if not (self._refine and self._marginalise_with_extrinsics(new)):
+            cov = self.joint_marginal(_state_keys(new))
+            if cov is None or not np.all(np.isfinite(cov)):
+                # no marginals this time: the new oldest state keeps the anchoring the old one had (a loose default
+                # here would free the window's tilt and position for the rest of the run)
+                cov = self._prior_cov
+                self.prior_carried += 1
+            self._prior_cov = cov
+            self._priors = [marginal_prior(self.values, new, cov)]
+            if self._refine:  # the extrinsics keep their prior, widened by the walk
+                self._extrinsic_cov = np.array([carried_covariance(None, prev, self._extrinsic_walk, 1.0)
+                                                for prev in self._extrinsic_cov])
+                self._extrinsic_priors = extrinsic_priors(self._T_SC, self._extrinsic_cov)
         self.keyframes.pop(0)
         self._imu_factors.pop(new, None)
         self._still.pop(new, None)  # refers to the old state; the marginal prior holds its information
         self._remove_state(old)
+
+    def _marginalise_with_extrinsics(self, new: int) -> bool:
+        """Refinement on: one prior on the new oldest state and the extrinsics together, from their joint marginal,
+        each extrinsic's block kept only in part (extrinsics.carried_covariance); False when there are no
+        marginals."""
+        ekeys = tuple(extrinsic_key(c) for c in range(len(self.cameras)))
+        joint = self.joint_marginal([*_state_keys(new), *ekeys])
+        if joint is None or not np.all(np.isfinite(joint)):
+            return False
+        share = 1.0 / max(len(self.keyframes) - 1, 1)  # the keyframe solves an observation takes part in
+        for c in range(len(ekeys)):
+            b = slice(15 + 6 * c, 21 + 6 * c)
+            self._extrinsic_cov[c] = carried_covariance(joint[b, b], self._extrinsic_cov[c], self._extrinsic_walk,
+                                                        share)
+            joint[b, b] = self._extrinsic_cov[c]  # widened only: the joint stays positive definite
+        self._prior_cov = joint[:15, :15]
+        self._priors = [marginal_prior(self.values, new, joint, ekeys)]
+        self._extrinsic_priors = []  # in the joint prior now
+        return True
 
     def _result(self, n: int, cov: np.ndarray, status: str) -> FrameResult:
         T = self.values.atPose3(X(n)).matrix()
@@ -422,7 +467,7 @@ class WindowedVioEstimator:
             covariance=to_message_covariance(cov, T[:3, :3]), status=status,
             keyframe_ids=np.array(kfs, np.int64), keyframe_stamps_ns=np.array([self.stamps[k] for k in kfs], np.int64),
             keyframe_T_WS=np.array([self.values.atPose3(X(k)).matrix() for k in kfs]),
-            num_landmarks=len(self._in_graph))
+            num_landmarks=len(self._in_graph), T_SC=self._T_SC.copy() if self._refine else None)
 
     def window_landmarks(self, max_count: int | None = None) -> WindowLandmarks:
         """The window's well-constrained landmarks at the current estimate, at most ``max_count`` (default
@@ -446,6 +491,23 @@ class WindowedVioEstimator:
     def T_SC(self) -> np.ndarray:
         """(C,4,4) pose of each camera in the body frame S (a copy)."""
         return self._T_SC.copy()
+
+    @property
+    def refines_extrinsics(self) -> bool:
+        return self._refine
+
+    def cameras_in_use(self) -> list[BackendCamera]:
+        """The rig's cameras with the extrinsics the window uses now (the refined ones with refinement on)."""
+        return [dataclasses.replace(c, T_SC=T.copy()) for c, T in zip(self.cameras, self._T_SC)]
+
+    @property
+    def extrinsic_covariance(self) -> np.ndarray:
+        """(C,6,6) covariance of each camera's carried T_SC prior (rotation [rad], translation [m]), refinement on."""
+        return self._extrinsic_cov.copy()
+
+    def _use_extrinsics(self, T_SC: np.ndarray) -> None:
+        self._T_SC = np.asarray(T_SC, float).copy()
+        self._vision.set_extrinsics(self._T_SC)
 
     @property
     def prior_covariance(self) -> np.ndarray:

@@ -26,6 +26,7 @@ class FrameResult:
     keyframe_T_WS: np.ndarray
     num_landmarks: int
     landmarks: WindowLandmarks | None = None  # after a keyframe's optimisation (None for other frames)
+    T_SC: np.ndarray | None = None  # (C,4,4) the refined camera extrinsics (backend.refine_extrinsics), else None
 
 
 def to_message_covariance(cov_gtsam: np.ndarray, R_WS: np.ndarray) -> np.ndarray:

@@ -145,7 +145,9 @@ class BackendShell:
                                v_W=np.asarray(res.v_W, np.float64), gyro_bias=np.asarray(res.gyro_bias, np.float64),
                                acc_bias=np.asarray(res.acc_bias, np.float64),
                                T_corr=np.eye(4) if T_corr is None else np.ascontiguousarray(T_corr, np.float64),
-                               landmark_ids=ids, p_W=np.ascontiguousarray(p_W, np.float64), status=state.status)
+                               landmark_ids=ids, p_W=np.ascontiguousarray(p_W, np.float64),
+                               T_SC=np.zeros((0, 4, 4)) if res.T_SC is None else np.ascontiguousarray(res.T_SC),
+                               status=state.status)
 
 
 

@@ -75,6 +75,8 @@ class FrameTracker:
         """Use ``msg`` as the anchor of the next frames; False (ignored) for one older than the current anchor."""
         if self.window is not None and msg.header.stamp_ns < self.window.header.stamp_ns:
             return False
+        if len(msg.T_SC):  # the back end refines the extrinsics: track with its newest (ValueError: another rig's)
+            self.vision.set_extrinsics(msg.T_SC)
         self.window = msg
         ids = np.asarray(msg.landmark_ids, np.int64)
         order = np.argsort(ids, kind="stable")

@@ -21,7 +21,7 @@ from services.backend.node import backend_cameras
 from services.backend.odometry import FrameTracker
 from services.backend.window_rules import keyframe_due
 from shared import topics
-from shared.dataflow import Emit, Input, ProcessNode
+from shared.dataflow import Emit, Input, ProcessNode, RejectedMessage
 from shared.messages import EstimatorState, EstimatorWindow, FeatureFrame, Header, ImuSample
 
 log = logging.getLogger("sigmaslam.odometry")
@@ -70,7 +70,10 @@ class OdometryNode(ProcessNode):
             self.tracker.reset()
             self._reset_pending = True
             return
-        self.tracker.set_window(msg)
+        try:
+            self.tracker.set_window(msg)
+        except ValueError as exc:  # extrinsics for another rig: counted and logged by the runner
+            raise RejectedMessage(f"estimator/window refused: {exc}") from None
 
     def _note_keyframe(self, frame: FeatureFrame) -> None:
         """Remember whether the back end will optimise its window at this frame (its rule, WindowedVioEstimator.

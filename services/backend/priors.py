@@ -18,18 +18,39 @@ def state_priors(n: int, T_WS: gtsam.Pose3, v_W: np.ndarray, bias: gtsam.imuBias
             gtsam.PriorFactorConstantBias(B(n), bias, gtsam.noiseModel.Diagonal.Sigmas(bias_sigmas))]
 
 
-def marginal_prior(values: gtsam.Values, n: int, cov: np.ndarray) -> gtsam.NonlinearFactor:
-    """The joint 15x15 marginal ``cov`` of state n's (pose, velocity, bias), order (rotation, position, velocity,
-    accelerometer bias, gyro bias), as a Gaussian prior linearised at its estimate in ``values``."""
+def marginal_prior(values: gtsam.Values, n: int, cov: np.ndarray, extrinsics: tuple[int, ...] = ()
+                   ) -> gtsam.NonlinearFactor:
+    """The joint marginal ``cov`` of state n's (pose, velocity, bias), order (rotation, position, velocity,
+    accelerometer bias, gyro bias), then of the Pose3 variables ``extrinsics`` (keys; online extrinsic refinement,
+    services/backend/extrinsics.py) in that order, as one Gaussian prior linearised at their estimate in ``values``
+    (the correlations kept: the camera poses X(n) E(c) are known better than either factor)."""
     lin = gtsam.Values()
     lin.insert(X(n), values.atPose3(X(n)))
     lin.insert(V(n), values.atVector(V(n)))
     lin.insert(B(n), values.atConstantBias(B(n)))
+    for key in extrinsics:
+        lin.insert(key, values.atPose3(key))
     info = np.linalg.inv(0.5 * (cov + cov.T))
-    R = np.linalg.cholesky(0.5 * (info + info.T)).T  # R^T R = information
-    jf = gtsam.JacobianFactor(X(n), R[:, 0:6], V(n), R[:, 6:9], B(n), R[:, 9:15], np.zeros(15),
-                              gtsam.noiseModel.Unit.Create(15))
-    return gtsam.LinearContainerFactor(jf, lin)
+    info = 0.5 * (info + info.T)
+    if not extrinsics:
+        R = np.linalg.cholesky(info).T  # R^T R = information
+        jf = gtsam.JacobianFactor(X(n), R[:, 0:6], V(n), R[:, 6:9], B(n), R[:, 9:15], np.zeros(15),
+                                  gtsam.noiseModel.Unit.Create(15))
+        return gtsam.LinearContainerFactor(jf, lin)
+    # more keys than a JacobianFactor takes here: the quadratic form 0.5 dx^T info dx as a sum of blocks, summed
+    # into one HessianFactor over all keys
+    keys = [X(n), V(n), B(n), *extrinsics]
+    at = np.cumsum([0, 6, 3, 6] + [6] * len(extrinsics))
+    blk = [slice(a, b) for a, b in zip(at[:-1], at[1:])]
+    parts = gtsam.GaussianFactorGraph()
+    for i, ki in enumerate(keys):
+        d = blk[i].stop - blk[i].start
+        parts.add(gtsam.HessianFactor(ki, info[blk[i], blk[i]], np.zeros(d), 0.0))
+        for j in range(i + 1, len(keys)):
+            dj = blk[j].stop - blk[j].start
+            parts.add(gtsam.HessianFactor(ki, keys[j], np.zeros((d, d)), info[blk[i], blk[j]], np.zeros(d),
+                                          np.zeros((dj, dj)), np.zeros(dj), 0.0))
+    return gtsam.LinearContainerFactor(gtsam.HessianFactor(parts), lin)
 
 
 def window_marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, landmarks,

@@ -8,6 +8,7 @@ sigma_px / f_i, wrapped in a Cauchy robust model (k in units of sigma).
 from __future__ import annotations
 
 import gtsam
+import gtsam_unstable
 import numpy as np
 
 from services.backend.cameras import BackendCamera
@@ -31,6 +32,26 @@ class ProjectionModel:
         """Reprojection factor of normalised coordinates ``xy`` (2,) seen by ``camera`` from pose ``pose_key``."""
         return gtsam.GenericProjectionFactorCal3_S2(xy, self._noise[camera], pose_key, landmark_key, self._cal,
                                                     False, False, self._body_P_cam[camera])
+
+    def factor_with_extrinsic(self, xy: np.ndarray, camera: int, pose_key: int, extrinsic_key: int,
+                              landmark_key: int) -> gtsam.NonlinearFactor:
+        """The same factor with the camera's extrinsic T_SC a variable (``extrinsic_key``, a Pose3) instead of fixed:
+        online extrinsic refinement (services/backend/extrinsics.py)."""
+        return gtsam_unstable.ProjectionFactorPPPCal3_S2(xy, self._noise[camera], pose_key, extrinsic_key, landmark_key,
+                                                         self._cal, False, False)
+
+    def set_extrinsics(self, T_SC: np.ndarray) -> None:
+        """Use ``T_SC`` (C,4,4) from now on (refined extrinsics): in new fixed-extrinsic factors and fixed points."""
+        T_SC = np.asarray(T_SC, float)
+        if T_SC.shape != self._T_SC.shape:
+            raise ValueError(f"extrinsics of shape {T_SC.shape} for a rig of {len(self.cameras)} cameras")
+        self._T_SC = T_SC.copy()
+        self._body_P_cam = [gtsam.Pose3(T) for T in self._T_SC]
+
+    @property
+    def T_SC(self) -> np.ndarray:
+        """(C,4,4) the extrinsics in use (a copy)."""
+        return self._T_SC.copy()
 
     def fixed_points(self, p_W: np.ndarray, xy: np.ndarray, camera: np.ndarray) -> FixedPoints:
         """The same reprojection terms for landmarks held fixed at ``p_W`` (M,3), observed at normalised ``xy``

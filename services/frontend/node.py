@@ -17,8 +17,8 @@ from services.frontend.gyro import GyroIntegrator
 from services.frontend.tracker import FrontendInputError, MultiCameraTracker, TrackerOutput
 from services.frontend.keyframe_features import keyframe_features_message
 from shared import topics
-from shared.dataflow import Emit, Input, ProcessNode
-from shared.messages import EstimatorState, FeatureFrame, Header, ImuSample, MultiCameraFrame
+from shared.dataflow import Emit, Input, ProcessNode, RejectedMessage
+from shared.messages import EstimatorState, EstimatorWindow, FeatureFrame, Header, ImuSample, MultiCameraFrame
 
 log = logging.getLogger("sigmaslam.frontend")
 
@@ -41,6 +41,8 @@ class FrontendNode(ProcessNode):
         Input(topics.FRAME, "on_frame", role="trigger", note="images to track"),
         Input(topics.IMU, "on_imu", wait_until_trigger_stamp=True, note="gyro rotation prior, up to the frame's time"),
         Input(topics.STATE, "on_state", policy="latest", depth=1, note="the newest gyro bias"),
+        Input(topics.WINDOW, "on_window", policy="latest", depth=1, when="backend.refine_extrinsics",
+              note="the refined camera extrinsics"),
     )
     outputs = (topics.FEATURES, topics.KEYFRAME_FEATURES)
     output_notes = {topics.FEATURES.key: "every frame", topics.KEYFRAME_FEATURES.key: "each keyframe, before its frame"}
@@ -63,6 +65,13 @@ class FrontendNode(ProcessNode):
     def on_state(self, state: EstimatorState) -> None:
         self.gyro_bias = np.asarray(state.gyro_bias, float)
         self.estimator_status = str(state.status)
+
+    def on_window(self, window: EstimatorWindow) -> None:
+        if len(window.T_SC):  # the back end refines the extrinsics
+            try:
+                self.tracker.set_extrinsics(window.T_SC)
+            except FrontendInputError as exc:
+                raise RejectedMessage(f"estimator/window refused: {exc}") from None
 
     def on_frame(self, frame: MultiCameraFrame) -> list[Emit]:
         msg = self.process(frame)

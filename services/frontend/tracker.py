@@ -104,6 +104,15 @@ class MultiCameraTracker:
         self.keyframe_descriptors: collections.deque[KeyframeDescriptors] = collections.deque(maxlen=cfg.keyframe_store)
         self.totals: collections.Counter = collections.Counter()
 
+    def set_extrinsics(self, T_SC: np.ndarray) -> None:
+        """Use ``T_SC`` (C,4,4, rig order) from now on: the back end's refined extrinsics (cross-camera epipolar
+        checks, stereo triangulation of new points and the gyro's rotation prior use them)."""
+        T = np.asarray(T_SC, float)
+        if T.shape != (len(self.cameras), 4, 4):
+            raise FrontendInputError(f"extrinsics of shape {T.shape} for a rig of {len(self.cameras)} cameras")
+        self.cameras = [dataclasses.replace(c, T_SC=t.copy()) for c, t in zip(self.cameras, T)]
+        self._R_SC = [t[:3, :3].copy() for t in T]
+
     # ------------------------------------------------------------------ helpers
     def _check(self, stamp_ns: int, images) -> list[np.ndarray]:
         if len(images) != len(self.cameras):

@@ -241,7 +241,7 @@ class LoopClosingBackend:
                 T_init = closer.correction()
                 anchors = [(new, closer.graph.estimate[old] @ T, cov) for old, new, T, cov in loops
                            if old in closer.graph.fixed]
-            res = bundle_adjust(records, est.cameras, est.cfg.sigma_px, est.cfg.cauchy_k, loops,
+            res = bundle_adjust(records, est.cameras_in_use(), est.cfg.sigma_px, est.cfg.cauchy_k, loops,
                                 self.cfg.final_ba_iterations, loop_observations=closer.loop_observations + late_obs,
                                 map_to_map=closer.map_to_map_for_final(), anchors=anchors, T_init=T_init)
             T_final = self._follow(stamps, T_pub, res.stamps_ns, res.T_WS)
