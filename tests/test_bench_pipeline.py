@@ -192,6 +192,8 @@ def test_bench_pipeline_end_to_end(tmp_path):
     # at sensor rate on a loaded machine the estimator may drop frames (counted, not a failure here)
     assert st["n"] >= 10 and 0 < st["median"] < 30_000
     assert st["n"] + res["drops"]["estimator_frames"] >= 0.8 * n_frames  # every frame: a state or a counted drop
+    fe = res["latency_ms"]["features"]  # the frontend's half of it: before the state, every frame
+    assert fe["n"] >= st["n"] - 5 and 0 < fe["median"] < st["median"], (fe, st)
     assert res["latency_ms"]["depth"]["n"] >= 1 and res["latency_ms"]["depth"]["median"] > 0
     if FULL:
         assert res["latency_ms"]["map"]["n"] >= 1 and res["latency_ms"]["map"]["median"] > 0

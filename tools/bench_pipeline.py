@@ -5,8 +5,9 @@ the player at ``--rate`` times sensor rate (1 = real time), while this process
 
 - has every service log the compute time of each item per stage ($SIGMASLAM_STAGE_LOG, transport/stats.py):
   median, p90, p99, achieved rate, items over the budgets of configs/budgets.yaml;
-- subscribes to sensors/frame, estimator/state, depth/fused and map/submap and records arrival wall times
-  (tools/pipeline_probe.py): latency sensor -> state, -> fused depth, -> submap update;
+- subscribes to sensors/frame, frontend/frame, estimator/state, depth/fused and map/submap and records arrival
+  wall times (tools/pipeline_probe.py): latency sensor -> features (the frontend's half of the pose latency),
+  -> state, -> fused depth, -> submap update;
 - samples CPU share and resident memory of every service process (psutil);
 - reads queue drops and the services' own overrun counts from the run's stats.json.
 
@@ -37,7 +38,7 @@ from transport.session import free_local_port
 SERVICES = ("frontend", "backend", "odometry", "depth", "mapping")
 # (service, queue) pairs whose drops are frames lost by the estimator
 ESTIMATOR_QUEUES = (("frontend", "sensors/frame"), ("odometry", "frontend/frame"))
-LATENCY_TOPICS = ("state", "depth", "map")
+LATENCY_TOPICS = ("features", "state", "depth", "map")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -82,6 +83,7 @@ def _probe(log: ArrivalLog, transport_cfg, stop: threading.Event, ready: threadi
     with Node("bench", transport_cfg, handle_signals=False) as node:
         node.subscriber(topics.FRAME, handler=log.handler("frame"))
         node.subscriber(topics.STATE, policy="all", handler=log.handler("state"))
+        node.subscriber(topics.FEATURES, policy="all", handler=log.handler("features"))
         node.subscriber(topics.DEPTH_FUSED, handler=log.handler("depth"))
         node.subscriber(topics.SUBMAP, handler=log.handler("map"))
         ready.set()
@@ -167,7 +169,7 @@ def stage_summary(rec: np.ndarray, budget_ms: float | None) -> dict:
 
 def latency_series(log: ArrivalLog) -> dict[str, dict]:
     published = first_arrivals(*log.get("frame"))
-    out = {name: matched_latencies(published, *log.get(name)) for name in ("state", "depth")}
+    out = {name: matched_latencies(published, *log.get(name)) for name in ("features", "state", "depth")}
     ds, da = log.get("depth")
     out["map"] = map_latencies(published, ds, da, log.get("map")[1])
     return out
@@ -227,7 +229,8 @@ def format_report(res: dict) -> str:
                      f"{_f(s.get('p99_ms'))} | {_f(s.get('cpu_median_ms'))} | {_f(s.get('cpu_p99_ms'))} | {over} |")
     lines += ["", "| latency from sensor time | n | rate [Hz] | median [ms] | p90 [ms] | p99 [ms] | max [ms] |",
               "|---|---:|---:|---:|---:|---:|---:|"]
-    names = {"state": "estimator/state", "depth": "depth/fused", "map": "map/submap (first update after)"}
+    names = {"features": "frontend/frame (the frontend's half of the pose latency)", "state": "estimator/state",
+             "depth": "depth/fused", "map": "map/submap (first update after)"}
     for k, s in res["latency_ms"].items():
         lines.append(f"| {names[k]} | {s['n']} | {_f(s.get('rate_hz'))} | {_f(s.get('median'))} | {_f(s.get('p90'))} | "
                      f"{_f(s.get('p99'))} | {_f(s.get('max'))} |")

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-LABELS = {"state": "estimator/state", "depth": "depth/fused", "map": "map/submap"}
+LABELS = {"features": "frontend/frame", "state": "estimator/state", "depth": "depth/fused", "map": "map/submap"}
 
 
 def save_series(path: Path, series: dict) -> None:
@@ -45,8 +45,8 @@ def write_plots(out: Path, series: dict) -> list[Path]:
     ax.legend()
     paths.append(_save(fig, out / "latency_time.png"))
 
-    fig, axes = plt.subplots(1, 3, figsize=(12, 3.5))
-    for ax, (k, v) in zip(axes, lat.items()):
+    fig, axes = plt.subplots(1, len(lat), figsize=(4 * len(lat), 3.5))
+    for ax, (k, v) in zip(np.atleast_1d(axes), lat.items()):
         if len(v["latency_ms"]):
             ax.hist(v["latency_ms"], bins=40)
         ax.set(title=LABELS[k], xlabel="latency [ms]", ylabel="messages")
