@@ -430,8 +430,8 @@ class WindowedVioEstimator:
             self._prior_cov = cov
             self._priors = [marginal_prior(self.values, new, cov)]
             if self._refine:  # the extrinsics keep their prior, widened by the walk
-                self._extrinsic_cov = np.array([carried_covariance(None, prev, self._extrinsic_walk, 1.0)
-                                                for prev in self._extrinsic_cov])
+                self._extrinsic_cov = np.array([carried_covariance(None, prev, self._extrinsic_walk)
+                                            for prev in self._extrinsic_cov])
                 self._extrinsic_priors = extrinsic_priors(self._T_SC, self._extrinsic_cov)
         self.keyframes.pop(0)
         self._imu_factors.pop(new, None)
@@ -440,17 +440,15 @@ class WindowedVioEstimator:
 
     def _marginalise_with_extrinsics(self, new: int) -> bool:
         """Refinement on: one prior on the new oldest state and the extrinsics together, from their joint marginal,
-        each extrinsic's block kept only in part (extrinsics.carried_covariance); False when there are no
+        each extrinsic's block widened by the walk (extrinsics.carried_covariance); False when there are no
         marginals."""
         ekeys = tuple(extrinsic_key(c) for c in range(len(self.cameras)))
         joint = self.joint_marginal([*_state_keys(new), *ekeys])
         if joint is None or not np.all(np.isfinite(joint)):
             return False
-        share = 1.0 / max(len(self.keyframes) - 1, 1)  # the keyframe solves an observation takes part in
         for c in range(len(ekeys)):
             b = slice(15 + 6 * c, 21 + 6 * c)
-            self._extrinsic_cov[c] = carried_covariance(joint[b, b], self._extrinsic_cov[c], self._extrinsic_walk,
-                                                        share)
+            self._extrinsic_cov[c] = carried_covariance(joint[b, b], self._extrinsic_cov[c], self._extrinsic_walk)
             joint[b, b] = self._extrinsic_cov[c]  # widened only: the joint stays positive definite
         self._prior_cov = joint[:15, :15]
         self._priors = [marginal_prior(self.values, new, joint, ekeys)]

@@ -5,10 +5,12 @@ Each camera c gets a Pose3 variable E(c) = T_SC in the window graph; its reproje
 The calibration file's T_SC is the first prior on E(c), with sigmas from the config (how much the user trusts the
 calibration). When the oldest keyframe leaves the window, the joint marginal of the next keyframe's state and every
 E(c) becomes one prior (services/backend/priors.py: the correlations matter, since a camera's pose X E(c) is known
-far better than X or E(c) alone). Each E(c) block is then widened (:func:`carried_covariance`): the window's marginal
-also counts the observations still in it, and each observation takes part in about as many marginalisations as the
-window has keyframes, so only that share of the information gained is kept, plus a small random walk per keyframe
-that lets the estimate follow a camera mount that really moves.
+far better than X or E(c) alone), each E(c) block widened by a small random walk per keyframe
+(:func:`carried_covariance`). The marginal also counts the observations still in the window, as the state's prior
+does: alone that would make the prior ever more confident, since an extrinsic never changes; the walk bounds it,
+and lets the estimate follow a camera mount that really moves. (Keeping only each keyframe's share of the
+information instead, so that an observation counts about once, left the cameras' positions 2.5-5 mm off where this
+reaches 1-2 mm: docs/estimator.md.)
 
 What is observable: the cameras' rotation (the gyro against the images) and their positions relative to each other
 (stereo) settle within seconds; their common position relative to the IMU only through rotational motion (the lever
@@ -41,18 +43,8 @@ def extrinsic_priors(T_SC: np.ndarray, covariances: np.ndarray) -> list[gtsam.No
     return out
 
 
-def carried_covariance(marginal: np.ndarray | None, previous: np.ndarray, walk_sigmas: np.ndarray,
-                       share: float) -> np.ndarray:
-    """E(c)'s next prior covariance (6,6). The window's ``marginal`` holds the prior's information plus that of every
-    observation in the window; each observation stays in the window for about 1/``share`` keyframes, so only
-    ``share`` of the gain is kept each time (an observation ends up counted about once); then the random walk of one
-    keyframe (``walk_sigmas`` (6,)) is added. ``previous`` plus the walk when the marginal is missing or not
-    finite."""
-    walk = np.diag(np.asarray(walk_sigmas, float) ** 2)
-    prev = np.asarray(previous, float)
-    if marginal is None or not np.all(np.isfinite(marginal)):
-        return prev + walk
-    info_prev, info_marg = np.linalg.inv(prev), np.linalg.inv(0.5 * (marginal + marginal.T))
-    w, U = np.linalg.eigh(0.5 * ((info_marg - info_prev) + (info_marg - info_prev).T))
-    gain = (U * np.clip(w, 0.0, None)) @ U.T  # only what the window added (numerically never negative)
-    return np.linalg.inv(info_prev + float(share) * gain) + walk
+def carried_covariance(marginal: np.ndarray | None, previous: np.ndarray, walk_sigmas: np.ndarray) -> np.ndarray:
+    """E(c)'s next prior covariance (6,6): the window's ``marginal`` plus the random walk of one keyframe
+    (``walk_sigmas`` (6,)); ``previous`` plus the walk when the marginal is missing or not finite."""
+    base = previous if marginal is None or not np.all(np.isfinite(marginal)) else 0.5 * (marginal + marginal.T)
+    return np.asarray(base, float) + np.diag(np.asarray(walk_sigmas, float) ** 2)
