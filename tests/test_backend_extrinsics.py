@@ -92,12 +92,18 @@ def test_the_fast_path_and_the_frontend_take_the_refined_extrinsics_and_refuse_a
     from services.backend.odometry_node import OdometryNode
     from services.frontend.node import FrontendNode
     from services.system_config import load_system_config
+    from shared.camera import camera_from_sensor_yaml, camera_to_sensor_yaml
     from shared.codec import decode, encode
     from shared.dataflow import RejectedMessage
     from shared.rig import load_rig_config
 
     cfg = load_system_config(None, [])
-    cams = load_rig_config(cfg.rig)
+    cams = []
+    for c in load_rig_config(cfg.rig):  # the bundled rig at 1/8 size: the nodes' lookup tables build in no time
+        y = camera_to_sensor_yaml(c)
+        y["resolution"] = [w // 8 for w in y["resolution"]]
+        y["intrinsics"] = [v / 8 for v in y["intrinsics"]]
+        cams.append(camera_from_sensor_yaml(y, c.name))
     refined = perturb_extrinsics(np.array([c.T_SC for c in cams]), 0.5, 0.005, seed=1)
     msg = decode(encode(_window(refined)))  # the field survives the wire
     np.testing.assert_allclose(msg.T_SC, refined)
