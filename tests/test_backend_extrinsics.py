@@ -59,6 +59,7 @@ def test_a_perturbed_calibration_is_refined_back_to_the_true_one():
     # known, and the estimator says so (its sigma); the error must stay within what it claims
     sig = np.sqrt(np.diagonal(est.extrinsic_covariance, axis1=1, axis2=2))
     assert np.all(t_err < 3.0 * np.linalg.norm(sig[:, 3:], axis=1)), (t_err, sig[:, 3:])
+    assert np.all(t_err < 0.008), t_err  # and it did move towards the truth from 10 mm (4.4 / 2.7 mm here)
     np.testing.assert_allclose(est.T_SC, res.T_SC)  # what the estimator uses is what it reports
     late = slice(len(err_true) // 2, None)  # after the refinement settled
     rms = {k: float(np.sqrt(np.mean(e[late] ** 2))) for k, e in
