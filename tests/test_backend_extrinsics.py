@@ -123,3 +123,36 @@ def test_the_fast_path_and_the_frontend_take_the_refined_extrinsics_and_refuse_a
         fe.on_window(_window(other))
     np.testing.assert_allclose(odo.tracker.vision.T_SC, refined)
     np.testing.assert_allclose([c.T_SC for c in fe.tracker.cameras], refined)
+
+
+def test_the_joint_marginal_prior_is_the_gaussian_it_was_built_from():
+    """priors.marginal_prior over (pose, velocity, bias, extrinsics): a sum of block Hessian factors whose error at
+    a perturbed point is 0.5 dx^T inv(cov) dx in the tangent (gtsam's retractions, bias order accelerometer then
+    gyro)."""
+    import gtsam
+    from gtsam.symbol_shorthand import B, V, X
+
+    from services.backend.extrinsics import extrinsic_key
+    from services.backend.priors import marginal_prior
+
+    rng = np.random.default_rng(0)
+    vals = gtsam.Values()
+    vals.insert(X(1), gtsam.Pose3(gtsam.Rot3.Ypr(0.1, 0.2, 0.3), np.array([1.0, 2.0, 3.0])))
+    vals.insert(V(1), np.array([0.1, 0.2, 0.3]))
+    vals.insert(B(1), gtsam.imuBias.ConstantBias(np.array([0.01, 0.02, 0.03]), np.array([1e-3, 2e-3, 3e-3])))
+    keys = (extrinsic_key(0), extrinsic_key(1))
+    for k, key in enumerate(keys):
+        vals.insert(key, gtsam.Pose3(gtsam.Rot3.Ypr(0.3 * k, 0.1, 0.0), np.array([0.05 * k, 0.0, 0.01])))
+    A = rng.normal(size=(27, 27))
+    cov = A @ A.T * 1e-3 + np.eye(27) * 1e-4
+    f = marginal_prior(vals, 1, cov, keys)
+    assert f.error(vals) == pytest.approx(0.0, abs=1e-12)
+    d = rng.normal(size=27) * 1e-3
+    moved = gtsam.Values()
+    moved.insert(X(1), vals.atPose3(X(1)).retract(d[0:6]))
+    moved.insert(V(1), vals.atVector(V(1)) + d[6:9])
+    b = vals.atConstantBias(B(1))
+    moved.insert(B(1), gtsam.imuBias.ConstantBias(b.accelerometer() + d[9:12], b.gyroscope() + d[12:15]))
+    for k, key in enumerate(keys):
+        moved.insert(key, vals.atPose3(key).retract(d[15 + 6 * k:21 + 6 * k]))
+    assert f.error(moved) == pytest.approx(0.5 * d @ np.linalg.solve(cov, d), rel=1e-9)
