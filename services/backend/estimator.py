@@ -2,9 +2,11 @@
 
 Design choices:
 
-* **Window**: the last ``window_keyframes`` keyframes plus the latest frame. A non-keyframe frame is
-  optimised once (its IMU factor runs from the last keyframe) and then dropped, so the number of states is
-  bounded. The graph is rebuilt from cached factors and solved by Levenberg-Marquardt every frame.
+* **Window**: the last ``window_keyframes`` keyframes plus the latest frame; rebuilt from cached factors and
+  solved by Levenberg-Marquardt at keyframes. A non-keyframe frame (``motion_only_between_keyframes``, no per-frame
+  covariance) solves only its own state against the window held fixed (:mod:`services.backend.motion_only`) and is
+  dropped, so the number of states is bounded. Outlier rejection and the marginal covariance run at keyframes (NaN
+  for other frames unless ``compute_covariance``).
 * **Marginalisation**: when the oldest keyframe leaves, the joint 15x15 marginal covariance of the next one's
   (pose, velocity, bias), taken from the full window, becomes a Gaussian prior on it (a
   ``LinearContainerFactor`` at the current estimate). This keeps all past information about that state but
@@ -13,16 +15,12 @@ Design choices:
 * **Vision**: observations (distorted pixels) are undistorted by the camera model to normalised coordinates
   and enter ``GenericProjectionFactorCal3_S2`` with an identity calibration and ``body_P_sensor = T_SC_i``,
   noise sigma_px / f_i, wrapped in a Cauchy robust model (k in units of sigma). Normalised coordinates keep
-  the distortion model out of the optimisation (any model the camera class supports works unchanged).
+  the distortion model out of the optimisation (any model the camera class supports works unchanged). With
+  ``refine_extrinsics`` the T_SC_i are variables of the window instead (:mod:`services.backend.extrinsics`).
 * **Landmarks** are added once seen in >= 2 window views (any cameras) with enough parallax, by linear
-  triangulation, rejected on cheirality, depth range and reprojection error; after every optimisation
-  observations with a reprojection error above the bound are removed.
-* **Per-frame cost**: outlier rejection runs when the frame becomes a keyframe, the marginal covariance is
-  computed for keyframes (NaN for other frames unless ``compute_covariance``). With
-  ``motion_only_between_keyframes`` (and no per-frame covariance) a non-keyframe frame solves only its own
-  state against the window held fixed (:mod:`services.backend.motion_only`); the window is optimised at keyframes.
-* **Landmark output**: after a keyframe's optimisation the result carries the window's well-constrained
-  landmarks (:meth:`WindowedVioEstimator.window_landmarks`), published as ``estimator/landmarks``.
+  triangulation, rejected on cheirality, depth range and reprojection error (:mod:`services.backend.triangulation`);
+  after a keyframe's optimisation, observations with a reprojection error above the bound are removed, and the
+  result carries the window's well-constrained landmarks (:meth:`WindowedVioEstimator.window_landmarks`).
 * **One camera** (mono-inertial): a frame standing still relative to its keyframe gets a relative-pose and a
   zero-velocity factor (:mod:`services.backend.still`); a window that never stood still is rebuilt once from
   two-view geometry and a linear IMU alignment of scale, velocities and gravity (:mod:`services.backend.mono_init`).
@@ -42,7 +40,7 @@ from gtsam.symbol_shorthand import B, L, V, X
 from services.backend import init as vio_init
 from services.backend.cameras import BackendCamera, camera_from_calib  # noqa: F401 (re-exported)
 from services.backend.config import BackendConfig
-from services.backend.extrinsics import carried_covariance, extrinsic_key, extrinsic_priors, prior_sigmas
+from services.backend.extrinsics import ExtrinsicRefinement
 from services.backend.frame_result import FrameResult, to_message_covariance
 from services.backend.imu_factors import ImuBuffer, imu_factor, make_bias, make_params, predict
 from services.backend.motion_only import optimise_latest
@@ -51,7 +49,7 @@ from services.backend.protocols import ExtraFactorSource, MarginalisationListene
 from services.backend.landmarks import WindowLandmarks, gather_landmarks
 from services.backend.mono_init import bootstrap as mono_bootstrap
 from services.backend.still import mono_frame_factors
-from services.backend.triangulation import triangulate_checked
+from services.backend.triangulation import new_landmarks
 from services.backend.vision_factors import ProjectionModel
 from services.backend.window_rules import (BackendInputError, keyframe_due,  # noqa: F401 (re-exported)
                                            observation_arrays, reprojection_outliers)
@@ -82,12 +80,8 @@ class WindowedVioEstimator:
         self._vision = ProjectionModel(self.cameras, cfg.sigma_px, cfg.cauchy_k)
         self._T_SC = np.array([c.T_SC for c in self.cameras])
         self._focal = np.array([c.focal_px for c in self.cameras])
-        # online extrinsic refinement (extrinsics.py): E(c) variables, their priors and carried covariances
-        self._refine = bool(cfg.refine_extrinsics)
-        self._extrinsic_cov = np.array([np.diag(prior_sigmas(np.deg2rad(cfg.extrinsic_prior_sigma_rot_deg),
-                                                             cfg.extrinsic_prior_sigma_trans_m) ** 2)] * len(cameras))
-        self._extrinsic_walk = prior_sigmas(np.deg2rad(cfg.extrinsic_walk_rot_deg), cfg.extrinsic_walk_trans_m)
-        self._extrinsic_priors: list[gtsam.NonlinearFactor] = []
+        # online extrinsic refinement (extrinsics.py): None when off
+        self._extrinsics = ExtrinsicRefinement(cfg, len(cameras)) if cfg.refine_extrinsics else None
         self.values = gtsam.Values()
         self.keyframes: list[int] = []        # state indices of the window's keyframes, oldest first
         self.stamps: dict[int, int] = {}
@@ -137,11 +131,8 @@ class WindowedVioEstimator:
                                     pose_sig, sv, bias_sig)
         self._prior_cov = np.diag(np.r_[pose_sig, [sv] * 3, bias_sig] ** 2)  # marginal_prior's order
         self.keyframes = [n]
-        if self._refine:
-            for c, T in enumerate(self._T_SC):
-                if not self.values.exists(extrinsic_key(c)):
-                    self.values.insert(extrinsic_key(c), gtsam.Pose3(T))
-            self._extrinsic_priors = extrinsic_priors(self._T_SC, self._extrinsic_cov)
+        if self._extrinsics is not None:
+            self._extrinsics.start(self.values, self._T_SC)
         self.initialised = True
         self._first_frame_pending = True  # the next frame at this stamp attaches to this state
 
@@ -215,9 +206,9 @@ class WindowedVioEstimator:
             graph = self._build_graph(n)
             params.setOrdering(self._schur_ordering())
             self.values = gtsam.LevenbergMarquardtOptimizer(graph, self.values, params).optimize()
-        if self._refine:
-            self._use_extrinsics(np.array([self.values.atPose3(extrinsic_key(c)).matrix()
-                                           for c in range(len(self.cameras))]))
+        if self._extrinsics is not None:
+            self._T_SC = self._extrinsics.read(self.values)
+            self._vision.set_extrinsics(self._T_SC)
         # a non-keyframe state leaves the window after this frame, and its observations with it: rejection
         # (a pass over every observation of the window) is only worth it when the frame stays
         if (keyframe or self.cfg.reject_outliers_every_frame) and self._reject_outliers():
@@ -304,40 +295,21 @@ class WindowedVioEstimator:
             self._still[n] = factors
         self.still_frames += still
 
-    def _views(self, lm: int):
-        """(T_CW (K,4,4), xy (K,2), focal (K,)) of all window observations of a landmark."""
-        T_CW, xy, f = [], [], []
-        for n, obs in self._obs[lm].items():
-            T_WS = self.values.atPose3(X(n)).matrix()
-            for c, p in obs:
-                T_CW.append(np.linalg.inv(T_WS @ self._T_SC[c]))
-                xy.append(p)
-                f.append(self._focal[c])
-        return np.array(T_CW), np.array(xy), np.array(f)
-
     def _triangulate_new(self, n: int) -> None:
-        c = self.cfg
-        for lm, by_state in self._obs.items():
-            if lm in self._in_graph or n not in by_state or len(self._in_graph) >= c.max_landmarks:
-                continue
-            if sum(len(o) for o in by_state.values()) < 2:
-                continue
-            T_CW, xy, f = self._views(lm)
-            p = triangulate_checked(T_CW, xy, f, np.deg2rad(c.min_parallax_deg), c.max_reproj_error_px,
-                                    c.min_depth_m, c.max_depth_m)
-            if p is not None:
-                if self.values.exists(L(lm)):
-                    self.values.update(L(lm), p)
-                else:
-                    self.values.insert(L(lm), p)
-                self._in_graph.add(lm)
+        for lm, p in new_landmarks(self._obs, self._in_graph, n, lambda s: self.values.atPose3(X(s)).matrix(),
+                                   self._T_SC, self._focal, self.cfg):
+            if self.values.exists(L(lm)):
+                self.values.update(L(lm), p)
+            else:
+                self.values.insert(L(lm), p)
+            self._in_graph.add(lm)
 
     def _projection(self, lm: int, n: int, j: int, c: int, xy: np.ndarray) -> gtsam.NonlinearFactor:
         key = (lm, n, j)
         f = self._proj_cache.get(key)
         if f is None:
-            f = (self._vision.factor_with_extrinsic(xy, c, X(n), extrinsic_key(c), L(lm)) if self._refine
-                 else self._vision.factor(xy, c, X(n), L(lm)))
+            f = (self._vision.factor(xy, c, X(n), L(lm)) if self._extrinsics is None
+                 else self._vision.factor_with_extrinsic(xy, c, X(n), self._extrinsics.keys[c], L(lm)))
             self._proj_cache[key] = f
         return f
 
@@ -348,16 +320,15 @@ class WindowedVioEstimator:
         for n in self.stamps:
             for key in _state_keys(n):
                 order.push_back(key)
-        if self._refine:  # the extrinsics touch every observation: eliminated last
-            for c in range(len(self.cameras)):
-                order.push_back(extrinsic_key(c))
+        for key in () if self._extrinsics is None else self._extrinsics.keys:  # they touch every observation: last
+            order.push_back(key)
         return order
 
     def _build_graph(self, n: int) -> gtsam.NonlinearFactorGraph:
         g = gtsam.NonlinearFactorGraph()
         for f in self._priors:
             g.add(f)
-        for f in self._extrinsic_priors:
+        for f in () if self._extrinsics is None else self._extrinsics.priors:
             g.add(f)
         for k in self.keyframes[1:]:
             g.add(self._imu_factors[k])
@@ -420,7 +391,7 @@ class WindowedVioEstimator:
         old, new = self.keyframes[0], self.keyframes[1]
         for listener in self._on_marginalise:
             listener.on_marginalise(self, old, new)
-        if not (self._refine and self._marginalise_with_extrinsics(new)):
+        if not (self._extrinsics is not None and self._marginalise_with_extrinsics(new)):
             cov = self.joint_marginal(_state_keys(new))
             if cov is None or not np.all(np.isfinite(cov)):
                 # no marginals this time: the new oldest state keeps the anchoring the old one had (a loose default
@@ -429,10 +400,8 @@ class WindowedVioEstimator:
                 self.prior_carried += 1
             self._prior_cov = cov
             self._priors = [marginal_prior(self.values, new, cov)]
-            if self._refine:  # the extrinsics keep their prior, widened by the walk
-                self._extrinsic_cov = np.array([carried_covariance(None, prev, self._extrinsic_walk)
-                                            for prev in self._extrinsic_cov])
-                self._extrinsic_priors = extrinsic_priors(self._T_SC, self._extrinsic_cov)
+            if self._extrinsics is not None:  # the extrinsics keep their prior, widened by the walk
+                self._extrinsics.carry_apart(self._T_SC)
         self.keyframes.pop(0)
         self._imu_factors.pop(new, None)
         self._still.pop(new, None)  # refers to the old state; the marginal prior holds its information
@@ -440,19 +409,15 @@ class WindowedVioEstimator:
 
     def _marginalise_with_extrinsics(self, new: int) -> bool:
         """Refinement on: one prior on the new oldest state and the extrinsics together, from their joint marginal,
-        each extrinsic's block widened by the walk (extrinsics.carried_covariance); False when there are no
+        each extrinsic's block widened by the walk (ExtrinsicRefinement.carry_joint); False when there are no
         marginals."""
-        ekeys = tuple(extrinsic_key(c) for c in range(len(self.cameras)))
-        joint = self.joint_marginal([*_state_keys(new), *ekeys])
+        keys = self._extrinsics.keys
+        joint = self.joint_marginal([*_state_keys(new), *keys])
         if joint is None or not np.all(np.isfinite(joint)):
             return False
-        for c in range(len(ekeys)):
-            b = slice(15 + 6 * c, 21 + 6 * c)
-            self._extrinsic_cov[c] = carried_covariance(joint[b, b], self._extrinsic_cov[c], self._extrinsic_walk)
-            joint[b, b] = self._extrinsic_cov[c]  # widened only: the joint stays positive definite
+        joint = self._extrinsics.carry_joint(joint)
         self._prior_cov = joint[:15, :15]
-        self._priors = [marginal_prior(self.values, new, joint, ekeys)]
-        self._extrinsic_priors = []  # in the joint prior now
+        self._priors = [marginal_prior(self.values, new, joint, keys)]
         return True
 
     def _result(self, n: int, cov: np.ndarray, status: str) -> FrameResult:
@@ -465,7 +430,7 @@ class WindowedVioEstimator:
             covariance=to_message_covariance(cov, T[:3, :3]), status=status,
             keyframe_ids=np.array(kfs, np.int64), keyframe_stamps_ns=np.array([self.stamps[k] for k in kfs], np.int64),
             keyframe_T_WS=np.array([self.values.atPose3(X(k)).matrix() for k in kfs]),
-            num_landmarks=len(self._in_graph), T_SC=self._T_SC.copy() if self._refine else None)
+            num_landmarks=len(self._in_graph), T_SC=None if self._extrinsics is None else self._T_SC.copy())
 
     def window_landmarks(self, max_count: int | None = None) -> WindowLandmarks:
         """The window's well-constrained landmarks at the current estimate, at most ``max_count`` (default
@@ -490,10 +455,6 @@ class WindowedVioEstimator:
         """(C,4,4) pose of each camera in the body frame S (a copy)."""
         return self._T_SC.copy()
 
-    @property
-    def refines_extrinsics(self) -> bool:
-        return self._refine
-
     def cameras_in_use(self) -> list[BackendCamera]:
         """The rig's cameras with the extrinsics the window uses now (the refined ones with refinement on)."""
         return [dataclasses.replace(c, T_SC=T.copy()) for c, T in zip(self.cameras, self._T_SC)]
@@ -501,11 +462,7 @@ class WindowedVioEstimator:
     @property
     def extrinsic_covariance(self) -> np.ndarray:
         """(C,6,6) covariance of each camera's carried T_SC prior (rotation [rad], translation [m]), refinement on."""
-        return self._extrinsic_cov.copy()
-
-    def _use_extrinsics(self, T_SC: np.ndarray) -> None:
-        self._T_SC = np.asarray(T_SC, float).copy()
-        self._vision.set_extrinsics(self._T_SC)
+        return self._extrinsics.covariance.copy()
 
     @property
     def prior_covariance(self) -> np.ndarray:

@@ -48,3 +48,44 @@ def carried_covariance(marginal: np.ndarray | None, previous: np.ndarray, walk_s
     (``walk_sigmas`` (6,)); ``previous`` plus the walk when the marginal is missing or not finite."""
     base = previous if marginal is None or not np.all(np.isfinite(marginal)) else 0.5 * (marginal + marginal.T)
     return np.asarray(base, float) + np.diag(np.asarray(walk_sigmas, float) ** 2)
+
+
+class ExtrinsicRefinement:
+    """The window's extrinsic variables E(c) (``cfg``: BackendConfig, for ``num_cameras`` cameras): their keys, the
+    prior factors they have outside the joint marginal prior, and each one's carried covariance (rotation [rad],
+    translation [m])."""
+
+    def __init__(self, cfg, num_cameras: int) -> None:
+        self.keys = tuple(extrinsic_key(c) for c in range(num_cameras))
+        first = np.diag(prior_sigmas(np.deg2rad(cfg.extrinsic_prior_sigma_rot_deg), cfg.extrinsic_prior_sigma_trans_m))
+        self.covariance = np.array([first ** 2] * num_cameras)
+        self._walk = prior_sigmas(np.deg2rad(cfg.extrinsic_walk_rot_deg), cfg.extrinsic_walk_trans_m)
+        self.priors: list[gtsam.NonlinearFactor] = []
+
+    def start(self, values: gtsam.Values, T_SC: np.ndarray) -> None:
+        """E(c) at ``T_SC`` (C,4,4) into ``values`` (unless there) with the calibration's priors."""
+        for key, T in zip(self.keys, np.asarray(T_SC, float)):
+            if not values.exists(key):
+                values.insert(key, gtsam.Pose3(T))
+        self.priors = extrinsic_priors(T_SC, self.covariance)
+
+    def read(self, values: gtsam.Values) -> np.ndarray:
+        """(C,4,4) the extrinsics' estimate in ``values``."""
+        return np.array([values.atPose3(key).matrix() for key in self.keys])
+
+    def carry_apart(self, T_SC: np.ndarray) -> None:
+        """No joint marginal this time: each extrinsic keeps its prior (at ``T_SC``), widened by the walk."""
+        self.covariance = np.array([carried_covariance(None, prev, self._walk) for prev in self.covariance])
+        self.priors = extrinsic_priors(T_SC, self.covariance)
+
+    def carry_joint(self, joint: np.ndarray) -> np.ndarray:
+        """The joint marginal (15 + 6C square: the oldest state, then the extrinsics in key order) with each
+        extrinsic's block widened by the walk (still positive definite), for one prior over all of them; the
+        separate priors are dropped."""
+        joint = np.array(joint, float)
+        for c in range(len(self.keys)):
+            b = slice(15 + 6 * c, 21 + 6 * c)
+            self.covariance[c] = carried_covariance(joint[b, b], self.covariance[c], self._walk)
+            joint[b, b] = self.covariance[c]
+        self.priors = []
+        return joint

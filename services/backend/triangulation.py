@@ -45,3 +45,28 @@ def triangulate_checked(T_CW: np.ndarray, xy: np.ndarray, focal_px: np.ndarray, 
     if np.any(z < min_depth) or np.all(z > max_depth) or np.any(err * focal_px > max_err_px):
         return None
     return p
+
+
+def new_landmarks(obs: dict, in_graph: set, state: int, T_WS_of, T_SC: np.ndarray, focal_px: np.ndarray, cfg
+                  ) -> list[tuple[int, np.ndarray]]:
+    """(landmark, p_W) of the window's landmarks seen at ``state`` and not yet in the graph that triangulate from
+    all their observations (``obs``: landmark -> state -> [(camera, normalised xy)]; ``T_WS_of(state)`` the body
+    pose (4,4); ``cfg``: the back end's checks), at most as many as keep the graph within ``cfg.max_landmarks``."""
+    out: list[tuple[int, np.ndarray]] = []
+    for lm, by_state in obs.items():
+        if lm in in_graph or state not in by_state or len(in_graph) + len(out) >= cfg.max_landmarks:
+            continue
+        if sum(len(o) for o in by_state.values()) < 2:
+            continue
+        T_CW, xy, f = [], [], []
+        for s, views in by_state.items():
+            T_WS = T_WS_of(s)
+            for c, p in views:
+                T_CW.append(np.linalg.inv(T_WS @ T_SC[c]))
+                xy.append(p)
+                f.append(focal_px[c])
+        p = triangulate_checked(np.array(T_CW), np.array(xy), np.array(f), np.deg2rad(cfg.min_parallax_deg),
+                                cfg.max_reproj_error_px, cfg.min_depth_m, cfg.max_depth_m)
+        if p is not None:
+            out.append((lm, p))
+    return out

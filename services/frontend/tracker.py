@@ -112,6 +112,7 @@ class MultiCameraTracker:
             raise FrontendInputError(f"extrinsics of shape {T.shape} for a rig of {len(self.cameras)} cameras")
         self.cameras = [dataclasses.replace(c, T_SC=t.copy()) for c, t in zip(self.cameras, T)]
         self._R_SC = [t[:3, :3].copy() for t in T]
+        self._pairs = overlapping_pairs(self.cameras, self.cfg.min_view_overlap_cos)
 
     # ------------------------------------------------------------------ helpers
     def _check(self, stamp_ns: int, images) -> list[np.ndarray]:

@@ -47,25 +47,18 @@ def perturbed_rig(cameras: list[CameraCalib], rot_deg: float, trans_m: float, se
 
 
 def _run(dataset: str, overrides: list[str], seconds: float) -> dict:
-    from services.app.inprocess import run_in_process
-    from services.system_config import load_system_config
+    """One in-process run (tools.vio.offline): causal ATE, poses and the refined extrinsics of every window."""
     from shared import topics
-    from shared.euroc import read_trajectory
-    from shared.metrics.ate import compute_ate
+    from tools.vio.offline import run
 
     windows: list[tuple[int, np.ndarray]] = []
 
     def tap(topic, msg) -> None:
-        if topic == topics.WINDOW and len(getattr(msg, "T_SC", ())):
+        if topic == topics.WINDOW and len(msg.T_SC):
             windows.append((int(msg.header.stamp_ns), np.array(msg.T_SC, float)))
 
-    cfg = load_system_config(None, ["loop.enabled=false", "o2p.enabled=false", *overrides])
-    run = run_in_process(dataset, cfg, seconds=seconds, taps=[tap])
-    states = [s for s in run.states if s.status not in ("initialising", "reset")]
-    stamps = np.array([s.header.stamp_ns for s in states], np.int64)
-    gt = read_trajectory(run.groundtruth_path)
-    ate = compute_ate(gt.stamps_ns, gt.p_WS, stamps, np.array([s.T_WS[:3, 3] for s in states]), mode="se3").rmse_m
-    return {"ate_m": float(ate), "poses": len(stamps), "windows": windows}
+    res, _ = run(dataset, None, overrides, seconds=seconds, taps=[tap])
+    return {"ate_m": float(res["ate_rmse_m"]), "poses": res["poses"], "windows": windows}
 
 
 def bench(dataset: str, rot_deg: float, trans_m: float, seed: int, seconds: float, overrides: list[str],

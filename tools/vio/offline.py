@@ -19,13 +19,15 @@ from services.system_config import load_system_config
 from shared.euroc import series_from_matrices, read_trajectory, write_tum
 
 
-def run(dataset: str, config: str | None, overrides: list[str], max_frames: int = 0, verbose: bool = False):
-    """Frontend, fast path and back end (no loop closure, no occupancy terms) on the in-process runner. Per-frame
-    cost: frontend + fast path (``sum_median_ms``); the back end's window optimisation runs at keyframes beside it."""
+def run(dataset: str, config: str | None, overrides: list[str], max_frames: int = 0, verbose: bool = False,
+        seconds: float = 0.0, taps=()):
+    """Frontend, fast path and back end (no loop closure, no occupancy terms) on the in-process runner (``seconds``
+    > 0: the first that many; ``taps`` see every message, as run_in_process's). Per-frame cost: frontend + fast
+    path (``sum_median_ms``); the back end's window optimisation runs at keyframes beside it."""
     from services.app.inprocess import run_in_process
 
     cfg = load_system_config(config, ["loop.enabled=false", "o2p.enabled=false", *overrides])
-    run = run_in_process(dataset, cfg, max_frames)
+    run = run_in_process(dataset, cfg, max_frames, seconds=seconds, taps=taps)
     t_fe = np.array(run.runner.times.get(("frontend", "on_frame"), [(np.nan, np.nan)]))
     t_fp = np.array(run.runner.times.get(("odometry", "on_features"), [(np.nan, np.nan)]))  # every frame
     kf = run.nodes["backend"].skipped_frames  # the back end's window optimisations: its calls less those it skipped
