@@ -14,7 +14,8 @@ from shared.rig import RigConfig, load_rig_config
 
 def random_network_pipeline(tmp_path, stereo_gain: float = 1.0, mvs_gain: float = 1.0, **cfg) -> DepthPipeline:
     """Stereo (96 disparities) and MVS (16 planes) weights saved under tmp_path with these gains; ``cfg``: further
-    DepthConfig keys."""
+    DepthConfig keys (``max_relative_sigma`` 0 unless given: untrained networks' sigma means nothing)."""
+    cfg.setdefault("max_relative_sigma", 0.0)
     torch.manual_seed(0)
     weights.save(StereoNet(96), tmp_path / "stereo", "stereo", {"max_disparity": 96}, {"gain": stereo_gain})
     weights.save(MVSNet(16), tmp_path / "mvs", "mvs", {"n_planes": 16}, {"gain": mvs_gain})

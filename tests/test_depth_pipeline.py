@@ -33,3 +33,38 @@ def test_network_pipeline_with_keyframes(tmp_path):
     only_mvs = ~np.isfinite(ds) & np.isfinite(dm)
     np.testing.assert_allclose(df[only_mvs], dm[only_mvs], rtol=1e-6)
     np.testing.assert_allclose(res.T_WC, T_WS[3] @ pipe.T_SC)
+
+
+def test_uncertain_pixels_are_dropped_from_every_output_and_counted(tmp_path):
+    """depth.max_relative_sigma: a pixel whose sigma exceeds k x depth is NaN in stereo, MVS and fused alike, the
+    others are untouched, and the fused map's kept and dropped pixels are counted."""
+    keep_all = random_network_pipeline(tmp_path, 1.0, 1.0, mvs_sources=1)
+    rng = np.random.default_rng(1)
+    raw = [rng.integers(0, 255, (480, 752), dtype=np.uint8) for _ in range(3)]
+    T1, T2 = np.eye(4), np.eye(4)
+    T2[0, 3] = 0.1
+    outs = []
+    for k in (0.0, None):
+        pipe = keep_all if k == 0.0 else None
+        if pipe is None:  # the same weights (fixed seed), so the same depth and sigma before the cap
+            ref = np.nanmedian(outs[0].stereo[1] / outs[0].stereo[0])
+            k = float(ref)  # about half of the stereo pixels are over the cap
+            pipe = random_network_pipeline(tmp_path, 1.0, 1.0, mvs_sources=1, max_relative_sigma=k)
+        pipe.remember_frame(1, raw[0])
+        pipe.update_keyframes(np.array([1]), T1[None])
+        outs.append(pipe.process(2, raw[1], raw[2], T2))
+    full, capped = outs
+    assert keep_all.uncertain_px == 0 and keep_all.confident_px == 0  # k = 0: nothing dropped, nothing counted
+    for name in ("stereo", "mvs", "fused"):
+        (d0, s0), (d1, s1) = getattr(full, name), getattr(capped, name)
+        with np.errstate(invalid="ignore"):
+            bad = s0 > k * d0
+        if name == "stereo":  # k is its median relative sigma (the untrained MVS's sigma may be all over or under)
+            assert 0.3 < bad.sum() / np.isfinite(d0).sum() < 0.7
+        assert np.isnan(d1[bad]).all() and np.isnan(s1[bad]).all(), name
+        np.testing.assert_array_equal(d1[~bad], d0[~bad])
+        np.testing.assert_array_equal(s1[~bad], s0[~bad])
+    d0, s0 = full.fused
+    with np.errstate(invalid="ignore"):
+        assert pipe.uncertain_px == int(np.count_nonzero(s0 > k * d0))
+    assert pipe.confident_px == int(np.count_nonzero(np.isfinite(capped.fused[0])))

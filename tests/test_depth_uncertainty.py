@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from services.depth.uncertainty import (EXPECTED_WITHIN, calibration_gain, depth_metrics, disparity_to_depth, fuse,
-                                        heuristic_sigma, logdepth_to_depth)
+                                       gain_from_ratios, heuristic_sigma, logdepth_to_depth)
 
 
 def test_eq11_depth_and_sigma_match_linearisation():
@@ -93,3 +93,26 @@ def test_metrics_by_hand():
     assert m["mahalanobis"] == pytest.approx(1.0)
     assert m["delta1"] == 0.5  # 2.5 / 2.0 = 1.25 is not < 1.25
     assert m["nll_laplace"] == pytest.approx(np.mean([1 + np.log(0.2), 1 + np.log(1.0)]))
+
+
+def test_median_gain_rule_resists_a_tail_of_gross_errors():
+    """Laplacian errors of scale b with 15 % gross outliers: the 'median' rule moves by the
+    outliers' share of the quantile only (1.28x), the mean rule is pulled far up by the tail; both agree on clean data; an unknown rule is refused."""
+    rng = np.random.default_rng(2)
+    n = 200_000
+    gt = rng.uniform(1, 6, n)
+    b = 0.01 * gt
+    clean = gt + rng.laplace(0, b)
+    sigma = 0.5 * b  # over-confident by 2
+    assert calibration_gain(clean, sigma, gt, "median") == pytest.approx(2.0, rel=0.02)
+    assert calibration_gain(clean, sigma, gt, "mean") == pytest.approx(2.0, rel=0.02)
+    gross = rng.random(n) < 0.15
+    dirty = np.where(gross, gt + rng.uniform(-2, 2, n), clean)
+    # the overall median is the clean errors' 0.5 / 0.85 quantile: -ln(1 - 0.5 / 0.85) b instead of ln 2 b
+    bulk = -np.log(1 - 0.5 / 0.85) / np.log(2)
+    assert calibration_gain(dirty, sigma, gt, "median") == pytest.approx(2.0 * bulk, rel=0.03)
+    assert calibration_gain(dirty, sigma, gt, "mean") > 5 * 2.0
+    with pytest.raises(ValueError, match="unknown gain rule"):
+        gain_from_ratios(np.ones(3), "mode")
+    with pytest.raises(ValueError, match="no valid pixels"):
+        gain_from_ratios(np.array([np.nan]))

@@ -114,3 +114,37 @@ def test_a_shard_is_written_whole_and_read_back(tmp_path):
     assert torch.isfinite(d0).all() and (u >= 0).all() and matched.dtype == torch.bool
     with pytest.raises(SystemExit, match="no complete shard"):
         load_shards(tmp_path, "train")
+
+
+def test_recalibrate_sets_the_median_rule_gain_and_keeps_the_old_one_on_record(tmp_path):
+    import json
+
+    from services.depth import weights
+    from services.depth.sgbm import fill_background
+    from tools.depth import recalibrate
+    from tools.depth.make_stereo_data import render_shard
+    from tools.depth.stereo_shards import load_shards, validation_frames
+
+    render_shard((str(tmp_path / "data"), "val", 3, 0, 2, None))
+    torch.manual_seed(0)
+    weights.save(RefineStereoNet(), tmp_path / "w", "stereo_refine", {"max_disparity": 96},
+                 {"gain": 7.0, "gain_domain": "old", "command": "python -m tools.depth.train ..."})
+    assert recalibrate.main([str(tmp_path / "w.pt"), "--data", str(tmp_path / "data"), "--rule", "median"]) == 0
+    meta = json.loads((tmp_path / "w.json").read_text())
+    assert meta["command"] == "python -m tools.depth.train ..."  # the training provenance stays
+    (rec,) = meta["recalibrations"]
+    assert rec["previous_gain"] == 7.0 and rec["gain"] == meta["gain"] and rec["rule"] == "median"
+    net, meta2 = weights.load(tmp_path / "w.pt", "cpu")
+    ratios = []
+    with torch.inference_mode():  # with the new gain the validation pixels' median |e| / sigma is ln 2
+        for f in validation_frames(load_shards(tmp_path / "data", "val")):
+            t = lambda a: torch.from_numpy(np.ascontiguousarray(a))[None]
+            u, su = net.refine(t(f["left"]).float()[:, None], t(f["right"]).float()[:, None],
+                               t(fill_background(f["sgbm"])), t(np.isfinite(f["sgbm"])))
+            ratios.append((np.abs(u[0].numpy() - f["disparity"]) / (meta2["gain"] * su[0].numpy())).ravel())
+    assert np.median(np.concatenate(ratios)) == pytest.approx(np.log(2), rel=1e-3)
+    from services.depth.stereo_net import StereoNet
+
+    weights.save(StereoNet(96), tmp_path / "s", "stereo", {"max_disparity": 96}, {"gain": 1.0})
+    with pytest.raises(SystemExit, match="only 'stereo_refine'"):
+        recalibrate.main([str(tmp_path / "s.pt"), "--data", str(tmp_path / "data")])

@@ -32,6 +32,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stride", type=int, default=2, help="every n-th camera frame (20 Hz -> 10 Hz)")
     p.add_argument("--keyframe-every", type=int, default=3, help="every n-th used frame becomes an MVS keyframe")
     p.add_argument("--sigma-k", type=float, default=0.005, help="heuristic sigma = k * depth^2 [1/m]")
+    p.add_argument("--set", action="append", default=[], metavar="depth.KEY=VALUE",
+                   help="depth service config override, e.g. depth.stereo_weights=services/depth/weights/stereo_refine.pt")
     p.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated subset of " + ", ".join(VARIANTS))
     p.add_argument("--out", required=True, metavar="DIR", help="per-variant mesh.ply and the summary ablation.json")
 
@@ -41,10 +43,22 @@ def _images(mav: Path, cam: str) -> dict[int, Path]:
     return {int(r[0]): mav / cam / "data" / r[1].strip() for r in rows}
 
 
+def depth_config(overrides: list[str]):
+    """The depth service's config with ``depth.KEY=VALUE`` overrides (ConfigError for other keys)."""
+    from services.depth.config import DepthConfig
+    from shared.config import ConfigError, from_dict, merge, parse_override
+
+    data: dict = {}
+    for text in overrides:
+        data = merge(data, parse_override(text))
+    if set(data) - {"depth"}:
+        raise ConfigError(f"only depth.* keys can be set here, got {sorted(set(data) - {'depth'})}")
+    return from_dict(DepthConfig, data.get("depth", {}), "depth")
+
+
 def main(args: argparse.Namespace) -> int:
     import cv2
 
-    from services.depth.config import DepthConfig
     from services.depth.pipeline import DepthPipeline
     from shared.camera import load_rig
     from tools.bench_mapping import replica_frames
@@ -58,7 +72,7 @@ def main(args: argparse.Namespace) -> int:
         return 2
     mav = folder / "mav0"
     rig = {c.name: c for c in load_rig(mav)}
-    pipe = DepthPipeline(DepthConfig(), rig["cam0"], rig["cam1"])
+    pipe = DepthPipeline(depth_config(args.set), rig["cam0"], rig["cam1"])
     left, right = _images(mav, "cam0"), _images(mav, "cam1")
     heuristic = SensorModelConfig(sigma_model="quadratic", k_sigma=args.sigma_k)
     mappers = {v: SubmapMapper(heuristic if v in ("gt", "stereo-heuristic") else SensorModelConfig(), SubmapConfig())
@@ -85,7 +99,8 @@ def main(args: argparse.Namespace) -> int:
             kf_stamps.append(stamp)
             kf_T.append(T_WS)
             pipe.update_keyframes(np.array(kf_stamps), np.array(kf_T))
-    summary = {"depth_method": pipe.method, "variants": {}}
+    summary = {"depth_method": pipe.method, "depth_set": list(args.set), "variants": {},
+               "uncertain_fraction": pipe.uncertain_px / max(1, pipe.uncertain_px + pipe.confident_px)}
     gt_mesh = mav / "scene" / "mesh.ply"
     for name, mapper in mappers.items():
         mapper.remesh()

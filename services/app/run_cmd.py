@@ -264,9 +264,15 @@ def stats_summary(col: _Collector) -> dict:
     out["frames_without_state"] = (None if out["frames_sent"] is None
                                    else max(0, out["frames_sent"] - len(answered)))
     out["drops"] = {f"{svc}:{q}": v["dropped"] for svc, d in out["services"].items()
-                    for q, v in d["queues"].items() if v["dropped"]}
+                    for q, v in d["queues"].items() if v["dropped"] and q not in NOT_MESSAGES}
+    px = out["services"].get("depth", {}).get("queues", {}).get("uncertain_pixels")
+    out["depth_uncertain_fraction"] = px["dropped"] / px["received"] if px and px["received"] else None
     out["localisation"] = localisation_summary(col.states)
     return out
+
+
+# counters reported beside the queues that count pixels or points, not messages: not drops of the stream
+NOT_MESSAGES = ("uncertain_pixels", "mvs_prior_points")
 
 
 def localisation_summary(states) -> dict | None:

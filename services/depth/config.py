@@ -23,6 +23,10 @@ class DepthConfig:
     border_margin_px: int = param(8, "depth is dropped (NaN) on rectified pixels that no raw image covers (black "
                                   "rectification border) and within this distance of them: the networks make up "
                                   "depth there, MVS mostly far behind the true surface (docs/depth.md)", "px")
+    max_relative_sigma: float = param(0.1, "pixels whose sigma exceeds this fraction of their depth are dropped (NaN) "
+                                      "from every output and counted: too uncertain to place a surface, and the map "
+                                      "would clip their sigma (mapping.sensor.sigma_max_m) and draw them as one "
+                                      "(docs/depth.md, 'Uncertain pixels'); 0: keep all")
     stereo_weights: str = param("", "stereo network weights (.pt with .json beside); '' = services/depth/weights/stereo.pt")
     mvs_weights: str = param("", "MVS network weights; '' = services/depth/weights/mvs.pt")
     mono: bool = param(False, "cam0 only (left_camera): MVS depth on posed keyframes alone, no stereo network and "
@@ -76,5 +80,7 @@ class DepthConfig:
         if self.prior_max_points < 0 or not self.prior_max_age_s >= 0:
             raise ValueError(f"depth.prior_max_points and depth.prior_max_age_s must be >= 0, got "
                              f"{self.prior_max_points}, {self.prior_max_age_s}")
+        if not self.max_relative_sigma >= 0:
+            raise ValueError(f"depth.max_relative_sigma must be >= 0, got {self.max_relative_sigma}")
         if self.inject_delay_ms < 0:
             raise ValueError(f"depth.inject_delay_ms must be >= 0, got {self.inject_delay_ms}")

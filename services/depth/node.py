@@ -101,6 +101,8 @@ class DepthNode(ProcessNode):
         out = {"mvs_frames": lambda: (self.prior["frames"], 0, 0),
                "mvs_prior_points": lambda: (self.prior["points"], self.pipe.prior_rejected, self.prior["last"])}
         out["landmarks_refused"] = lambda: (self.dropped_landmarks, self.dropped_landmarks, 0)
+        # pixels of the published fused maps: with depth, and dropped as too uncertain (depth.max_relative_sigma)
+        out["uncertain_pixels"] = lambda: (self.pipe.confident_px + self.pipe.uncertain_px, self.pipe.uncertain_px, 0)
         if self.dc.mono:
             out["mono_without_mvs"] = lambda: (self.no_mvs, self.no_mvs, 0)
         return out

@@ -90,6 +90,7 @@ class DepthPipeline:
         self._views: OrderedDict[int, _View] = OrderedDict()
         self._landmarks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # p_W, last_seen_ns, num_obs
         self.prior_rejected = 0  # landmarks not in the prior (outside the view or depth range, or over the cap)
+        self.confident_px = self.uncertain_px = 0  # pixels of the fused (published) maps kept / dropped as uncertain
         if self.method == "network":
             self._load_networks()
 
@@ -212,6 +213,22 @@ class DepthPipeline:
         """Depth and sigma with NaN outside ``self.valid``."""
         return tuple(np.where(self.valid, a, np.float32(np.nan)).astype(np.float32, copy=False) for a in ds)
 
+    def _confident(self, ds: tuple[np.ndarray, np.ndarray] | None, count: bool = False
+                   ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Depth and sigma with NaN where sigma > ``depth.max_relative_sigma`` x depth (0: unchanged); ``count``
+        adds the map's valid and dropped pixels to ``self.confident_px`` / ``self.uncertain_px``."""
+        k = self.cfg.max_relative_sigma
+        if ds is None or k <= 0:
+            return ds
+        d, s = ds
+        with np.errstate(invalid="ignore"):
+            bad = s > k * d
+        if count:
+            n_bad = int(np.count_nonzero(bad))
+            self.uncertain_px += n_bad
+            self.confident_px += int(np.count_nonzero(np.isfinite(d))) - n_bad
+        return np.where(bad, np.float32(np.nan), d), np.where(bad, np.float32(np.nan), s)
+
     def _features(self, view: _View):
         if view.features is None:
             import torch
@@ -254,7 +271,8 @@ class DepthPipeline:
         stereo = self._mask(self.stereo(left, right))
         T_WC, mvs, n_src, n_prior = self._posed_mvs(stamp_ns, left, T_WS)
         fused = stereo if mvs is None else fuse(*stereo, *mvs)
-        return DepthResult(stereo, mvs, fused, T_WC, self.method, n_src, n_prior)
+        return DepthResult(self._confident(stereo), self._confident(mvs), self._confident(fused, count=True), T_WC,
+                           self.method, n_src, n_prior)
 
     def _process_mono(self, stamp_ns: int, raw_left: np.ndarray, T_WS: np.ndarray | None) -> DepthResult:
         """depth.mono: MVS depth of the undistorted left image, None before a pose and source views exist."""
@@ -262,6 +280,7 @@ class DepthPipeline:
             raise ValueError(f"image of shape {raw_left.shape}, calibration says {self.raw_shapes[0]}")
         left = cv2.remap(raw_left, *self._left_maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
         T_WC, mvs, n_src, n_prior = self._posed_mvs(stamp_ns, left, T_WS)
+        mvs = self._confident(mvs, count=True)
         return DepthResult(None, mvs, mvs, T_WC, "mvs", n_src, n_prior)
 
     def _posed_mvs(self, stamp_ns: int, left: np.ndarray, T_WS: np.ndarray | None):

@@ -75,6 +75,13 @@ def _variant(name: str, z) -> tuple[np.ndarray, np.ndarray]:
     from services.depth.uncertainty import fuse
 
     st_d, st_s, mv_d, mv_s, fu_d, fu_s, gt = (z[k] for k in ("st_d", "st_s", "mv_d", "mv_s", "fu_d", "fu_s", "gt"))
+    if "*" in name and "-" not in name:  # 'stereo*x', 'fused*x[*y]': stereo (MVS) sigma scaled by x (y), refused
+        base, *xs = name.split("*")
+        x, y = float(xs[0]), float(xs[1]) if len(xs) > 1 else 1.0
+        if base == "stereo":
+            return st_d, st_s * x
+        if base == "fused":
+            return fuse(st_d, st_s * x, mv_d, mv_s * y)
     if name == "stereo":
         return st_d, st_s
     if name == "fused":
@@ -103,6 +110,14 @@ def _variant(name: str, z) -> tuple[np.ndarray, np.ndarray]:
         if "-rectmask-" in name:  # outside the rectified images' coverage (eroded by n px) dropped
             base, n = name.split("-rectmask-")
             return _swap(~_coverage(z, int(n)), _variant(base, z), (np.nan, np.nan))
+        if "-relsigma-" in name:  # pixels whose sigma exceeds k times their depth dropped
+            base, k = name.split("-relsigma-")
+            d, s = _variant(base, z)
+            return _swap(s > float(k) * d, (d, s), (np.nan, np.nan))
+        if "-maxsigma-" in name:  # pixels whose sigma exceeds s [m] dropped
+            base, m = name.split("-maxsigma-")
+            d, s = _variant(base, z)
+            return _swap(s > float(m), (d, s), (np.nan, np.nan))
         if name.startswith("fused-border"):  # MVS ignored within n px of the image border
             n = int(name.rsplit("-", 1)[1])
             m = np.ones(st_d.shape[1:], bool)

@@ -27,7 +27,8 @@ import torch
 
 from services.depth import weights
 from services.depth.losses import mvs_loss, stereo_loss
-from services.depth.uncertainty import calibration_gain, depth_metrics, disparity_to_depth, logdepth_to_depth
+from services.depth.uncertainty import (calibration_gain, depth_metrics, disparity_to_depth, gain_from_ratios,
+                                       logdepth_to_depth)
 from services.depth.views import select_sources
 
 
@@ -145,8 +146,12 @@ def evaluate(net, kind, scenes, n_src, device, gain=1.0, seed=7):
     return np.stack(est), np.stack(sig), np.stack(gt)
 
 
-def evaluate_refine(net, shards, device) -> tuple[float, dict]:
-    """The SGBM-guided network on validation frames: (disparity-domain gain, metrics before and after it)."""
+REFINE_GAIN_DOMAIN = "disparity sigma [px] (median |u - u_gt| / (gain sigma_u) = ln 2 on val, all pixels)"
+
+
+def evaluate_refine(net, shards, device, rule: str = "median") -> tuple[float, dict]:
+    """The SGBM-guided network on validation frames: (disparity-domain gain by ``rule``
+    (services.depth.uncertainty.gain_from_ratios), metrics before and after it)."""
     from services.depth.sgbm import fill_background
     from tools.depth.stereo_bench import disparity_metrics
     from tools.depth.stereo_shards import validation_frames
@@ -162,10 +167,10 @@ def evaluate_refine(net, shards, device) -> tuple[float, dict]:
             errs.append(np.abs(u - f["disparity"]).ravel())
             sigmas.append(su.ravel())
     e, s = np.concatenate(errs), np.concatenate(sigmas)
-    gain = float(np.mean(e / s))
+    gain = gain_from_ratios(e / s, rule)
     mean = lambda k: float(np.mean([r[k] for r in rows]))
     metrics = {"frames": len(rows), "epe_nonocc": mean("epe"), "bad2_nonocc": mean("bad2"),
-               "epe_all": float(e.mean()), "err_over_sigma_all": gain,
+               "epe_all": float(e.mean()), "err_over_sigma_all": float(np.mean(e / s)), "gain_rule": rule,
                "err_over_sigma_all_calibrated": float(np.mean(e / (gain * s))),
                "within2s_all_calibrated": float(100 * np.mean(e / (gain * s) < 2))}
     return gain, metrics
@@ -273,7 +278,7 @@ def main(argv: list[str] | None = None) -> int:
     if a.net == "stereo_refine":
         val = load_shards(root, "val")
         gain, val_cal = evaluate_refine(net, val, a.device)
-        val_raw, domain = {}, "disparity sigma [px] (mean |u - u_gt| / (gain sigma_u) = 1 on val, all pixels)"
+        val_raw, domain = {}, REFINE_GAIN_DOMAIN
     else:
         val = load_split(root, "val")  # loaded only now: it may still be rendering when training starts
         est, sig, gt = evaluate(net, a.net, val, a.sources, a.device)

@@ -1,0 +1,20 @@
+"""``sigmaslam bench mapping-ablation --set depth.KEY=VALUE``: the overrides reach the depth config, other keys and
+bad values are refused with the config loader's errors."""
+import pytest
+
+from shared.config import ConfigError
+from tools.mapping_ablation import depth_config
+
+pytestmark = pytest.mark.unit
+
+
+def test_depth_overrides_are_applied_and_checked():
+    cfg = depth_config(["depth.stereo_weights=w/stereo_refine.pt", "depth.max_relative_sigma=0.2"])
+    assert cfg.stereo_weights == "w/stereo_refine.pt" and cfg.max_relative_sigma == 0.2
+    assert depth_config([]).max_relative_sigma == 0.1  # the service's default
+    with pytest.raises(ConfigError, match="only depth"):
+        depth_config(["mapping.voxel_size_m=0.1"])
+    with pytest.raises(ConfigError, match="max_relative_sigma"):
+        depth_config(["depth.max_relative_sigma=-1"])
+    with pytest.raises(ConfigError):
+        depth_config(["depth.no_such_key=1"])
