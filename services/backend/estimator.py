@@ -2,16 +2,15 @@
 
 Design choices:
 
-* **Window**: the last ``window_keyframes`` keyframes plus the latest frame; rebuilt from cached factors and
-  solved by Levenberg-Marquardt at keyframes. A non-keyframe frame (``motion_only_between_keyframes``, no per-frame
+* **Window**: the last ``window_keyframes`` keyframes plus the latest frame; rebuilt from cached factors
+  (:mod:`services.backend.observations`) and solved by Levenberg-Marquardt at keyframes. A non-keyframe frame (``motion_only_between_keyframes``, no per-frame
   covariance) solves only its own state against the window held fixed (:mod:`services.backend.motion_only`) and is
   dropped, so the number of states is bounded. Outlier rejection and the marginal covariance run at keyframes (NaN
   for other frames unless ``compute_covariance``).
 * **Marginalisation**: when the oldest keyframe leaves, the joint 15x15 marginal covariance of the next one's
-  (pose, velocity, bias), taken from the full window, becomes a Gaussian prior on it (a
-  ``LinearContainerFactor`` at the current estimate). This keeps all past information about that state but
-  drops its correlations with landmarks, so landmark observations still in the window are counted a second
-  time through the prior: slightly over-confident, never rank deficient; a standard simplification.
+  (pose, velocity, bias), taken from the full window, becomes a Gaussian prior on it at the current estimate. This
+  keeps all past information about that state but drops its correlations with landmarks, so observations still in
+  the window are counted twice: slightly over-confident, never rank deficient; a standard simplification.
 * **Vision**: observations (distorted pixels) are undistorted by the camera model to normalised coordinates
   and enter ``GenericProjectionFactorCal3_S2`` with an identity calibration and ``body_P_sensor = T_SC_i``,
   noise sigma_px / f_i, wrapped in a Cauchy robust model (k in units of sigma). Normalised coordinates keep
@@ -48,6 +47,7 @@ from services.backend.priors import marginal_prior, state_priors, window_margina
 from services.backend.protocols import ExtraFactorSource, MarginalisationListener
 from services.backend.landmarks import WindowLandmarks, gather_landmarks
 from services.backend.mono_init import bootstrap as mono_bootstrap
+from services.backend.observations import ObservationBook
 from services.backend.still import mono_frame_factors
 from services.backend.triangulation import new_landmarks
 from services.backend.vision_factors import ProjectionModel
@@ -87,9 +87,7 @@ class WindowedVioEstimator:
         self.stamps: dict[int, int] = {}
         self._imu_factors: dict[int, gtsam.NonlinearFactor] = {}  # keyed by the later state
         self._priors: list[gtsam.NonlinearFactor] = []
-        self._obs: dict[int, dict[int, list[tuple[int, np.ndarray]]]] = {}  # landmark -> state -> [(cam, xy)]
-        self._in_graph: set[int] = set()
-        self._proj_cache: dict[tuple[int, int, int], gtsam.NonlinearFactor] = {}
+        self._book = ObservationBook()  # observations, landmarks in the graph, their factors (observations.py)
         self._still: dict[int, list[gtsam.NonlinearFactor]] = {}  # one camera: factors of a still state (still.py)
         self.still_frames = 0
         # one camera: until the window stood still once or was rebuilt by mono_init, vision has no metric hold
@@ -213,12 +211,12 @@ class WindowedVioEstimator:
         # (a pass over every observation of the window) is only worth it when the frame stays
         if (keyframe or self.cfg.reject_outliers_every_frame) and self._reject_outliers():
             graph = self._build_graph(n)
-        seen_now = sum(1 for lm in self._in_graph if n in self._obs[lm])
+        seen_now = len(self._book.seen_at(n))
         status = "tracking" if seen_now >= self.cfg.min_landmarks_tracking else "imu_only"
         self._marginals = None
         cov = np.full((15, 15), np.nan)
         if self.cfg.compute_covariance or keyframe:
-            self._marginals, held = window_marginals(graph, self.values, self._in_graph,
+            self._marginals, held = window_marginals(graph, self.values, self._book.in_graph,
                                                      self.cfg.marginals_landmark_sigma_m)
             self.held_marginals += held
             joint = self.joint_marginal(_state_keys(n))
@@ -242,8 +240,8 @@ class WindowedVioEstimator:
 
     def _motion_only_frame(self, n: int, k: int) -> FrameResult:
         """Non-keyframe: solve the newest state alone against the fixed window, report it, drop it."""
-        lms = [lm for lm in self._in_graph if n in self._obs[lm]]
-        seen = [(self.values.atPoint3(L(lm)), c, xy) for lm in lms for c, xy in self._obs[lm][n]]
+        lms = self._book.seen_at(n)
+        seen = [(self.values.atPoint3(L(lm)), c, xy) for lm in lms for c, xy in self._book.by_landmark[lm][n]]
         pts = self._vision.fixed_points(np.array([p for p, _, _ in seen]).reshape(-1, 3),
                                         np.array([xy for _, _, xy in seen]).reshape(-1, 2), [c for _, c, _ in seen])
         try:
@@ -281,41 +279,37 @@ class WindowedVioEstimator:
 
     def _add_observations(self, n: int, ids, cams, uv) -> None:
         for c in np.unique(cams):  # camera by camera, as the factors' observation indices j count them
-            m = cams == c
-            for lm, p in zip(ids[m], self._vision.undistort(cams[m], uv[m])):
-                self._obs.setdefault(int(lm), {}).setdefault(n, []).append((int(c), p))
+            for lm, p in zip(ids[cams == c], self._vision.undistort(cams[cams == c], uv[cams == c])):
+                self._book.add(n, int(lm), int(c), p)
 
     def _add_still(self, n: int, k: int) -> None:
         """One camera: relative-pose and zero-velocity factors keyframe k -> state n when the image stands still."""
         if len(self.cameras) != 1 or n == k:
             return
-        factors, still = mono_frame_factors(self._obs, k, n, float(self._focal[0]), self._T_SC[0][:3, :3], self.cfg,
+        factors, still = mono_frame_factors(self._book.by_landmark, k, n, float(self._focal[0]), self._T_SC[0][:3, :3], self.cfg,
                                             self._mono_pending)
         if factors:
             self._still[n] = factors
         self.still_frames += still
 
     def _triangulate_new(self, n: int) -> None:
-        for lm, p in new_landmarks(self._obs, self._in_graph, n, lambda s: self.values.atPose3(X(s)).matrix(),
+        for lm, p in new_landmarks(self._book.by_landmark, self._book.in_graph, n, lambda s: self.values.atPose3(X(s)).matrix(),
                                    self._T_SC, self._focal, self.cfg):
             if self.values.exists(L(lm)):
                 self.values.update(L(lm), p)
             else:
                 self.values.insert(L(lm), p)
-            self._in_graph.add(lm)
+            self._book.in_graph.add(lm)
 
     def _projection(self, lm: int, n: int, j: int, c: int, xy: np.ndarray) -> gtsam.NonlinearFactor:
-        key = (lm, n, j)
-        f = self._proj_cache.get(key)
-        if f is None:
-            f = (self._vision.factor(xy, c, X(n), L(lm)) if self._extrinsics is None
-                 else self._vision.factor_with_extrinsic(xy, c, X(n), self._extrinsics.keys[c], L(lm)))
-            self._proj_cache[key] = f
-        return f
+        if self._extrinsics is None:
+            return self._book.factor(lm, n, j, lambda: self._vision.factor(xy, c, X(n), L(lm)))
+        return self._book.factor(lm, n, j, lambda: self._vision.factor_with_extrinsic(
+            xy, c, X(n), self._extrinsics.keys[c], L(lm)))
 
     def _schur_ordering(self) -> gtsam.Ordering:
         order = gtsam.Ordering()
-        for lm in self._in_graph:
+        for lm in self._book.in_graph:
             order.push_back(L(lm))
         for n in self.stamps:
             for key in _state_keys(n):
@@ -337,8 +331,8 @@ class WindowedVioEstimator:
         for k in self._still:
             for f in self._still[k]:
                 g.add(f)
-        for lm in self._in_graph:
-            for s, obs in self._obs[lm].items():
+        for lm in self._book.in_graph:
+            for s, obs in self._book.by_landmark[lm].items():
                 for j, (c, xy) in enumerate(obs):
                     g.add(self._projection(lm, s, j, c, xy))
         for source in self._extra_factors:
@@ -350,37 +344,27 @@ class WindowedVioEstimator:
         """Remove observations whose reprojection error exceeds the bound; drop landmarks left with < 2.
 
         Returns True when anything was removed."""
-        if not self._in_graph:
+        book = self._book
+        if not book.in_graph:
             return False
-        touched = reprojection_outliers(self.values, self._obs, self._in_graph, self.stamps, self._T_SC, self._focal,
-                                        self.cfg.min_depth_m, self.cfg.max_reproj_error_px)
+        touched = reprojection_outliers(self.values, book.by_landmark, book.in_graph, self.stamps, self._T_SC,
+                                        self._focal, self.cfg.min_depth_m, self.cfg.max_reproj_error_px)
         for (lm, s), drop in touched.items():
-            self._set_obs(lm, s, [o for j, o in enumerate(self._obs[lm][s]) if j not in drop])
+            book.set(lm, s, [o for j, o in enumerate(book.by_landmark[lm][s]) if j not in drop])
         for lm in {lm for lm, _ in touched}:
-            if sum(len(o) for o in self._obs.get(lm, {}).values()) < 2:
+            if book.count(lm) < 2:
                 self._drop_landmark(lm)
         return bool(touched)
 
-    def _set_obs(self, lm: int, s: int, keep: list) -> None:
-        for j in range(len(self._obs[lm][s])):
-            self._proj_cache.pop((lm, s, j), None)
-        if keep:
-            self._obs[lm][s] = keep
-        else:
-            del self._obs[lm][s]
-
     def _drop_landmark(self, lm: int) -> None:
-        self._in_graph.discard(lm)
+        self._book.in_graph.discard(lm)
         if self.values.exists(L(lm)):
             self.values.erase(L(lm))
-        if not self._obs.get(lm):
-            self._obs.pop(lm, None)
+        self._book.forget_if_unobserved(lm)
 
     def _remove_state(self, n: int) -> None:
-        for lm in [lm for lm, by in self._obs.items() if n in by]:
-            self._set_obs(lm, n, [])
-            if sum(len(o) for o in self._obs[lm].values()) < 2:
-                self._drop_landmark(lm)
+        for lm in self._book.remove_state(n):
+            self._drop_landmark(lm)
         self._imu_factors.pop(n, None)
         self._still.pop(n, None)
         for key in _state_keys(n):
@@ -430,19 +414,19 @@ class WindowedVioEstimator:
             covariance=to_message_covariance(cov, T[:3, :3]), status=status,
             keyframe_ids=np.array(kfs, np.int64), keyframe_stamps_ns=np.array([self.stamps[k] for k in kfs], np.int64),
             keyframe_T_WS=np.array([self.values.atPose3(X(k)).matrix() for k in kfs]),
-            num_landmarks=len(self._in_graph), T_SC=None if self._extrinsics is None else self._T_SC.copy())
+            num_landmarks=len(self._book.in_graph), T_SC=None if self._extrinsics is None else self._T_SC.copy())
 
     def window_landmarks(self, max_count: int | None = None) -> WindowLandmarks:
         """The window's well-constrained landmarks at the current estimate, at most ``max_count`` (default
         ``cfg.max_published_landmarks``): those last seen most recently, then seen most often, are kept."""
         limit = self.cfg.max_published_landmarks if max_count is None else max_count
-        return gather_landmarks(self._obs, self._in_graph, self.values, self.stamps, limit)
+        return gather_landmarks(self._book.by_landmark, self._book.in_graph, self.values, self.stamps, limit)
 
     # ---------------------------------------------------------------- introspection
     def window_counts(self) -> dict[str, int]:
         """Sizes that bound the per-frame cost: states in the window, landmarks with factors, total variables."""
-        return {"keyframes": len(self.keyframes), "states": len(self.stamps), "landmarks": len(self._in_graph),
-                "variables": int(self.values.size()), "observed_landmarks": len(self._obs)}
+        return {"keyframes": len(self.keyframes), "states": len(self.stamps), "landmarks": len(self._book.in_graph),
+                "variables": int(self.values.size()), "observed_landmarks": len(self._book.by_landmark)}
 
     # ---------------------------------------------------------------- read API (mono_init, loop/history.py)
     @property
@@ -478,17 +462,17 @@ class WindowedVioEstimator:
     def observations_of(self, state: int) -> dict[int, tuple[tuple[int, np.ndarray], ...]]:
         """landmark -> ((camera, normalised xy (2,)), ...) of the window's observations at ``state``, in the
         order landmarks were first seen; a new dict (the xy arrays are the window's own: do not modify them)."""
-        return {lm: tuple(by[state]) for lm, by in self._obs.items() if state in by}
+        return self._book.of_state(state)
 
     def window_points(self) -> tuple[np.ndarray, np.ndarray]:
         """(ids (N,), p_W (N,3)) of every triangulated landmark with factors in the window, at the current estimate."""
-        ids = np.array(sorted(self._in_graph), np.int64)
+        ids = np.array(sorted(self._book.in_graph), np.int64)
         p = np.array([self.values.atPoint3(L(int(lm))) for lm in ids], float).reshape(-1, 3)
         return ids, p
 
     def landmark_in_graph(self, lm: int) -> bool:
         """Whether landmark ``lm`` is triangulated and has factors in the window's graph (a value L(lm))."""
-        return lm in self._in_graph
+        return lm in self._book.in_graph
 
     def imu_factor_to(self, state: int) -> gtsam.NonlinearFactor | None:
         """The IMU factor from the keyframe before ``state`` to ``state`` (None for the oldest state)."""
@@ -511,6 +495,6 @@ class WindowedVioEstimator:
 
     def forget_triangulations(self) -> None:
         """Every landmark leaves the graph (its observations stay; it is triangulated again from the poses)."""
-        for lm in list(self._in_graph):
-            self._in_graph.discard(lm)
+        for lm in self._book.in_graph:
             self.values.erase(L(lm))
+        self._book.in_graph.clear()
