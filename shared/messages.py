@@ -250,5 +250,8 @@ class EstimatorWindow(Message):
     T_SC: object = array_field("each camera's extrinsic as the back end refines it (backend.refine_extrinsics), rig "
                                "order; none (0 of them) when it uses the calibration's", "float64", ("C", 4, 4),
                                default_factory=lambda: np.zeros((0, 4, 4)))
+    time_offset_s: float = scalar_field("the camera-IMU time offset the back end estimates "
+                                        "(backend.estimate_time_offset; 0 when off): an image stamped t was taken "
+                                        "at IMU time t + offset [s]", default=0.0)
     status: str = scalar_field("'tracking' or 'imu_only' (the keyframe's), 'initialising' (no state yet) or 'reset' "
                                "(a restarted back end: forget the old window; no state)", default="tracking")

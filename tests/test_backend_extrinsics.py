@@ -90,6 +90,7 @@ def _window(T_SC):
 
 
 def test_the_fast_path_and_the_frontend_take_the_refined_extrinsics_and_refuse_another_rigs():
+    """... and the frontend takes the time offset estimate from the same message."""
     from services.backend.odometry_node import OdometryNode
     from services.frontend.node import FrontendNode
     from services.system_config import load_system_config
@@ -123,6 +124,15 @@ def test_the_fast_path_and_the_frontend_take_the_refined_extrinsics_and_refuse_a
         fe.on_window(_window(other))
     np.testing.assert_allclose(odo.tracker.vision.T_SC, refined)
     np.testing.assert_allclose([c.T_SC for c in fe.tracker.cameras], refined)
+    # the camera-IMU time offset (backend.estimate_time_offset) travels in the same message to the frontend
+    import dataclasses
+
+    timed = decode(encode(dataclasses.replace(_window(np.zeros((0, 4, 4))), time_offset_s=0.003)))
+    assert timed.time_offset_s == 0.003
+    fe.on_window(dataclasses.replace(timed, status="initialising"))  # no state yet: nothing to take
+    assert fe.tracker.time_offset_s == 0.0
+    fe.on_window(timed)
+    assert fe.tracker.time_offset_s == 0.003
 
 
 def test_the_joint_marginal_prior_is_the_gaussian_it_was_built_from():

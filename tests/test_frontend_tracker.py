@@ -231,3 +231,27 @@ def test_deferred_detection_leaves_keyframes_and_tracks_unchanged(stereo_seq):
         assert np.array_equal(a.uv[keep], b.uv)
     assert deferred == sum(not o.is_keyframe for o in now)
     assert sum(o.counts.get("detected", 0) for o in now[1:] if not o.is_keyframe) > 0
+
+
+def test_time_offset_moves_published_tracks_back_along_their_image_motion(stereo_seq):
+    """set_time_offset(td): each published track is moved by -td x (its position - its position a frame earlier)
+    / dt, which puts it at the true projection td earlier; tracks new in a frame are not moved; the tracker's own
+    state (ids, tracking) is that of the tracker without the offset; a non-finite offset is refused."""
+    room, cams, poses, images = stereo_seq
+    _, plain = run_sequence(cams, poses, images)
+    tr = MultiCameraTracker(FrontendConfig(), cams)
+    tr.set_time_offset(0.01)
+    _, shifted = run_sequence(cams, poses, images, tracker=tr)
+    moved = 0
+    for k in range(1, len(plain)):
+        a, b, prev = plain[k], shifted[k], plain[k - 1]
+        assert np.array_equal(a.landmark_ids, b.landmark_ids) and np.array_equal(a.camera_index, b.camera_index)
+        before = {(int(i), int(c)): uv for i, c, uv in zip(prev.landmark_ids, prev.camera_index, prev.uv)}
+        for i, c, uv_a, uv_b in zip(a.landmark_ids, a.camera_index, a.uv, b.uv):
+            if (int(i), int(c)) in before and k > 1:
+                vel = (uv_a - before[(int(i), int(c))]) / DT
+                np.testing.assert_allclose(uv_b, uv_a - 0.01 * vel, atol=1e-3)
+                moved += np.linalg.norm(vel) * 0.01 > 0.05
+    assert moved > 100
+    with pytest.raises(FrontendInputError, match="not finite"):
+        tr.set_time_offset(float("nan"))

@@ -46,6 +46,8 @@ def run(dataset: str, overrides: list[str], max_frames: int = 0, loop: bool = Tr
            "backend_p99_ms": 1e3 * float(np.percentile(t_be, 99)),
            "backend_cpu_median_ms": 1e3 * float(np.median(c_be)), "backend_cpu_p99_ms": 1e3 * float(np.percentile(c_be, 99)),
            "loop": loop}
+    if run.time_offset_ms is not None:  # backend.estimate_time_offset
+        res["time_offset_ms"] = run.time_offset_ms
     trajs = {"causal": series_from_matrices([s.header.stamp_ns for s in published], [s.T_WS for s in published])}
     lb = run.nodes["backend"].loop
     if lb is not None:

@@ -94,6 +94,12 @@ class InProcessRun:
     # runner.times[("backend", "on_features")], in order) [s]; empty without loop closure
     loop_s: list[float] = dataclasses.field(default_factory=list)
 
+    @property
+    def time_offset_ms(self) -> float | None:
+        """The back end's camera-IMU time offset estimate at the end [ms] (backend.estimate_time_offset), else None."""
+        offset = self.nodes["backend"].estimator.time_offset
+        return None if offset is None else 1e3 * offset.td
+
 
 class _Collector:
     """The run's taps: states, the final trajectory, the causal map before the mapping follows the final one, and

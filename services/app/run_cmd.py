@@ -162,10 +162,13 @@ class _Collector:
     last_state_time: float = 0.0
     arrivals: ArrivalLog = dataclasses.field(default_factory=ArrivalLog)  # frame and state arrival times
     extrinsics: np.ndarray | None = None  # (C,4,4) the newest refined T_SC (backend.refine_extrinsics), else None
+    time_offset_s: float | None = None  # the newest camera-IMU time offset estimate (backend.estimate_time_offset)
 
     def on_window(self, msg) -> None:
         if len(msg.T_SC):
             self.extrinsics = np.array(msg.T_SC, float)
+        if msg.status not in ("initialising", "reset"):
+            self.time_offset_s = float(msg.time_offset_s)
 
 
 PROGRESS_EVERY_S = 10.0  # wall time between two progress lines of a run [s]
@@ -416,6 +419,10 @@ def main(args: argparse.Namespace) -> int:
     final_traj = write_final(out, final) if final is not None else None
     if col.extrinsics is not None:
         summary["extrinsics_refined"] = write_refined_extrinsics(out, cfg.rig, col.extrinsics)
+    if cfg.backend.estimate_time_offset and col.time_offset_s is not None:
+        summary["time_offset_ms"] = 1e3 * col.time_offset_s
+        print(f"[sigmaslam run] camera-IMU time offset estimated online: {1e3 * col.time_offset_s:+.2f} ms (an image "
+              f"stamped t was taken at IMU time t + offset; Kalibr's timeshift_cam_imu)", flush=True)
     if final is not None:
         summary["loops"] = loop_summary(final)
         print(f"[sigmaslam run] final trajectory: {summary['loops']}", flush=True)

@@ -55,6 +55,15 @@ class BackendConfig:
     extrinsic_walk_rot_deg: float = param(0.005, "random walk of the camera rotation per keyframe: bounds how "
                                           "confident the carried T_SC prior gets (extrinsics.py)", "deg")
     extrinsic_walk_trans_m: float = param(5e-5, "random walk of the camera position per keyframe", "m")
+    # --- online camera-IMU time offset (services/backend/time_offset.py) ---
+    estimate_time_offset: bool = param(False, "estimate the camera-IMU time offset td (an image stamped t was taken at "
+                                       "IMU time t + td) from the keyframes' residuals against their image motion; "
+                                       "the frontend moves its published tracks by -td x their image velocity")
+    time_offset_sigma_ms: float = param(10.0, "how far the stamps may be off at the start (1 sigma)", "ms")
+    time_offset_walk_ms: float = param(0.1, "random walk of the offset per keyframe", "ms")
+    time_offset_rotation_sigma_deg: float = param(0.01, "noise of one keyframe interval's rotation, window against "
+                                                  "gyro, in the offset's filter (time_offset.py)", "deg")
+    time_offset_max_ms: float = param(50.0, "the estimate is clamped to +- this", "ms")
     # --- IMU (continuous-time densities; an ImuCalib passed to the estimator overrides them) ---
     gravity_m_s2: float = param(9.81, "magnitude of gravity along -z of W", "m/s^2")
     gyro_noise_density: float = param(1.6968e-4 * 5, "gyro white-noise density (inflated over the datasheet)", "rad/s/sqrt(Hz)")

@@ -49,6 +49,7 @@ from services.backend.landmarks import WindowLandmarks, gather_landmarks
 from services.backend.mono_init import bootstrap as mono_bootstrap
 from services.backend.observations import ObservationBook
 from services.backend.still import mono_frame_factors
+from services.backend.time_offset import TimeOffsetEstimator, rotation_residual
 from services.backend.triangulation import new_landmarks
 from services.backend.vision_factors import ProjectionModel
 from services.backend.window_rules import (BackendInputError, keyframe_due,  # noqa: F401 (re-exported)
@@ -82,6 +83,8 @@ class WindowedVioEstimator:
         self._focal = np.array([c.focal_px for c in self.cameras])
         # online extrinsic refinement (extrinsics.py): None when off
         self._extrinsics = ExtrinsicRefinement(cfg, len(cameras)) if cfg.refine_extrinsics else None
+        self.time_offset = (TimeOffsetEstimator(cfg.time_offset_sigma_ms * 1e-3, cfg.time_offset_walk_ms * 1e-3,
+                                                cfg.time_offset_max_ms * 1e-3) if cfg.estimate_time_offset else None)
         self.values = gtsam.Values()
         self.keyframes: list[int] = []        # state indices of the window's keyframes, oldest first
         self.stamps: dict[int, int] = {}
@@ -211,6 +214,8 @@ class WindowedVioEstimator:
         # (a pass over every observation of the window) is only worth it when the frame stays
         if (keyframe or self.cfg.reject_outliers_every_frame) and self._reject_outliers():
             graph = self._build_graph(n)
+        if keyframe and self.time_offset is not None:
+            self._update_time_offset(n)
         seen_now = len(self._book.seen_at(n))
         status = "tracking" if seen_now >= self.cfg.min_landmarks_tracking else "imu_only"
         self._marginals = None
@@ -404,6 +409,17 @@ class WindowedVioEstimator:
         self._priors = [marginal_prior(self.values, new, joint, keys)]
         return True
 
+    def _update_time_offset(self, n: int) -> None:
+        """The rotation from the previous keyframe to keyframe n against the gyro's (time_offset.py)."""
+        k = self.keyframes[-1]
+        if k == n:
+            return
+        t0, t1 = self.stamps[k], self.stamps[n]
+        b_g = np.asarray(self.values.atConstantBias(B(n)).gyroscope())
+        e, g = rotation_residual(self.values.atPose3(X(k)).rotation().matrix(), self.values.atPose3(X(n)).rotation().matrix(),
+                                 self.imu.segments(t0, t1), b_g, self.imu.omega_at(t0), self.imu.omega_at(t1))
+        self.time_offset.update(e, g, np.radians(self.cfg.time_offset_rotation_sigma_deg))
+
     def _result(self, n: int, cov: np.ndarray, status: str) -> FrameResult:
         T = self.values.atPose3(X(n)).matrix()
         bias = self.values.atConstantBias(B(n))
@@ -414,7 +430,8 @@ class WindowedVioEstimator:
             covariance=to_message_covariance(cov, T[:3, :3]), status=status,
             keyframe_ids=np.array(kfs, np.int64), keyframe_stamps_ns=np.array([self.stamps[k] for k in kfs], np.int64),
             keyframe_T_WS=np.array([self.values.atPose3(X(k)).matrix() for k in kfs]),
-            num_landmarks=len(self._book.in_graph), T_SC=None if self._extrinsics is None else self._T_SC.copy())
+            num_landmarks=len(self._book.in_graph), T_SC=None if self._extrinsics is None else self._T_SC.copy(),
+            time_offset_s=0.0 if self.time_offset is None else self.time_offset.td)
 
     def window_landmarks(self, max_count: int | None = None) -> WindowLandmarks:
         """The window's well-constrained landmarks at the current estimate, at most ``max_count`` (default

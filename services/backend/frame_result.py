@@ -27,6 +27,7 @@ class FrameResult:
     num_landmarks: int
     landmarks: WindowLandmarks | None = None  # after a keyframe's optimisation (None for other frames)
     T_SC: np.ndarray | None = None  # (C,4,4) the refined camera extrinsics (backend.refine_extrinsics), else None
+    time_offset_s: float = 0.0  # the camera-IMU time offset estimate (backend.estimate_time_offset), else 0
 
 
 def to_message_covariance(cov_gtsam: np.ndarray, R_WS: np.ndarray) -> np.ndarray:

@@ -89,6 +89,10 @@ class ImuBuffer:
         if i > 0:
             del self.stamps_ns[:i], self.omega[:i], self.acc[:i]
 
+    def omega_at(self, t_ns: int) -> np.ndarray:
+        """The gyro reading at ``t_ns`` [rad/s] (interpolated; the nearest sample outside the buffer)."""
+        return np.asarray(self._at(t_ns)[0], float)
+
     def _at(self, t_ns: int) -> tuple[np.ndarray, np.ndarray]:
         i = bisect.bisect_right(self.stamps_ns, t_ns) - 1
         i = min(max(i, 0), len(self.stamps_ns) - 1)

@@ -147,7 +147,7 @@ class BackendShell:
                                T_corr=np.eye(4) if T_corr is None else np.ascontiguousarray(T_corr, np.float64),
                                landmark_ids=ids, p_W=np.ascontiguousarray(p_W, np.float64),
                                T_SC=np.zeros((0, 4, 4)) if res.T_SC is None else np.ascontiguousarray(res.T_SC),
-                               status=state.status)
+                               time_offset_s=float(res.time_offset_s), status=state.status)
 
 
 

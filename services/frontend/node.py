@@ -41,8 +41,9 @@ class FrontendNode(ProcessNode):
         Input(topics.FRAME, "on_frame", role="trigger", note="images to track"),
         Input(topics.IMU, "on_imu", wait_until_trigger_stamp=True, note="gyro rotation prior, up to the frame's time"),
         Input(topics.STATE, "on_state", policy="latest", depth=1, note="the newest gyro bias"),
-        Input(topics.WINDOW, "on_window", policy="latest", depth=1, when="backend.refine_extrinsics",
-              note="the refined camera extrinsics"),
+        Input(topics.WINDOW, "on_window", policy="latest", depth=1,
+              when="backend.refine_extrinsics or backend.estimate_time_offset",
+              note="the refined camera extrinsics, the camera-IMU time offset"),
     )
     outputs = (topics.FEATURES, topics.KEYFRAME_FEATURES)
     output_notes = {topics.FEATURES.key: "every frame", topics.KEYFRAME_FEATURES.key: "each keyframe, before its frame"}
@@ -67,11 +68,13 @@ class FrontendNode(ProcessNode):
         self.estimator_status = str(state.status)
 
     def on_window(self, window: EstimatorWindow) -> None:
-        if len(window.T_SC):  # the back end refines the extrinsics
-            try:
+        try:
+            if len(window.T_SC):  # the back end refines the extrinsics
                 self.tracker.set_extrinsics(window.T_SC)
-            except FrontendInputError as exc:
-                raise RejectedMessage(f"estimator/window refused: {exc}") from None
+            if window.status not in ("initialising", "reset"):
+                self.tracker.set_time_offset(float(window.time_offset_s))
+        except FrontendInputError as exc:
+            raise RejectedMessage(f"estimator/window refused: {exc}") from None
 
     def on_frame(self, frame: MultiCameraFrame) -> list[Emit]:
         msg = self.process(frame)

@@ -44,14 +44,17 @@ class FrontendInputError(ValueError):
 class _CameraState:
     ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.float32))
+    vel: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.float32))  # [px/s] since the last frame
     image: np.ndarray | None = None
 
     def keep(self, mask: np.ndarray) -> None:
-        self.ids, self.uv = self.ids[mask], self.uv[mask]
+        self.ids, self.uv, self.vel = self.ids[mask], self.uv[mask], self.vel[mask]
 
     def append(self, ids: np.ndarray, uv: np.ndarray) -> None:
+        """New features (no velocity yet)."""
         self.ids = np.concatenate([self.ids, ids.astype(np.int64)])
         self.uv = np.concatenate([self.uv, uv.astype(np.float32)]).reshape(-1, 2)
+        self.vel = np.concatenate([self.vel, np.zeros((len(ids), 2), np.float32)])
 
 
 @dataclass(frozen=True)
@@ -100,6 +103,7 @@ class MultiCameraTracker:
         self._kf_stamp: int | None = None
         self._kf_obs: list[tuple[np.ndarray, np.ndarray]] = []  # per camera (ids, uv) at the last keyframe
         self._R_S_kf_cur = np.eye(3)
+        self.time_offset_s = 0.0  # published tracks are moved by -offset x their image velocity (set_time_offset)
         self._orb = cv2.ORB_create(nfeatures=1, edgeThreshold=19, patchSize=31) if cfg.orb_descriptors else None
         self.keyframe_descriptors: collections.deque[KeyframeDescriptors] = collections.deque(maxlen=cfg.keyframe_store)
         self.totals: collections.Counter = collections.Counter()
@@ -113,6 +117,13 @@ class MultiCameraTracker:
         self.cameras = [dataclasses.replace(c, T_SC=t.copy()) for c, t in zip(self.cameras, T)]
         self._R_SC = [t[:3, :3].copy() for t in T]
         self._pairs = overlapping_pairs(self.cameras, self.cfg.min_view_overlap_cos)
+
+    def set_time_offset(self, offset_s: float) -> None:
+        """The back end's camera-IMU offset estimate (an image stamped t was taken at IMU time t + offset): from now
+        on each published track is moved by -offset x its image velocity, to where it was at the stamp."""
+        if not np.isfinite(offset_s):
+            raise FrontendInputError(f"time offset {offset_s} s is not finite")
+        self.time_offset_s = float(offset_s)
 
     # ------------------------------------------------------------------ helpers
     def _check(self, stamp_ns: int, images) -> list[np.ndarray]:
@@ -157,9 +168,10 @@ class MultiCameraTracker:
         counts: collections.Counter = collections.Counter()
         use_prior = cfg.use_gyro_prior and R_S_prev_cur is not None
         R_rel = np.asarray(R_S_prev_cur, float) if R_S_prev_cur is not None else np.eye(3)
+        dt_s = 0.0 if self._last_stamp is None else (int(stamp_ns) - self._last_stamp) * 1e-9
         for i, (cam, st) in enumerate(zip(self.cameras, self._cams)):
             if st.image is not None and len(st.ids):
-                self._track_temporal(i, cam, st, images[i], R_rel if use_prior else None, counts)
+                self._track_temporal(i, cam, st, images[i], R_rel if use_prior else None, counts, dt_s)
             st.image = images[i]
         self._check_cross_camera(counts)
         self._R_S_kf_cur = self._R_S_kf_cur @ R_rel
@@ -208,12 +220,14 @@ class MultiCameraTracker:
         ids = np.concatenate([st.ids for st in self._cams])
         cam_idx = np.concatenate([np.full(len(st.ids), i, np.int16) for i, st in enumerate(self._cams)])
         uv = np.concatenate([st.uv for st in self._cams]).reshape(-1, 2).astype(np.float32)
+        if self.time_offset_s:
+            uv = (uv - self.time_offset_s * np.concatenate([st.vel for st in self._cams]).reshape(-1, 2)).astype(np.float32)
         counts["observations"] = len(ids)
         counts["landmarks"] = len(np.unique(ids))
         self.totals.update(counts)
         return TrackerOutput(int(stamp_ns), ids, cam_idx, uv, is_kf, self._kf_id if is_kf else -1, dict(counts))
 
-    def _track_temporal(self, i: int, cam: CameraCalib, st: _CameraState, image, R_rel, counts) -> None:
+    def _track_temporal(self, i: int, cam: CameraCalib, st: _CameraState, image, R_rel, counts, dt_s: float) -> None:
         cfg = self.cfg
         model = cam.camera
         guess = None if R_rel is None else klt.predict_rotated(model, st.uv, self._R_C1C0(i, R_rel))
@@ -236,6 +250,7 @@ class MultiCameraTracker:
                 keep[ia] &= self._ransac(model, kf_uv[ib], uv1[ia], pred)
         counts["rejected_ransac"] += int((~keep).sum())
         st.ids, uv1 = st.ids[keep], uv1[keep]
+        st.vel = ((uv1 - uv0[keep]) / dt_s if dt_s > 0 else np.zeros_like(uv1)).astype(np.float32)
         st.uv = uv1.astype(np.float32)
         counts["tracked"] += len(st.ids)
 

@@ -48,6 +48,8 @@ def run(dataset: str, config: str | None, overrides: list[str], max_frames: int 
            "cpu_fast_path_median_ms": 1e3 * float(np.median(t_fp[:, 1])),
            "window_optimisations": len(t_be) - kf, "cpu_window_median_ms": 1e3 * float(np.median(t_win[:, 1])),
            "status": {k: sum(s.status == k for s in states) for k in ("tracking", "imu_only")}}
+    if run.time_offset_ms is not None:  # backend.estimate_time_offset
+        res["time_offset_ms"] = run.time_offset_ms
     if run.groundtruth_path is not None and len(stamps) >= 3:
         from shared.metrics.ate import compute_ate
 
