@@ -36,7 +36,8 @@ def test_mono_and_stereo_share_the_rectified_intrinsics():
 
 def test_mono_pipeline_mvs_depth_after_posed_keyframes():
     cam0 = _cam(0)
-    cfg = DepthConfig(mono=True, mvs_sources=3, threads=1, device="cpu")
+    # every pixel kept (max_relative_sigma 0): this is about the mono geometry, not which pixels are sure enough
+    cfg = DepthConfig(mono=True, mvs_sources=3, threads=1, device="cpu", max_relative_sigma=0.0)
     pipe = DepthPipeline(cfg, cam0)  # no right camera
     assert pipe.mvs_net is not None and pipe.stereo_net is None
     np.testing.assert_array_equal(pipe.K, rectified_intrinsics(cam0, (512, 384)))
