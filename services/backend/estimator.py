@@ -49,7 +49,7 @@ from services.backend.landmarks import WindowLandmarks, gather_landmarks
 from services.backend.mono_init import bootstrap as mono_bootstrap
 from services.backend.observations import ObservationBook
 from services.backend.still import mono_frame_factors
-from services.backend.time_offset import TimeOffsetEstimator, rotation_residual
+from services.backend.time_offset import TimeOffsetEstimator, interval_residual
 from services.backend.triangulation import new_landmarks
 from services.backend.vision_factors import ProjectionModel
 from services.backend.window_rules import (BackendInputError, keyframe_due,  # noqa: F401 (re-exported)
@@ -214,8 +214,9 @@ class WindowedVioEstimator:
         # (a pass over every observation of the window) is only worth it when the frame stays
         if (keyframe or self.cfg.reject_outliers_every_frame) and self._reject_outliers():
             graph = self._build_graph(n)
-        if keyframe and self.time_offset is not None:
-            self._update_time_offset(n)
+        if keyframe and self.time_offset is not None and n != self.keyframes[-1]:  # time_offset.py
+            e, g = interval_residual(self.values, self.imu, self.stamps, self.keyframes[-1], n)
+            self.time_offset.update(e, g, np.radians(self.cfg.time_offset_rotation_sigma_deg))
         seen_now = len(self._book.seen_at(n))
         status = "tracking" if seen_now >= self.cfg.min_landmarks_tracking else "imu_only"
         self._marginals = None
@@ -380,7 +381,12 @@ class WindowedVioEstimator:
         old, new = self.keyframes[0], self.keyframes[1]
         for listener in self._on_marginalise:
             listener.on_marginalise(self, old, new)
-        if not (self._extrinsics is not None and self._marginalise_with_extrinsics(new)):
+        ext = self._extrinsics  # refinement on: one prior on the new oldest state and the extrinsics together, from
+        joint = None if ext is None else self.joint_marginal([*_state_keys(new), *ext.keys])  # their joint marginal
+        if joint is not None and np.all(np.isfinite(joint)):
+            joint = ext.carry_joint(joint)  # each extrinsic's block widened by the walk
+            self._prior_cov, self._priors = joint[:15, :15], [marginal_prior(self.values, new, joint, ext.keys)]
+        else:
             cov = self.joint_marginal(_state_keys(new))
             if cov is None or not np.all(np.isfinite(cov)):
                 # no marginals this time: the new oldest state keeps the anchoring the old one had (a loose default
@@ -389,36 +395,12 @@ class WindowedVioEstimator:
                 self.prior_carried += 1
             self._prior_cov = cov
             self._priors = [marginal_prior(self.values, new, cov)]
-            if self._extrinsics is not None:  # the extrinsics keep their prior, widened by the walk
-                self._extrinsics.carry_apart(self._T_SC)
+            if ext is not None:  # the extrinsics keep their prior, widened by the walk
+                ext.carry_apart(self._T_SC)
         self.keyframes.pop(0)
         self._imu_factors.pop(new, None)
         self._still.pop(new, None)  # refers to the old state; the marginal prior holds its information
         self._remove_state(old)
-
-    def _marginalise_with_extrinsics(self, new: int) -> bool:
-        """Refinement on: one prior on the new oldest state and the extrinsics together, from their joint marginal,
-        each extrinsic's block widened by the walk (ExtrinsicRefinement.carry_joint); False when there are no
-        marginals."""
-        keys = self._extrinsics.keys
-        joint = self.joint_marginal([*_state_keys(new), *keys])
-        if joint is None or not np.all(np.isfinite(joint)):
-            return False
-        joint = self._extrinsics.carry_joint(joint)
-        self._prior_cov = joint[:15, :15]
-        self._priors = [marginal_prior(self.values, new, joint, keys)]
-        return True
-
-    def _update_time_offset(self, n: int) -> None:
-        """The rotation from the previous keyframe to keyframe n against the gyro's (time_offset.py)."""
-        k = self.keyframes[-1]
-        if k == n:
-            return
-        t0, t1 = self.stamps[k], self.stamps[n]
-        b_g = np.asarray(self.values.atConstantBias(B(n)).gyroscope())
-        e, g = rotation_residual(self.values.atPose3(X(k)).rotation().matrix(), self.values.atPose3(X(n)).rotation().matrix(),
-                                 self.imu.segments(t0, t1), b_g, self.imu.omega_at(t0), self.imu.omega_at(t1))
-        self.time_offset.update(e, g, np.radians(self.cfg.time_offset_rotation_sigma_deg))
 
     def _result(self, n: int, cov: np.ndarray, status: str) -> FrameResult:
         T = self.values.atPose3(X(n)).matrix()

@@ -16,8 +16,11 @@ trajectory by td and leaves the images nothing to say; measured on a synthetic r
 """
 from __future__ import annotations
 
+import gtsam
 import numpy as np
+from gtsam.symbol_shorthand import B, X
 
+from services.backend.imu_factors import ImuBuffer
 from shared.geometry import so3_exp, so3_log
 
 
@@ -34,6 +37,15 @@ def rotation_residual(R_W0: np.ndarray, R_W1: np.ndarray, segments, gyro_bias: n
         dR = dR @ so3_exp(dt * (np.asarray(w, float) - b))
     e = so3_log(dR.T @ R_W0.T @ R_W1)
     return e, (np.asarray(omega1, float) - b) - dR.T @ (np.asarray(omega0, float) - b)
+
+
+def interval_residual(values: gtsam.Values, imu: ImuBuffer, stamps: dict[int, int], k: int, n: int
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`rotation_residual` of the window's states k -> n at the current estimate, the gyro bias of n removed."""
+    t0, t1 = stamps[k], stamps[n]
+    b_g = np.asarray(values.atConstantBias(B(n)).gyroscope())
+    return rotation_residual(values.atPose3(X(k)).rotation().matrix(), values.atPose3(X(n)).rotation().matrix(),
+                             imu.segments(t0, t1), b_g, imu.omega_at(t0), imu.omega_at(t1))
 
 
 class TimeOffsetEstimator:
