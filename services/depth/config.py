@@ -26,7 +26,9 @@ class DepthConfig:
     max_relative_sigma: float = param(0.1, "pixels whose sigma exceeds this fraction of their depth are dropped (NaN) "
                                       "from every output and counted: too uncertain to place a surface, and the map "
                                       "would clip their sigma (mapping.sensor.sigma_max_m) and draw them as one "
-                                      "(docs/depth.md, 'Uncertain pixels'); 0: keep all")
+                                      "(docs/depth.md, 'Uncertain pixels'); 0: keep all. Learned sigma only: "
+                                      "SGBM's and the heuristic sigma grow with depth alone, and the cap would cut "
+                                      "far depth")
     stereo_weights: str = param("", "stereo network weights (.pt with .json beside); '' = services/depth/weights/stereo.pt")
     mvs_weights: str = param("", "MVS network weights; '' = services/depth/weights/mvs.pt")
     mono: bool = param(False, "cam0 only (left_camera): MVS depth on posed keyframes alone, no stereo network and "

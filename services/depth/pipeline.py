@@ -93,6 +93,9 @@ class DepthPipeline:
         self.confident_px = self.uncertain_px = 0  # pixels of the fused (published) maps kept / dropped as uncertain
         if self.method == "network":
             self._load_networks()
+        # a learned sigma says which pixels are unsure (depth.max_relative_sigma); SGBM's or the heuristic one only
+        # grows with depth
+        self.learned_sigma = self.method == "network" and (cfg.mono or cfg.stereo_sigma == "network")
 
     # ------------------------------------------------------------------ setup
     def _load_networks(self) -> None:
@@ -215,10 +218,11 @@ class DepthPipeline:
 
     def _confident(self, ds: tuple[np.ndarray, np.ndarray] | None, count: bool = False
                    ) -> tuple[np.ndarray, np.ndarray] | None:
-        """Depth and sigma with NaN where sigma > ``depth.max_relative_sigma`` x depth (0: unchanged); ``count``
+        """Depth and sigma with NaN where sigma > ``depth.max_relative_sigma`` x depth (0, or a heuristic sigma, which
+        only grows with depth: unchanged); ``count``
         adds the map's valid and dropped pixels to ``self.confident_px`` / ``self.uncertain_px``."""
         k = self.cfg.max_relative_sigma
-        if ds is None or k <= 0:
+        if ds is None or k <= 0 or not self.learned_sigma:
             return ds
         d, s = ds
         with np.errstate(invalid="ignore"):

@@ -113,10 +113,8 @@ def row_overrides(row: str, heuristic_px: float = 1.0) -> list[str]:
     if row in MONO:
         return ["rig.cameras=[cam0]", "depth.mono=true", "depth.use_mvs=true", f"o2p.enabled={str(row == 'mono').lower()}"]
     if row == "heuristic":
-        # supereight2's model integrates every pixel: no learned sigma says which ones to drop
         return ["o2p.enabled=true", "depth.use_mvs=false", "depth.stereo_sigma=heuristic",
-                "depth.heuristic_sigma_model=quadratic", f"depth.heuristic_sigma_coeff={heuristic_px:g}",
-                "depth.max_relative_sigma=0"]
+                "depth.heuristic_sigma_model=quadratic", f"depth.heuristic_sigma_coeff={heuristic_px:g}"]
     if row == "fused":
         return ["o2p.enabled=true", "depth.use_mvs=true", "mapping.depth_topic=depth/fused"]
     return ["o2p.enabled=true", "depth.use_mvs=false"]
