@@ -69,7 +69,8 @@ def test_uncertain_pixels_are_dropped_from_every_output_and_counted(tmp_path):
         assert pipe.uncertain_px == int(np.count_nonzero(s0 > k * d0))
     assert pipe.confident_px == int(np.count_nonzero(np.isfinite(capped.fused[0])))
     # only a learned sigma is capped: the heuristic one grows with depth alone (the cap would be a depth cut)
-    heur = random_network_pipeline(tmp_path, 1.0, 1.0, mvs_sources=1, max_relative_sigma=k, stereo_sigma="heuristic")
+    heur = random_network_pipeline(tmp_path, 1.0, 1.0, mvs_sources=1, max_relative_sigma=k, stereo_sigma="heuristic",
+                                   heuristic_sigma_coeff=50.0)  # 50 px: every pixel over the cap
     assert not heur.learned_sigma and pipe.learned_sigma
     d_h, s_h = heur.process(2, raw[1], raw[2], None).stereo
     with np.errstate(invalid="ignore"):
