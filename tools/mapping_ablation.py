@@ -44,16 +44,15 @@ def _images(mav: Path, cam: str) -> dict[int, Path]:
 
 
 def depth_config(overrides: list[str]):
-    """The depth service's config with ``depth.KEY=VALUE`` overrides (ConfigError for other keys)."""
-    from services.depth.config import DepthConfig
-    from shared.config import ConfigError, from_dict, merge, parse_override
+    """The depth service's config with ``depth.KEY=VALUE`` overrides, as the system config applies them
+    (ConfigError for other keys: nothing else here reads them)."""
+    from services.system_config import load_system_config
+    from shared.config import ConfigError
 
-    data: dict = {}
-    for text in overrides:
-        data = merge(data, parse_override(text))
-    if set(data) - {"depth"}:
-        raise ConfigError(f"only depth.* keys can be set here, got {sorted(set(data) - {'depth'})}")
-    return from_dict(DepthConfig, data.get("depth", {}), "depth")
+    other = [o for o in overrides if not o.strip().startswith("depth.")]
+    if other:
+        raise ConfigError(f"only depth.* keys can be set here, got {other}")
+    return load_system_config(None, overrides).depth
 
 
 def main(args: argparse.Namespace) -> int:

@@ -47,7 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from services.app.cli import SUBCOMMANDS
-from services.app.run_outputs import loop_summary, wait_final, write_final
+from services.app.run_outputs import loop_summary, wait_final, write_final, write_refined_extrinsics
 from services.app.supervisor import ServiceSpec, Supervisor, validate
 from services.system_config import load_system_config
 from shared import topics
@@ -467,31 +467,6 @@ def main(args: argparse.Namespace) -> int:
         print(f"[sigmaslam run] serving the final map at {url} for {args.serve_s:.0f} s (Ctrl-C stops)", flush=True)
         serve_run(out, args.config, [*([f"viewer.ground_truth={gt}"] if gt else []), *args.set], args.serve_s)
     return rc
-
-
-def write_refined_extrinsics(out: Path, rig_cfg, T_SC: np.ndarray) -> list[dict]:
-    """DIR/extrinsics_refined.yaml: the rig of ``rig_cfg`` with the back end's refined ``T_SC`` (C,4,4), a rig YAML
-    that ``rig.calibration`` reads; prints and returns each camera's change from the calibration."""
-    from shared.camera import write_rig_yaml
-    from shared.geometry import pose_error
-    from shared.rig import load_rig_config
-
-    cams = load_rig_config(rig_cfg)
-    if len(cams) != len(T_SC):
-        print(f"[sigmaslam run] refined extrinsics of {len(T_SC)} cameras for a rig of {len(cams)}: not written",
-              flush=True)
-        return []
-    refined = [dataclasses.replace(c, T_SC=T) for c, T in zip(cams, T_SC)]
-    path = write_rig_yaml(out / "extrinsics_refined.yaml", refined,
-                          f"{rig_cfg.calibration or 'the default rig'} with each T_SC refined online by sigmaslam run")
-    changes = []
-    for c, T in zip(cams, T_SC):
-        dt, dr = pose_error(c.T_SC, T)
-        changes.append({"camera": c.name, "rotation_deg": float(np.degrees(dr)), "translation_m": float(dt)})
-    print(f"[sigmaslam run] refined extrinsics in {path}: " + ", ".join(
-        f"{d['camera']} moved {d['rotation_deg']:.2f} deg, {1e3 * d['translation_m']:.1f} mm" for d in changes),
-        flush=True)
-    return changes
 
 
 def _write_ate(out: Path, traj: PoseSeries, final_traj: PoseSeries | None, gt: Path) -> None:

@@ -1,10 +1,12 @@
-"""What ``sigmaslam run`` does with the back end's final (non-causal) trajectory."""
+"""What ``sigmaslam run`` does with the back end's final (non-causal) trajectory and its refined extrinsics."""
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
+import numpy as np
 
 from shared.euroc import series_from_matrices, PoseSeries, write_euroc_csv, write_tum
 from transport.queues import Empty
@@ -43,3 +45,28 @@ def write_final(out: Path, msg) -> PoseSeries:
 def loop_summary(msg) -> dict:
     return {"keyframes": int(msg.keyframes), "proposed": int(msg.loops_proposed), "verified": int(msg.loops_verified),
             "accepted": int(msg.loops_accepted), "relocalisations": int(msg.relocalisations)}
+
+
+def write_refined_extrinsics(out: Path, rig_cfg, T_SC: np.ndarray) -> list[dict]:
+    """DIR/extrinsics_refined.yaml: the rig of ``rig_cfg`` with the back end's refined ``T_SC`` (C,4,4), a rig YAML
+    that ``rig.calibration`` reads; prints and returns each camera's change from the calibration."""
+    from shared.camera import write_rig_yaml
+    from shared.geometry import pose_error
+    from shared.rig import load_rig_config
+
+    cams = load_rig_config(rig_cfg)
+    if len(cams) != len(T_SC):
+        print(f"[sigmaslam run] refined extrinsics of {len(T_SC)} cameras for a rig of {len(cams)}: not written",
+              flush=True)
+        return []
+    refined = [dataclasses.replace(c, T_SC=T) for c, T in zip(cams, T_SC)]
+    path = write_rig_yaml(out / "extrinsics_refined.yaml", refined,
+                          f"{rig_cfg.calibration or 'the default rig'} with each T_SC refined online by sigmaslam run")
+    changes = []
+    for c, T in zip(cams, T_SC):
+        dt, dr = pose_error(c.T_SC, T)
+        changes.append({"camera": c.name, "rotation_deg": float(np.degrees(dr)), "translation_m": float(dt)})
+    print(f"[sigmaslam run] refined extrinsics in {path}: " + ", ".join(
+        f"{d['camera']} moved {d['rotation_deg']:.2f} deg, {1e3 * d['translation_m']:.1f} mm" for d in changes),
+        flush=True)
+    return changes

@@ -218,9 +218,9 @@ class DepthPipeline:
 
     def _confident(self, ds: tuple[np.ndarray, np.ndarray] | None, count: bool = False
                    ) -> tuple[np.ndarray, np.ndarray] | None:
-        """Depth and sigma with NaN where sigma > ``depth.max_relative_sigma`` x depth (0, or a heuristic sigma, which
-        only grows with depth: unchanged); ``count``
-        adds the map's valid and dropped pixels to ``self.confident_px`` / ``self.uncertain_px``."""
+        """Depth and sigma with NaN where sigma > ``depth.max_relative_sigma`` x depth (unchanged with 0, or with a
+        heuristic sigma, which only grows with depth); ``count`` adds the map's kept and dropped pixels to
+        ``self.confident_px`` / ``self.uncertain_px``."""
         k = self.cfg.max_relative_sigma
         if ds is None or k <= 0 or not self.learned_sigma:
             return ds
