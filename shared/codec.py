@@ -105,6 +105,15 @@ class _FieldSpec:
 
 
 _SPECS: dict[type, tuple[_FieldSpec, ...]] = {}
+_DEFAULTED: dict[type, frozenset[str]] = {}  # fields a message type declares with a default
+
+
+def _defaulted(cls: type) -> frozenset[str]:
+    out = _DEFAULTED.get(cls)
+    if out is None:
+        out = _DEFAULTED[cls] = frozenset(f.name for f in dataclasses.fields(cls) if (
+            f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING))
+    return out
 
 
 def _specs(cls: type) -> tuple[_FieldSpec, ...]:
@@ -342,8 +351,8 @@ def decode(buf: bytes | bytearray | memoryview, expect: type[Message] | None = N
         if spec is None or spec.kind not in ("scalar", "strings"):
             raise DecodeError(f"{cls.__name__}: unexpected field {name!r}")
         kwargs[name] = value
-    missing = set(specs) - set(kwargs)
-    if missing:
+    missing = set(specs) - set(kwargs) - _defaulted(cls)
+    if missing:  # a field added with a default may be absent (a message written before it existed): the default
         raise DecodeError(f"{cls.__name__}: missing field(s) {sorted(missing)}")
     try:
         header = Header(stamp_ns=stamp_ns, seq=seq, frame_id=frame_id)

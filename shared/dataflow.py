@@ -61,17 +61,19 @@ class Emit:
 
 
 class StageClock:
-    """A node's timer of one stage when no transport is there to report it: keeps each duration [s]."""
+    """A node's timer of one stage when no transport is there to report it: keeps each duration [s], wall and the
+    running thread's CPU time."""
 
     def __init__(self, stage: str, budget_ms: float | None = None) -> None:
-        self.stage, self.budget_ms, self.durations_s = stage, budget_ms, []
+        self.stage, self.budget_ms, self.durations_s, self.cpu_s = stage, budget_ms, [], []
 
     def __enter__(self) -> "StageClock":
-        self._t0 = time.perf_counter()
+        self._t0, self._c0 = time.perf_counter(), time.thread_time()
         return self
 
     def __exit__(self, *exc) -> None:
         self.durations_s.append(time.perf_counter() - self._t0)
+        self.cpu_s.append(time.thread_time() - self._c0)
 
 
 class RejectedMessage(ValueError):
@@ -131,8 +133,7 @@ class ProcessNode:
         return timers[stage]
 
     def counters(self) -> dict[str, Any]:
-        """Extra counters for ``stats/<name>``, reported like queues: name -> callable giving (received, dropped,
-        depth)."""
+        """Counts for ``stats/<name>`` beside its queues (``counter_names``): name -> callable giving the count."""
         return {}
 
     def after_publish(self) -> list[Emit]:

@@ -105,7 +105,7 @@ class SubmapMesh(Message):
 @register(8)
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class ServiceStats(Message):
-    """Periodic statistics of one service: stage timings against budgets, queue drops."""
+    """Periodic statistics of one service: stage timings against budgets, queue drops, other counts."""
 
     service: str = scalar_field("service name")
     uptime_s: float = scalar_field("seconds since the service started [s]")
@@ -121,6 +121,10 @@ class ServiceStats(Message):
     queue_received: object = array_field("messages received since start", "int64", ("Q",))
     queue_dropped: object = array_field("messages dropped (queue full or undecodable) since start", "int64", ("Q",))
     queue_depth: object = array_field("messages waiting now", "int64", ("Q",))
+    counter_names: tuple[str, ...] = scalar_field("counts the service keeps besides its queues (pixels, points, "
+                                                  "frames of a kind), order of counter_values", default=())
+    counter_values: object = array_field("each count since start", "int64", ("K",),
+                                         default_factory=lambda: np.zeros(0, np.int64))
 
 
 @register(9)

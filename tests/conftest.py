@@ -107,6 +107,16 @@ class UnitTierViolation(AssertionError):
     pass
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _matplotlib_font_cache() -> None:
+    """Matplotlib's first import on a machine builds its font cache by running ``fc-list``: done once here, before
+    any unit test's guard, so a unit test that plots does not fail on a fresh machine (and pass on the next run)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib import font_manager  # noqa: F401  (builds and saves the cache)
+
+
 @pytest.fixture(autouse=True)
 def _unit_tier_guard(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> None:
     """A unit test may not start a process nor open a Zenoh session: it fails saying to mark it ``service``."""

@@ -10,14 +10,14 @@ import pytest
 from services.app.processes import DOC, PROCESS_NODES, graph_block
 from services.backend.node import BackendNode
 from services.depth.node import DepthNode
-from services.frontend.node import FrontendNode
+from services.frontend.process_node import FrontendProcessNode
 from services.mapping.node import MappingNode
 from shared import topics
 from shared.dataflow import Emit, Input, ProcessNode, UndeclaredTopic, graph
 from shared.messages import Header, StreamEnd
 
 SERVICES = Path(__file__).resolve().parents[1] / "services"
-RUNNER_DRIVEN = (FrontendNode, BackendNode, DepthNode, MappingNode)
+RUNNER_DRIVEN = (FrontendProcessNode, BackendNode, DepthNode, MappingNode)
 
 
 def test_the_page_shows_the_declared_graph():
@@ -28,7 +28,7 @@ def test_the_page_shows_the_declared_graph():
 
 def test_every_process_package_declares_its_node():
     packages = sorted(p.name for p in SERVICES.iterdir() if (p / "service.py").is_file())
-    # every process package declares its node(s); the back end's package holds two processes (window, fast path)
+    # every process package declares its node
     assert sorted({n.__module__.split(".")[1] for n in PROCESS_NODES}) == packages
     names = [n.name for n in PROCESS_NODES]
     assert len(set(names)) == len(names)

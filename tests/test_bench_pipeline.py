@@ -66,11 +66,12 @@ def test_service_name_from_cmdline():
 def test_budgets_file_and_table():
     b = load_budgets()
     assert (b.estimator_frame_ms, b.depth_frame_ms, b.integrate_frame_ms, b.state_latency_p99_ms) == (33, 100, 50, 50)
-    res = {"stages": {"frontend.track": {"median_ms": 10.0}, "odometry.track": {"median_ms": 20.0},
+    res = {"stages": {"frontend.track": {"median_ms": 30.0}, "frontend.fast_path": {"median_ms": 20.0},
                       "backend.optimise": {"median_ms": 60.0}, "depth.depth": {"median_ms": 150.0}},
            "latency_ms": {"state": {"p99": 60.0}}, "drops": {"estimator_frames": 0}}
     rows = {r.name: r for r in check_budgets(res, Budgets())}
-    assert rows["frontend + fast path per frame, median"].measured == 30.0  # not the back end's keyframe solve
+    # the frontend process's stage holds tracking and the fast path (timed again on its own), not the back end's solve
+    assert rows["frontend + fast path per frame, median"].measured == 30.0
     assert rows["frontend + fast path per frame, median"].ok is True
     assert rows["depth per frame, median"].ok is False
     assert rows["occupancy integration per frame, median"].ok is None  # not measured
@@ -192,8 +193,8 @@ def test_bench_pipeline_end_to_end(tmp_path):
     # at sensor rate on a loaded machine the estimator may drop frames (counted, not a failure here)
     assert st["n"] >= 10 and 0 < st["median"] < 30_000
     assert st["n"] + res["drops"]["estimator_frames"] >= 0.8 * n_frames  # every frame: a state or a counted drop
-    fe = res["latency_ms"]["features"]  # the frontend's half of it: before the state, every frame
-    assert fe["n"] >= st["n"] - 5 and 0 < fe["median"] < st["median"], (fe, st)
+    fe = res["latency_ms"]["features"]  # the tracks: every frame, sent by the frontend process after the state
+    assert fe["n"] >= st["n"] - 5 and 0 < st["median"] <= fe["median"], (fe, st)
     assert res["latency_ms"]["depth"]["n"] >= 1 and res["latency_ms"]["depth"]["median"] > 0
     if FULL:
         assert res["latency_ms"]["map"]["n"] >= 1 and res["latency_ms"]["map"]["median"] > 0

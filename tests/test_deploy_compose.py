@@ -23,7 +23,7 @@ from tests.helpers_zenoh import REPO
 
 COMPOSE = REPO / "docker" / "compose.yaml"
 GPU = REPO / "docker" / "compose.gpu.yaml"
-PIPELINE = ("router", "player", "frontend", "backend", "odometry", "depth", "mapping", "viewer", "recorder")
+PIPELINE = ("router", "player", "frontend", "backend", "depth", "mapping", "viewer", "recorder")
 
 
 def _resolved(*files: Path) -> dict:

@@ -21,7 +21,7 @@ import pytest
 import zenoh
 
 from shared import topics
-from shared.messages import EstimatorState, FeatureFrame, Header
+from shared.messages import EstimatorState, EstimatorWindow, FeatureFrame, Header
 from tests.helpers_zenoh import REPO, child_env, free_port, wait_for
 from tools import secure_setup
 from transport.config import TransportConfig
@@ -167,20 +167,26 @@ def _features(i: int) -> FeatureFrame:
                         p_W_init=np.zeros((3, 3)), is_keyframe=False)
 
 
+def _window(i: int) -> EstimatorWindow:
+    return EstimatorWindow(header=Header(stamp_ns=i, seq=i, frame_id="W"), T_WS=np.eye(4), v_W=np.zeros(3),
+                           gyro_bias=np.zeros(3), acc_bias=np.zeros(3), T_corr=np.eye(4),
+                           landmark_ids=np.zeros(0, np.int64), p_W=np.zeros((0, 3)))
+
+
 def test_service_publishes_only_its_own_keys(deployment: Deployment) -> None:
     with Node("backend", deployment.cfg("backend"), handle_signals=False) as backend:
         features = backend.subscriber(topics.FEATURES)
-        states = backend.subscriber(topics.STATE)
+        windows = backend.subscriber(topics.WINDOW)
         with Node("frontend", deployment.cfg("frontend"), handle_signals=False) as frontend:
-            own, foreign = frontend.publisher(topics.FEATURES), frontend.publisher(topics.STATE)
+            own, foreign = frontend.publisher(topics.FEATURES), frontend.publisher(topics.WINDOW)
             assert own.wait_for_subscribers(5.0)
             for i in range(10):
                 own.publish(_features(i))
-                foreign.publish(_state(i))
+                foreign.publish(_window(i))
                 time.sleep(0.02)
             assert wait_for(lambda: features.received >= 10, 5.0), features.received
             time.sleep(0.3)
-            assert states.received == 0, "frontend published on the backend's key"
+            assert windows.received == 0, "frontend published on the backend's key"
         # the backend itself may publish its state
         with Node("viewer", deployment.cfg("viewer"), handle_signals=False) as viewer:
             seen = viewer.subscriber(topics.STATE)

@@ -212,6 +212,12 @@ def test_linear_field_is_reproduced_exactly():
     assert v.all() and np.allclose(L, p @ a + b, atol=1e-5) and np.allclose(g, a[None], atol=1e-4)
     _, _, v_out = interpolate(BlockField.of(store), np.array([[0.9, 0.1, 0.1]]))
     assert not v_out[0]
+    # points with negative coordinates, and points beyond the range blocks can be packed in, are unknown, not errors
+    far = np.array([[-0.05, 0.1, 0.1], [1e6, 0.0, 0.0], [0.0, -1e6, 0.0]])
+    L, g, v = interpolate(BlockField.of(store), far)
+    assert not v.any() and np.isnan(L).all() and np.isnan(g).all()
+    Lf, wf = BlockField.of(store).voxels(np.array([[2**24, 0, 0], [-1, 0, 0], [0, 0, 0]]))
+    assert wf.tolist() == [0, 0, 1] and Lf[2] == pytest.approx(store.Lv[store.vox_slot[slots[0]], 0, 0, 0])
 
 
 def test_bad_input():

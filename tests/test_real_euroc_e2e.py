@@ -46,7 +46,6 @@ from shared.geometry import quat_wxyz_to_R
 from shared.metrics.ate import associate
 
 SERVICES = "supervisor.services=[{name: frontend, argv: [frontend]}, {name: backend, argv: [backend]}, " \
-           "{name: odometry, argv: [odometry]}, " \
            "{name: depth, argv: [depth]}, {name: mapping, argv: [mapping]}]"  # configs/demo.yaml's, no viewer
 FRAMES = 60
 LIMIT_M = 0.02

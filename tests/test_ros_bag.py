@@ -178,8 +178,7 @@ def test_sigmaslam_run_on_a_ros2_bag(tmp_path, micro):
 
     bag = write_bag(micro, tmp_path / "bag", "mcap", encodings=("mono8", "mono8"))
     chain, imu = write_kalibr(micro, tmp_path / "k")
-    services = "supervisor.services=[{name: frontend, argv: [frontend]}, {name: backend, argv: [backend]}, " \
-               "{name: odometry, argv: [odometry]}]"
+    services = "supervisor.services=[{name: frontend, argv: [frontend]}, {name: backend, argv: [backend]}]"
     out = tmp_path / "run"
     proc = subprocess.run([sys.executable, "-m", "services.app.cli", "run", str(bag), "--calib", str(chain),
                            "--imu-calib", str(imu), "--gt", str(micro / "groundtruth_tum.txt"), "--out", str(out),

@@ -3,6 +3,7 @@ a new pid, a crashing child is given up on, SIGTERM (or SIGKILL of the superviso
 
 from __future__ import annotations
 
+import os
 import re
 import signal
 import subprocess
@@ -109,6 +110,10 @@ def test_up_restarts_a_killed_child_and_stops_everything_on_sigterm(tmp_path):
         first = up.pids("rec")[0]
         child = psutil.Process(first)
         assert child.ppid() == up.proc.pid and child.pid != up.proc.pid
+        # its own process group (a terminal's Ctrl-C reaches the supervisor only, which stops the children in
+        # order) but the supervisor's session: with autogroup scheduling each session is a group of its own that
+        # competes at full weight, and a child's nice or SCHED_IDLE would then rank it only within itself
+        assert os.getpgid(first) == first and os.getsid(first) == os.getsid(up.proc.pid)
         cmd = child.cmdline()  # python -m services.app.cli record <run>/config.yaml --out rec.mcap
         assert cmd[1:4] == ["-m", "services.app.cli", "record"] and cmd[4].endswith("config.yaml") and cmd[5:] == ["--out", str(out)]
         assert wait_for(lambda: out.exists(), 20.0), up.text()  # the recorder got going

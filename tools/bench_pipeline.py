@@ -6,8 +6,8 @@ the player at ``--rate`` times sensor rate (1 = real time), while this process
 - has every service log the compute time of each item per stage ($SIGMASLAM_STAGE_LOG, transport/stats.py):
   median, p90, p99, achieved rate, items over the budgets of configs/budgets.yaml;
 - subscribes to sensors/frame, frontend/frame, estimator/state, depth/fused and map/submap and records arrival
-  wall times (tools/pipeline_probe.py): latency sensor -> features (the frontend's half of the pose latency),
-  -> state, -> fused depth, -> submap update;
+  wall times (tools/pipeline_probe.py): latency sensor -> state, -> features (the tracks, which the frontend
+  process sends right after the state), -> fused depth, -> submap update;
 - samples CPU share and resident memory of every service process (psutil);
 - reads queue drops and the services' own overrun counts from the run's stats.json.
 
@@ -35,9 +35,9 @@ from services.app.metrics.latency import ArrivalLog, first_arrivals, map_latenci
 from tools.pipeline_probe import ProcessSampler
 from transport.session import free_local_port
 
-SERVICES = ("frontend", "backend", "odometry", "depth", "mapping")
+SERVICES = ("frontend", "backend", "depth", "mapping")
 # (service, queue) pairs whose drops are frames lost by the estimator
-ESTIMATOR_QUEUES = (("frontend", "sensors/frame"), ("odometry", "frontend/frame"))
+ESTIMATOR_QUEUES = (("frontend", "sensors/frame"),)
 LATENCY_TOPICS = ("features", "state", "depth", "map")
 
 
@@ -177,7 +177,7 @@ def latency_series(log: ArrivalLog) -> dict[str, dict]:
 
 def summarise(raw: dict, budgets) -> tuple[dict, dict]:
     """(summary for bench.json, per-item series for plots and bench_series.npz)."""
-    per_stage_budget = {"frontend.track": None, "odometry.track": None, "backend.optimise": None, "depth.depth": budgets.depth_frame_ms,
+    per_stage_budget = {"frontend.track": None, "frontend.fast_path": None, "backend.optimise": None, "depth.depth": budgets.depth_frame_ms,
                         "mapping.integrate": budgets.integrate_frame_ms}
     items = stage_items(raw["stage_dir"])
     stages = {k: stage_summary(v, per_stage_budget.get(k)) for k, v in items.items()}
@@ -229,7 +229,7 @@ def format_report(res: dict) -> str:
                      f"{_f(s.get('p99_ms'))} | {_f(s.get('cpu_median_ms'))} | {_f(s.get('cpu_p99_ms'))} | {over} |")
     lines += ["", "| latency from sensor time | n | rate [Hz] | median [ms] | p90 [ms] | p99 [ms] | max [ms] |",
               "|---|---:|---:|---:|---:|---:|---:|"]
-    names = {"features": "frontend/frame (the frontend's half of the pose latency)", "state": "estimator/state",
+    names = {"features": "frontend/frame (the tracks, sent after the state)", "state": "estimator/state",
              "depth": "depth/fused", "map": "map/submap (first update after)"}
     for k, s in res["latency_ms"].items():
         lines.append(f"| {names[k]} | {s['n']} | {_f(s.get('rate_hz'))} | {_f(s.get('median'))} | {_f(s.get('p90'))} | "

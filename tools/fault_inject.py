@@ -35,7 +35,7 @@ from shared.config import override, to_yaml
 from transport.node import Node
 from transport.session import free_local_port
 
-PIPELINE = ("frontend", "backend", "odometry", "depth", "mapping")
+PIPELINE = ("frontend", "backend", "depth", "mapping")
 OPTIONAL = ("viewer", "recorder")  # started with --with; the viewer on a free port, the recorder to DIR/recording.mcap
 
 
@@ -124,7 +124,6 @@ def build(dataset: str, out: Path, rate: float, sets: list[str], nice: int = 10,
     spec = dict(restart="on-failure", max_restarts=5, window_s=120.0, backoff_s=0.2)
     services = [ServiceSpec(name="frontend", argv=["frontend"], **spec),
                 ServiceSpec(name="backend", argv=["backend"], **spec),
-                ServiceSpec(name="odometry", argv=["odometry"], **spec),
                 ServiceSpec(name="depth", argv=["depth"], nice=nice, **spec),
                 ServiceSpec(name="mapping", argv=["mapping", "--out", str(out)], nice=nice, **spec),
                 ServiceSpec(name="player", argv=["player", dataset, "--rate", f"{rate:g}",
@@ -233,7 +232,7 @@ def _kill_one(sup: Supervisor, probe: Probe, name: str, out: Path, window_s: flo
     res = {"service": name, "old_pid": old_pid, "kill_stamp_ns": int(kill_stamp), "new_pid": probe.heartbeats.get(name, (0, None))[1] if back else None,
            "restarted": back, "restart_s": (t_back - t_kill) if back else None, "while_down": down}
     if back and name == "backend":
-        # while the back end is down the fast path (odometry) goes on against its last window; the restarted back
+        # while the back end is down the fast path (in the frontend process) goes on against its last window; the restarted back
         # end's first window says 'reset' (one 'reset' state), then it re-initialises and states are 'tracking'
         def tracking_after_reset(states) -> list:
             resets = [s[0] for s in states if s[0] > t_kill and s[2] == "reset"]

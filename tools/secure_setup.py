@@ -36,9 +36,8 @@ from pathlib import Path
 # keys (relative to the namespace) each identity may publish, besides heartbeat/<name> and stats/<name>
 PUBLISHES: dict[str, tuple[str, ...]] = {
     "player": ("sensors/**",),
-    "frontend": ("frontend/**",),
+    "frontend": ("frontend/**", "estimator/state"),  # the frontend process holds the per-frame fast path
     "backend": ("estimator/**",),
-    "odometry": ("estimator/state",),
     "depth": ("depth/**",),
     "mapping": ("map/**",),
     "viewer": ("control",),

@@ -40,7 +40,7 @@ class _Wiring:
         self.node, self.tn = node, tn
         self.subs = {inp: tn.subscriber(inp.topic, policy=inp.policy, depth=inp.depth) for inp in node.inputs}
         for name, fn in node.counters().items():
-            tn.stats.add_queue(name, fn)
+            tn.stats.add_counter(name, fn)
         self.pubs = {t: tn.publisher(t) for t in node.outputs}
         self.newest = {inp: -1 for inp in node.inputs}
         self.bad_log = RateLimitedLog(log)

@@ -115,13 +115,14 @@ def rss_mb() -> float:
 
 
 class StatsCollector:
-    """Gathers stage timers and queue counters of one service into ServiceStats messages."""
+    """Gathers stage timers, queue counters and other counts of one service into ServiceStats messages."""
 
     def __init__(self, service: str) -> None:
         self.service = service
         self.started = time.monotonic()
         self._stages: dict[str, StageTimer] = {}
         self._queues: dict[str, QueueCounters] = {}
+        self._counters: dict[str, Callable[[], int]] = {}
         self._lock = threading.Lock()
 
     def add_stage(self, timer: StageTimer) -> StageTimer:
@@ -146,10 +147,16 @@ class StatsCollector:
         with self._lock:
             self._queues[name] = counters
 
+    def add_counter(self, name: str, value: Callable[[], int]) -> None:
+        """Register a count that is not a queue's (pixels dropped, points used, ...) by a function giving it."""
+        with self._lock:
+            self._counters[name] = value
+
     def collect(self, stamp_ns: int | None = None, seq: int = 0) -> ServiceStats:
         with self._lock:
             stages = [t.snapshot() for t in self._stages.values()]
             queues = [(name, fn()) for name, fn in self._queues.items()]
+            counters = [(name, int(fn())) for name, fn in self._counters.items()]
         stamp_ns = time.time_ns() if stamp_ns is None else stamp_ns
         i64 = lambda xs: np.array(xs, dtype=np.int64)  # noqa: E731
         f64 = lambda xs: np.array(xs, dtype=np.float64)  # noqa: E731
@@ -169,6 +176,8 @@ class StatsCollector:
             queue_received=i64([c[0] for _, c in queues]),
             queue_dropped=i64([c[1] for _, c in queues]),
             queue_depth=i64([c[2] for _, c in queues]),
+            counter_names=tuple(name for name, _ in counters),
+            counter_values=i64([v for _, v in counters]),
         )
 
 

@@ -21,11 +21,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "record": ("services.recorder.service", "record topics to MCAP (with Foxglove mirrors); --recover a cut file"),
     "synth": ("services.app.synth.synth_cmd", "render a synthetic EuRoC replica (images, GT depth, mesh, IMU) of a real sequence"),
     "convert": ("tools.dataset_convert", "convert a dataset: EuRoC ASL folder <-> sigmaslam MCAP recording"),
-    "frontend": ("services.frontend.service", "feature tracker: sensors/frame -> frontend/frame"),
+    "frontend": ("services.frontend.service", "feature tracker and per-frame fast path: sensors/frame + sensors/imu + "
+                 "estimator/window -> estimator/state, frontend/frame"),
     "backend": ("services.backend.service", "visual-inertial window estimator: keyframes of frontend/frame + sensors/imu "
                 "-> estimator/window, keyframes, landmarks"),
-    "odometry": ("services.backend.odometry_service", "per-frame fast path: frontend/frame + sensors/imu + "
-                 "estimator/window -> estimator/state"),
     "player": ("services.player.service", "replay an EuRoC ASL folder onto the sensor topics (--lockstep, --realtime)"),
     "demo": ("services.app.demo_cmd", "the README's main job: the whole pipeline on the bundled replica, with its figures"),
     "run": ("services.app.run_cmd", "run the pipeline on a dataset; write the trajectory, stats and ATE to --out DIR"),

@@ -23,7 +23,7 @@ from shared.paths import REPO_ROOT
 
 DEMO_CONFIG = REPO_ROOT / "configs" / "demo.yaml"
 # the queues whose drops are camera frames the estimator never answered (frontend input, fast-path input)
-ESTIMATOR_QUEUES = ("frontend:sensors/frame", "odometry:frontend/frame")
+ESTIMATOR_QUEUES = ("frontend:sensors/frame",)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

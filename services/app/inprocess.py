@@ -11,7 +11,8 @@
     run.nodes["mapping"].loop.mapper                                 # the map as the mapping node holds it
     run.mesh_causal       # the map's vertices in W just before it followed the final trajectory
 
-The nodes are the services' own (services/<process>/node.py, the fast path services/backend/odometry_node.py), built from the system config in one place,
+The nodes are the services' own (services/<process>/node.py; the frontend process's is services/frontend/process_node.py,
+which holds the fast path), built from the system config in one place,
 :func:`pipeline_nodes`, and driven by :class:`shared.dataflow.InProcessRunner` in stamp order, the order a
 lockstep run over Zenoh gives: tools that need the pipeline without processes (offline VIO, loop evaluation, the
 ablation table) use this instead of wiring the algorithms by hand. Pacing is by stamps: the depth node handles a
@@ -28,8 +29,7 @@ from typing import Callable, Iterable, Iterator
 import numpy as np
 
 from services.backend.node import BackendNode
-from services.backend.odometry_node import OdometryNode
-from services.frontend.node import FrontendNode
+from services.frontend.process_node import FrontendProcessNode
 from shared import topics
 from shared.config import override
 from shared.dataflow import InProcessRunner, ProcessNode
@@ -61,12 +61,11 @@ def dataset_source(ds: EurocDataset, max_frames: int = 0, imu_margin_s: float = 
 def pipeline_nodes(cfg, cams, depth: bool = False, mapping: bool = False,
                    clock: Callable[[], float] | None = None) -> dict[str, ProcessNode]:
     """The pipeline's nodes as the services build them from the system config ``cfg`` and the rig ``cams``:
-    frontend, fast path (odometry: every frame's state) and back end (keyframe window), with ``depth`` the depth node, with ``mapping`` the mapping node (no output folder;
+    frontend process (tracking and the fast path: every frame's state) and back end (keyframe window), with ``depth`` the depth node, with ``mapping`` the mapping node (no output folder;
     ``clock`` [s] paces its meshes and fields, the wall clock when None). The one place that says what the
     in-process pipeline is made of."""
     # the fast path before the back end: a keyframe's state comes from the previous window, as in a live run
-    nodes: dict[str, ProcessNode] = {"frontend": FrontendNode(cfg.frontend, cams), "odometry": OdometryNode(cfg, cams),
-                                     "backend": BackendNode(cfg, cams)}
+    nodes: dict[str, ProcessNode] = {"frontend": FrontendProcessNode(cfg, cams), "backend": BackendNode(cfg, cams)}
     if depth:
         from services.depth.node import DepthNode
         from services.depth.pipeline import pipeline_for_rig

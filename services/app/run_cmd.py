@@ -63,12 +63,11 @@ log = logging.getLogger("sigmaslam.run")
 
 # used when the config lists no pipeline service (besides player and recorder)
 MAPPING_STOP_TIMEOUT_S = 60.0  # SIGKILL a mapping service still writing its map only after this long
-DEFAULT_PIPELINE = (ServiceSpec(name="frontend", argv=["frontend"]), ServiceSpec(name="backend", argv=["backend"]),
-                    ServiceSpec(name="odometry", argv=["odometry"]))
+DEFAULT_PIPELINE = (ServiceSpec(name="frontend", argv=["frontend"]), ServiceSpec(name="backend", argv=["backend"]))
 
-# per-frame stages whose medians add up to the estimator's cost per camera frame (the back end's window
-# optimisation runs beside them, at keyframes: reported on its own)
-FRAME_STAGES = (("frontend", "track"), ("odometry", "track"))
+# per-frame stages whose medians add up to the estimator's cost per camera frame: the frontend process's tracking
+# and fast path (the back end's window optimisation runs beside them, at keyframes: reported on its own)
+FRAME_STAGES = (("frontend", "track"),)
 
 # where a dataset folder (the one holding mav0/, or mav0 itself) keeps its ground truth, in the order looked for:
 # the ASL layout's own file, then a TUM or CSV file at the folder's top (what trimmed or converted folders carry)
@@ -253,7 +252,8 @@ def stats_summary(col: _Collector) -> dict:
         queues = {q: {"received": int(s.queue_received[k]), "dropped": int(s.queue_dropped[k])}
                   for k, q in enumerate(s.queue_names)}
         out["services"][name] = {"uptime_s": float(s.uptime_s), "rss_mb": float(s.rss_mb), "stages": stages,
-                                 "queues": queues}
+                                 "queues": queues,
+                                 "counters": {c: int(v) for c, v in zip(s.counter_names, s.counter_values)}}
     per_frame = [out["services"].get(svc, {}).get("stages", {}).get(st, {}).get("median_of_window_p50_ms")
                  for svc, st in FRAME_STAGES]
     out["frontend_backend_median_ms"] = float(sum(per_frame)) if all(v is not None for v in per_frame) else None
@@ -267,15 +267,13 @@ def stats_summary(col: _Collector) -> dict:
     out["frames_without_state"] = (None if out["frames_sent"] is None
                                    else max(0, out["frames_sent"] - len(answered)))
     out["drops"] = {f"{svc}:{q}": v["dropped"] for svc, d in out["services"].items()
-                    for q, v in d["queues"].items() if v["dropped"] and q not in NOT_MESSAGES}
-    px = out["services"].get("depth", {}).get("queues", {}).get("uncertain_pixels")
-    out["depth_uncertain_fraction"] = px["dropped"] / px["received"] if px and px["received"] else None
+                    for q, v in d["queues"].items() if v["dropped"]}
+    px = out["services"].get("depth", {}).get("counters", {})
+    n_px = px.get("confident_pixels", 0) + px.get("uncertain_pixels", 0)
+    out["depth_uncertain_fraction"] = px["uncertain_pixels"] / n_px if n_px else None
     out["localisation"] = localisation_summary(col.states)
     return out
 
-
-# counters reported beside the queues that count pixels or points, not messages: not drops of the stream
-NOT_MESSAGES = ("uncertain_pixels", "mvs_prior_points")
 
 
 def localisation_summary(states) -> dict | None:
@@ -435,9 +433,11 @@ def main(args: argparse.Namespace) -> int:
               "before (not in the trajectory files)", flush=True)
     lat = summary["state_latency_ms"]
     lat_text = f"pose latency p50 {lat['median']:.0f} ms, p99 {lat['p99']:.0f} ms" if lat.get("n") else "no latency"
+    fb = summary["frontend_backend_median_ms"]
+    fb_text = "n/a" if fb is None else f"{fb:.1f}"
     print(f"[sigmaslam run] {why}: {len(traj.stamps_ns)} poses in {wall:.1f} s "
           f"({summary['frames_without_state']} of {summary['frames_sent']} frames without a state); "
-          f"frontend + fast path median {summary['frontend_backend_median_ms']} ms per frame; {lat_text}; "
+          f"frontend + fast path median {fb_text} ms per frame; {lat_text}; "
           f"states {summary['states']}", flush=True)
     rc = 0 if why == "done" else 1
     if len(traj.stamps_ns) < 3:

@@ -87,6 +87,9 @@ def validate(cfg: SupervisorConfig, known_commands: dict[str, object] | None = N
         seen.add(spec.name)
         if not spec.argv:
             raise ConfigError(f"{where}.argv: empty; give the sigmaslam subcommand and its arguments")
+        if spec.enabled and spec.argv[0] == "odometry":  # configs written between stops 26 and 33
+            raise ConfigError(f"{where}: 'odometry' is no longer a process: the per-frame fast path runs in the "
+                              "frontend's process ('sigmaslam frontend' publishes estimator/state); remove this entry")
         if known_commands is not None and spec.enabled and spec.argv[0] not in known_commands:
             raise ConfigError(f"{where}.argv[0]: {spec.argv[0]!r} is not a sigmaslam subcommand ({sorted(known_commands)})")
         if not 0 <= spec.nice <= 19:
@@ -95,11 +98,6 @@ def validate(cfg: SupervisorConfig, known_commands: dict[str, object] | None = N
             raise ConfigError(f"{where}.stop_timeout_s: must be >= 0 s, got {spec.stop_timeout_s}")
         if spec.max_restarts < 0 or spec.window_s <= 0 or spec.backoff_s < 0:
             raise ConfigError(f"{where}: max_restarts >= 0, window_s > 0 and backoff_s >= 0 required")
-    commands = {s.argv[0] for s in cfg.services if s.enabled and s.argv}
-    if "backend" in commands and "odometry" not in commands:  # configs written before the split
-        raise ConfigError("supervisor.services: 'backend' without 'odometry': the back end publishes windows, not "
-                          "states; add {name: odometry, argv: [odometry]} (the per-frame fast path, "
-                          "docs/estimator.md)")
 
 
 # ----------------------------------------------------------------------------- processes
@@ -167,7 +165,11 @@ class Supervisor:
         parent = os.getpid()
         env = self._env()
         env[RESTARTS_ENV] = str(child.tracker.total_restarts)  # > 0: a restart (the back end reports 'reset')
-        child.proc = subprocess.Popen(child.argv, env=env, start_new_session=True,
+        # a process group of its own (a terminal's Ctrl-C reaches only the supervisor, which stops the children in
+        # order; killpg stops a child's own children) in the supervisor's session: a new session would be a new
+        # scheduler autogroup (Linux), and each autogroup competes at full weight whatever its tasks' nice or
+        # SCHED_IDLE, so depth and mapping would take cores from the frontend (docs/benchmarks.md, stop 33)
+        child.proc = subprocess.Popen(child.argv, env=env, process_group=0,
                                       preexec_fn=lambda: _child_setup(parent, child.spec.nice, child.spec.sched))
         child.restart_at = None
         self._status(child, f"started pid {child.proc.pid}")

@@ -96,8 +96,8 @@ class BackendConfig:
                                                 "fixed window (ignored when compute_covariance is on)")
     # --- service ---
     budget_ms: float = param(18.0, "per-keyframe budget of the back end's window optimisation (stats topic)", "ms")
-    fast_path_budget_ms: float = param(8.0, "per-frame budget of the fast path's motion-only solve (the odometry "
-                                       "process, services/backend/odometry.py; stats topic)", "ms")
+    fast_path_budget_ms: float = param(8.0, "per-frame budget of the fast path's motion-only solve (in the "
+                                       "frontend's process, services/backend/odometry.py; stats topic)", "ms")
     fast_path_waits_for_window: bool = param(False, "the fast path waits (up to imu_wait_s) for the window of the "
                                              "keyframe before each frame: reproducible lockstep runs (sigmaslam run "
                                              "sets it without --realtime/--rate); off live, where no frame may wait")
@@ -107,6 +107,7 @@ class BackendConfig:
     max_backlog_keyframes: int = param(3, "back end: when more keyframes than this wait (its window optimisation "
                                        "slower than the keyframe rate for a while), the oldest are skipped too "
                                        "(counted as drops), so the fast path's window stays current; 0: never")
-    fast_path_max_backlog_frames: int = param(20, "fast path: when more feature frames than this wait, the oldest are "
+    fast_path_max_backlog_frames: int = param(20, "fast path driven on its own (OdometryNode over Zenoh, tests): when "
+                                              "more feature frames than this wait, the oldest are "
                                               "skipped (counted as drops): a stall of the process loses no frame up "
                                               "to this many (a frame costs it ~6 ms CPU, so it catches up fast)")

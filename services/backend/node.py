@@ -6,8 +6,8 @@ poses) in and, at the end of the stream, estimator/trajectory_final out; with oc
 map/o2p_points and depth/stereo in.
 
 The back end handles only the frames its estimator makes keyframes of (``WindowedVioEstimator.wants_frame``): the
-state of every frame is published by the per-frame fast path, another process (services/backend/odometry_node.py),
-from the window this node publishes, so no frame waits for a window optimisation.
+state of every frame is published by the per-frame fast path in the frontend's process
+(services/backend/odometry_node.py, run by services/frontend/process_node.py) from the window this node publishes, so no frame waits for a window optimisation.
 
 :class:`BackendNode` is the back end's composition root: the one place that builds what the back end is made of
 from the system config and hands each part its collaborators in its constructor (the seams are the protocols of

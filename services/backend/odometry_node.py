@@ -1,7 +1,7 @@
 """The per-frame fast path as a transport-free process node: frontend/frame + sensors/imu + estimator/window ->
 estimator/state for every frame (services/backend/odometry.py), so that no frame waits for the back end's keyframe
-optimisation. Run over Zenoh by ``sigmaslam odometry`` (services/backend/odometry_service.py), a process beside
-the back end's, or in one process by :class:`shared.dataflow.InProcessRunner`.
+optimisation. The frontend's process runs it right after each frame is tracked
+(services/frontend/process_node.py); it is a node of its own so that it can be driven alone (tests over Zenoh).
 
 Published states are in the frame W' the loop closer moved the estimator's W to (the window's ``T_corr``); a
 frame that cannot be tracked (stale, no IMU over its interval, bad arrays) is dropped, counted and logged. With

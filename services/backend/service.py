@@ -2,7 +2,7 @@
 
 sensors/imu + frontend/frame (+ frontend/keyframe_features, estimator/state, map/field, map/o2p_points,
 depth/stereo, sensors/end) -> estimator/window, estimator/keyframes, estimator/landmarks,
-estimator/trajectory_final; ``sigmaslam odometry`` publishes estimator/state from its windows. A feature
+estimator/trajectory_final; the fast path in ``sigmaslam frontend`` publishes estimator/state from its windows. A feature
 frame waits up to ``backend.imu_wait_s`` for the IMU samples up to its time; a frame the estimator refuses (bad
 arrays, time going backwards, IMU gap) is dropped, counted and logged, never fatal.
 """

@@ -98,13 +98,15 @@ class DepthNode(ProcessNode):
         self.use_inputs(used)
 
     def counters(self) -> dict:
-        out = {"mvs_frames": lambda: (self.prior["frames"], 0, 0),
-               "mvs_prior_points": lambda: (self.prior["points"], self.pipe.prior_rejected, self.prior["last"])}
-        out["landmarks_refused"] = lambda: (self.dropped_landmarks, self.dropped_landmarks, 0)
-        # pixels of the published fused maps: with depth, and dropped as too uncertain (depth.max_relative_sigma)
-        out["uncertain_pixels"] = lambda: (self.pipe.confident_px + self.pipe.uncertain_px, self.pipe.uncertain_px, 0)
+        out = {"mvs_frames": lambda: self.prior["frames"],  # MVS frames with a landmark prior
+               "mvs_prior_points": lambda: self.prior["points"],  # landmark points given to it, and refused
+               "mvs_prior_points_rejected": lambda: self.pipe.prior_rejected,
+               "landmarks_refused": lambda: self.dropped_landmarks,
+               # pixels of the published maps: with depth, and dropped as too uncertain (depth.max_relative_sigma)
+               "confident_pixels": lambda: self.pipe.confident_px,
+               "uncertain_pixels": lambda: self.pipe.uncertain_px}
         if self.dc.mono:
-            out["mono_without_mvs"] = lambda: (self.no_mvs, self.no_mvs, 0)
+            out["mono_without_mvs"] = lambda: self.no_mvs
         return out
 
     def on_state(self, msg: EstimatorState) -> None:

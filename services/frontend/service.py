@@ -1,6 +1,8 @@
-"""``sigmaslam frontend [CONFIG]``: the frontend node (services/frontend/node.py) as a process over Zenoh.
+"""``sigmaslam frontend [CONFIG]``: the frontend process (services/frontend/process_node.py: the frontend node and
+the per-frame fast path) over Zenoh.
 
-sensors/frame (+ sensors/imu gyro, estimator/state gyro bias) -> frontend/frame, frontend/keyframe_features.
+sensors/frame + sensors/imu + estimator/window -> estimator/state (every frame), frontend/frame,
+frontend/keyframe_features.
 """
 
 from __future__ import annotations
@@ -8,7 +10,7 @@ from __future__ import annotations
 import argparse
 import logging
 
-from services.frontend.node import FrontendNode
+from services.frontend.process_node import FrontendProcessNode
 from shared.supervision import restart_count
 from services.system_config import service_config_and_rig
 from transport.runner import run_node
@@ -27,7 +29,7 @@ def main(args: argparse.Namespace) -> int:
         return 2
     cfg, cameras = started
     # after a supervisor restart, landmark ids continue in a range of their own (2^40 ids per life)
-    node = FrontendNode(cfg.frontend, cameras, first_landmark_id=restart_count() << 40)
+    node = FrontendProcessNode(cfg, cameras, first_landmark_id=restart_count() << 40)
     log.info("frontend: %d cameras %s", len(cameras), node.names)
     run_node(node, cfg.transport)
     return 0

@@ -13,14 +13,12 @@ from __future__ import annotations
 
 import dataclasses
 
+import numba as nb
 import numpy as np
 
-from shared.occupancy.blocks import BlockStore, pack_keys
+from shared.occupancy.blocks import _BITS, _OFF, BlockStore
 
 UNKNOWN, FREE, OCCUPIED = 0, 1, 2
-
-# the 8 corners of a trilinear cell, in (dx, dy, dz) order with x fastest
-_CORNERS = np.array([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], np.int64)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,26 +51,89 @@ class BlockField:
     def voxels(self, ijk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """L (float32) and w (uint16) of integer voxel coordinates (..., 3); unallocated: L = 0, w = 0."""
         ijk = np.asarray(ijk, np.int64)
-        b = self.block_size
-        slot = self.slots(pack_keys(ijk // b))
-        local = ijk % b
-        L = np.zeros(slot.shape, np.float32)
-        w = np.zeros(slot.shape, np.uint16)
-        have = slot >= 0
-        s = slot[have]
-        vs = self.vox_slot[s]
-        fine = vs >= 0
-        Lh = self.coarse_L[s].copy()
-        wh = self.coarse_w[s].copy()
-        lf = local[have][fine]
-        Lh[fine] = self.Lv[vs[fine], lf[:, 0], lf[:, 1], lf[:, 2]]
-        wh[fine] = self.wv[vs[fine], lf[:, 0], lf[:, 1], lf[:, 2]]
-        L[have], w[have] = Lh, wh
-        return L, w
+        flat = np.ascontiguousarray(ijk.reshape(-1, 3))
+        L = np.empty(len(flat), np.float32)
+        w = np.empty(len(flat), np.uint16)
+        _voxels(flat, self.block_size, self.keys_sorted, self.slot_of_sorted, self.coarse_L, self.coarse_w,
+                self.vox_slot, self.Lv, self.wv, L, w)
+        return L.reshape(ijk.shape[:-1]), w.reshape(ijk.shape[:-1])
 
     def nbytes(self) -> int:
         return sum(a.nbytes for a in (self.keys_sorted, self.slot_of_sorted, self.coarse_L, self.coarse_w,
                                       self.vox_slot, self.Lv, self.wv))
+
+
+@nb.njit(cache=True, inline="always")
+def _voxel(i, j, k, b, keys_sorted, slot_of_sorted, coarse_L, coarse_w, vox_slot, Lv, wv, memo):
+    """L and w of voxel (i, j, k): its block's key (blocks.pack_keys' packing), a binary search in the sorted keys
+    (skipped when the block is the one of the previous call, kept in ``memo`` = [key, slot]: the 8 corners of a
+    trilinear cell mostly share one), then the block's coarse value or its voxel; unallocated: 0, 0."""
+    key = np.int64(0)
+    for c in (i // b + _OFF, j // b + _OFF, k // b + _OFF):  # floor division, as Python's
+        if c < 0 or c >= 2 * _OFF:  # beyond the packable range: never allocated
+            return np.float32(0.0), np.uint16(0)
+        key = (key << _BITS) | c
+    if key != memo[0]:
+        n = len(keys_sorted)
+        lo, hi = 0, n
+        while lo < hi:
+            mid = (lo + hi) >> 1
+            if keys_sorted[mid] < key:
+                lo = mid + 1
+            else:
+                hi = mid
+        memo[0], memo[1] = key, (slot_of_sorted[lo] if lo < n and keys_sorted[lo] == key else -1)
+    slot = memo[1]
+    if slot < 0:
+        return np.float32(0.0), np.uint16(0)
+    v = vox_slot[slot]
+    if v < 0:
+        return coarse_L[slot], coarse_w[slot]
+    return Lv[v, i % b, j % b, k % b], wv[v, i % b, j % b, k % b]
+
+
+@nb.njit(cache=True)
+def _voxels(ijk, b, keys_sorted, slot_of_sorted, coarse_L, coarse_w, vox_slot, Lv, wv, L, w):
+    memo = np.full(2, -1, np.int64)
+    for r in range(ijk.shape[0]):
+        L[r], w[r] = _voxel(ijk[r, 0], ijk[r, 1], ijk[r, 2], b, keys_sorted, slot_of_sorted, coarse_L, coarse_w,
+                            vox_slot, Lv, wv, memo)
+
+
+@nb.njit(cache=True)
+def _trilinear(p, vs, b, keys_sorted, slot_of_sorted, coarse_L, coarse_w, vox_slot, Lv, wv, L, grad, valid):
+    """interpolate(), compiled: per point the 8 voxel centres around it, their weights and, when ``grad`` has a row
+    per point, L's gradient."""
+    with_grad = grad.shape[0] == p.shape[0]
+    memo = np.full(2, -1, np.int64)
+    c = np.empty(8)
+    for r in range(p.shape[0]):
+        g0, g1, g2 = p[r, 0] / vs - 0.5, p[r, 1] / vs - 0.5, p[r, 2] / vs - 0.5
+        i0, j0, k0 = np.floor(g0), np.floor(g1), np.floor(g2)
+        fx, fy, fz = g0 - i0, g1 - j0, g2 - k0
+        ok = True
+        for q in range(8):  # corner q = (dx, dy, dz), x fastest (the order of o2p_factor._CORNERS)
+            Lq, wq = _voxel(np.int64(i0) + (q & 1), np.int64(j0) + ((q >> 1) & 1), np.int64(k0) + ((q >> 2) & 1),
+                            b, keys_sorted, slot_of_sorted, coarse_L, coarse_w, vox_slot, Lv, wv, memo)
+            c[q] = Lq
+            ok = ok and wq > 0
+        valid[r] = ok
+        if not ok:
+            L[r] = np.nan
+            if with_grad:
+                grad[r, 0] = grad[r, 1] = grad[r, 2] = np.nan
+            continue
+        # along x, then y, then z (the trilinear form and its partial derivatives)
+        c00, c10 = c[0] * (1 - fx) + c[1] * fx, c[2] * (1 - fx) + c[3] * fx
+        c01, c11 = c[4] * (1 - fx) + c[5] * fx, c[6] * (1 - fx) + c[7] * fx
+        d00, d10, d01, d11 = c[1] - c[0], c[3] - c[2], c[5] - c[4], c[7] - c[6]
+        c0, c1 = c00 * (1 - fy) + c10 * fy, c01 * (1 - fy) + c11 * fy
+        L[r] = c0 * (1 - fz) + c1 * fz
+        if not with_grad:
+            continue
+        grad[r, 0] = ((d00 * (1 - fy) + d10 * fy) * (1 - fz) + (d01 * (1 - fy) + d11 * fy) * fz) / vs
+        grad[r, 1] = ((c10 - c00) * (1 - fz) + (c11 - c01) * fz) / vs
+        grad[r, 2] = (c1 - c0) / vs
 
 
 def near_surface_field(store: BlockStore) -> BlockField:
@@ -92,29 +153,12 @@ def interpolate(field: BlockField, p: np.ndarray, with_gradient: bool = True
                 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """Trilinear L at points ``p`` (N, 3) [m] in the field frame, its gradient (N, 3) [1/m] and a
     validity mask (all 8 surrounding voxels observed). Invalid rows hold NaN."""
-    p = np.asarray(p, np.float64).reshape(-1, 3)
-    g = p / field.voxel_size - 0.5
-    i0 = np.floor(g).astype(np.int64)
-    f = g - i0
-    L8, w8 = field.voxels(i0[:, None, :] + _CORNERS[None])  # (N, 8)
-    valid = (w8 > 0).all(axis=1)
-    c = L8.astype(np.float64)
-    fx, fy, fz = f[:, 0:1], f[:, 1:2], f[:, 2:3]
-    cx, cy, cz = _CORNERS[:, 0], _CORNERS[:, 1], _CORNERS[:, 2]
-    wx = np.where(cx, fx, 1 - fx)
-    wy = np.where(cy, fy, 1 - fy)
-    wz = np.where(cz, fz, 1 - fz)
-    L = np.sum(c * wx * wy * wz, axis=1)
-    L[~valid] = np.nan
-    grad = None
-    if with_gradient:
-        sx = np.where(cx, 1.0, -1.0)
-        sy = np.where(cy, 1.0, -1.0)
-        sz = np.where(cz, 1.0, -1.0)
-        grad = np.stack([np.sum(c * sx * wy * wz, axis=1), np.sum(c * wx * sy * wz, axis=1),
-                         np.sum(c * wx * wy * sz, axis=1)], axis=1) / field.voxel_size
-        grad[~valid] = np.nan
-    return L, grad, valid
+    p = np.ascontiguousarray(np.asarray(p, np.float64).reshape(-1, 3))
+    n = len(p)
+    L, grad, valid = np.empty(n), np.empty((n if with_gradient else 0, 3)), np.empty(n, np.bool_)
+    _trilinear(p, float(field.voxel_size), field.block_size, field.keys_sorted, field.slot_of_sorted, field.coarse_L,
+               field.coarse_w, field.vox_slot, field.Lv, field.wv, L, grad, valid)
+    return L, (grad if with_gradient else None), valid
 
 
 def state(field: BlockField, p: np.ndarray, occupied_above: float = 0.0) -> np.ndarray:

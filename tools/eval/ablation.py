@@ -198,7 +198,7 @@ def run_row(row: str, dataset: Path, overrides: list[str], seconds: float, heuri
                      "stereo_weights": (dc.stereo_weights or "(shipped)") if pipe.stereo_net is not None else "-",
                      "mvs_weights": (dc.mvs_weights or "(shipped)") if pipe.mvs_net is not None else "-"},
            "mapping_counts": dict(mapping.counts)}
-    t_odo = [t for t, _ in run.runner.times.get(("odometry", "on_features"), [])]
+    t_odo = run.nodes["frontend"].timer("fast_path").durations_s
     if t_odo:  # the per-frame fast path (every frame's state); the back end's figures are its window's work
         res["odometry_median_ms"] = 1e3 * float(np.median(t_odo))
         res["odometry_p99_ms"] = 1e3 * float(np.percentile(t_odo, 99))

@@ -4,7 +4,7 @@ For each sequence (default: every EuRoC sequence whose files are found, shared/p
 folder, real IMU where it was recorded, simulated for MH_01/MH_02; scene ``vicon-<variant>`` /
 ``machinehall-<variant>``, ``--variant a|b``) the replica is generated once (cached, services/app/synth/api.py;
 ``--duration S`` for a short one), the pipeline runs on it through the pipeline bench's runner
-(tools/bench_pipeline.run_once: ``sigmaslam run`` with frontend, backend, odometry, depth, mapping, or the services
+(tools/bench_pipeline.run_once: ``sigmaslam run`` with frontend, backend, depth, mapping, or the services
 of ``--config`` with ``--services config``; final bundle adjustment on) once per playback rate of ``--rates``
 (0: lockstep, so that a loaded machine does not change accuracy; R: R x sensor rate, live; ``--rates 0,1`` gives
 both), and the outputs are evaluated:
@@ -58,7 +58,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="comma-separated playback rate factors, one run each (0: lockstep; 1: live at sensor rate)")
     p.add_argument("--rate", type=float, help=argparse.SUPPRESS)  # the former single-rate flag: --rates R
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config field")
-    p.add_argument("--services", default="frontend,backend,odometry,depth,mapping",
+    p.add_argument("--services", default="frontend,backend,depth,mapping",
                    help="pipeline services (comma-separated; 'config': those of --config)")
     p.add_argument("--config", help="YAML system config of the runs (default: built-in defaults), e.g. configs/demo.yaml")
     p.add_argument("--hilti-points", type=int, default=12, help="control points per sequence for the Hilti score")
