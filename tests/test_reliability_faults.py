@@ -113,9 +113,10 @@ def test_a_restarted_back_end_relocalises_in_its_runs_saved_map(tmp_path):
     assert be["reset_seen"] and "relocalising in this run's last saved map" in text, text[-3000:]
     assert be["relocalised_s"] is not None, (be, text[-3000:])
     ate = rep["ate_one_alignment"]
-    # the drone comes back past the ~13 saved keyframes only ~35 s (wall, player at 0.5x) after the kill, near the
-    # end of the 50 s run: 15-50 states in 'W' follow, depending on the run (stop 33: 17 in one of five runs)
-    assert ate["after_backend_restart"]["matched"] >= 10, ate
+    # the restarted back end sees the ~13 saved keyframes only in its first ~1.2 s of tracking (early guesses,
+    # docs/maps.md), then the drone leaves the mapped part until ~35 s (wall) later: aligned from the early guesses
+    # ~7 s after the kill, ~40 states in 'W' follow (17 when it had to wait for the drone to come back)
+    assert ate["after_backend_restart"]["matched"] >= 20, ate
     # one frame: a new world frame would be off by the metres flown since the start. Killed 10 s in, the saved map
     # has ~13 keyframes and relocalisation rests on PnP matches of ~30 inliers: 3-10 cm after the restart here
     # (2 cm when killed 40 s in, docs/maps.md)

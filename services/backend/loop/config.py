@@ -61,6 +61,9 @@ class LoopConfig:
                                        "only when its keyframe leaves the window, with the refined pose: a window "
                                        "just initialised (a restart in motion) has not settled its scale and "
                                        "velocity", "s")
+    relocalise_early_confirmations: int = param(4, "nodes that left the window within relocalise_settle_s (early "
+                                                "guesses) that must agree to align the session without a settled "
+                                                "match (0 = never: early guesses only support settled ones)")
     queue_depth: int = param(200, "keyframe events waiting for the loop thread at most (oldest dropped, counted)")
     # --- final bundle adjustment ---
     final_ba: bool = param(True, "at the end of the stream, bundle-adjust all keyframes and publish "

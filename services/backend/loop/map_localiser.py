@@ -5,8 +5,12 @@ the window's frame). The window pose comes from the keyframe's published state w
 path's pose, so the session can align while the keyframe is still in the window) or else from the pose-graph node
 the keyframe becomes when it leaves the window. A pose estimated in the first ``loop.relocalise_settle_s`` of
 tracking is not trusted (a window just initialised, e.g. a back end restarted in motion, has not settled): such a
-match waits for its keyframe's node, whose pose the window has refined by then. Once
-``loop.relocalise_confirmations`` recent guesses agree (``guesses.agree``), their mean is the alignment.
+match waits for its keyframe's node, whose pose the window has refined by then. A node that leaves the window still
+within those first seconds (the window is short) gives an early guess. Once ``loop.relocalise_confirmations``
+recent guesses, at least one of them settled, agree (``guesses.agree``), or ``loop.relocalise_early_confirmations``
+early ones agree among themselves, their mean is the alignment. (Before early guesses counted, a back end restarted
+beside its saved map dropped the matches of its first seconds there and, when the drone then left the mapped part,
+relocalised only when it came back: 35 s later in the fault test, or never.)
 
 :class:`MapLocaliser` keeps only this bookkeeping; the loop closer moves its pose graph when it returns a
 transform (services/backend/loop/loop_closer.py).
@@ -33,7 +37,8 @@ class MapLocaliser:
 
     def __init__(self, cfg: LoopConfig, counts: collections.Counter) -> None:
         self.cfg, self.counts = cfg, counts
-        self._guesses: list[np.ndarray] = []  # recent T_map_window guesses
+        self._guesses: list[np.ndarray] = []  # recent T_map_window guesses from settled poses
+        self._early: list[np.ndarray] = []  # recent guesses from nodes that left the window before it settled
         self._waiting: dict[int, object] = {}  # keyframe stamp -> its match (a VerifiedLoop), no trusted pose yet
         self._published: dict[int, np.ndarray] = {}  # keyframe stamp -> published window pose, no match yet
         self._tracking_since: int | None = None  # the first 'tracking' state's stamp
@@ -52,12 +57,15 @@ class MapLocaliser:
     def _guess(self, T_map_window: np.ndarray, pose_at_ns: int) -> np.ndarray | None:
         """Add a guess whose window pose was estimated at ``pose_at_ns``; the alignment when enough agree."""
         self.counts["map_matches"] += 1
-        if not self._settled(pose_at_ns):
+        if self._settled(pose_at_ns):
+            self._guesses = (self._guesses + [T_map_window])[-RECENT_GUESSES:]
+            pool, need = self._guesses + self._early, max(1, self.cfg.relocalise_confirmations)
+        else:  # an early guess: supports settled ones; aligns alone only when enough early ones agree
             self.counts["map_matches_before_settled"] += 1
-            return None
-        self._guesses = (self._guesses + [T_map_window])[-RECENT_GUESSES:]
-        agreeing = [T for T in self._guesses if agree(T, T_map_window, self.cfg)]
-        if len(agreeing) < max(1, self.cfg.relocalise_confirmations):
+            self._early = (self._early + [T_map_window])[-RECENT_GUESSES:]
+            pool, need = self._early, self.cfg.relocalise_early_confirmations or float("inf")
+        agreeing = [T for T in pool if agree(T, T_map_window, self.cfg)]
+        if len(agreeing) < need:
             return None
         self.last_agreeing = len(agreeing)
         return mean_pose(agreeing)
