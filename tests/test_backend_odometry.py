@@ -40,7 +40,7 @@ def _sim(t_end=6.0, rate=10.0, t0=0.5, seed=1):
 def test_fast_path_equals_the_estimators_own_motion_only_solve_and_tracks_ground_truth():
     tr, cams, (st, om, ac), times, frames, T0, v0 = _sim()
     bcams = [BackendCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams]
-    cfg = BackendConfig()
+    cfg = BackendConfig(fast_path_settle_s=0.0)  # the anchor pinned from the first window, as the estimator pins it
     est = WindowedVioEstimator(cfg, bcams)
     est.initialise(int(round(times[0] * 1e9)), T0[:3, :3], v0, np.zeros(3), np.zeros(3), static=True, p_W=T0[:3, 3])
     fast = FrameTracker(cfg, bcams)
@@ -147,3 +147,48 @@ def test_node_applies_the_loop_correction_resets_and_waits_only_when_asked():
     node.waits_for_window = True
     node.on_features(frame(2, kf=True))
     assert node.wait_stamp(window_input, 456) == int(round(times[2] * 1e9))  # lockstep: that keyframe's window
+
+
+
+def _drift_from_a_wrong_anchor(cfg: BackendConfig, dv: np.ndarray, earlier_window: bool = False) -> list[float]:
+    """Position errors [m] of the frames the fast path tracks for 0.9 s from one window whose velocity is off by
+    ``dv`` (as a window just initialised may be); ``earlier_window``: the tracker had a window 1 s before it."""
+    import dataclasses
+
+    tr, cams, (st, om, ac), times, frames, T0, v0 = _sim(t_end=3.0, rate=20.0)
+    bcams = [BackendCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams]
+    est = WindowedVioEstimator(BackendConfig(), bcams)
+    est.initialise(int(round(times[0] * 1e9)), T0[:3, :3], v0, np.zeros(3), np.zeros(3), static=True,
+                   p_W=T0[:3, 3])
+    fast, j, errs = FrameTracker(cfg, bcams), 0, []
+    k = 20  # the anchor: 1 s in, the window has triangulated its landmarks
+    for i, (t, obs) in enumerate(zip(times, frames)):
+        stamp = int(round(t * 1e9))
+        while j < len(st) and st[j] <= stamp:
+            est.add_imu(st[j], om[j], ac[j])
+            fast.add_imu(st[j], om[j], ac[j])
+            j += 1
+        if i <= k:
+            res = est.process_frame(stamp, *obs, is_keyframe=i % 4 == 0 or i == k)
+            if i == k or (i == 0 and earlier_window):
+                w = _window(est, res)
+                fast.set_window(dataclasses.replace(w, v_W=np.asarray(w.v_W) + (dv if i == k else 0.0)))
+        elif i <= k + 18:
+            errs.append(np.linalg.norm(fast.track(stamp, *obs).T_WS[:3, 3] - tr.T_WS(np.array([t]))[0][:3, 3]))
+    return errs
+
+
+def test_while_the_window_is_young_the_fast_path_corrects_its_anchors_velocity_with_the_frames_landmarks():
+    """Pinned, the anchor keyframe's velocity error becomes the frames' position error (the IMU factor over a
+    fraction of a second is far tighter than the reprojections). Within backend.fast_path_settle_s of the first
+    window the anchor's velocity and bias are held by priors instead, and the frames' landmarks correct them; later
+    windows are pinned (the window's estimate beats one frame's)."""
+    pinned, young = BackendConfig(fast_path_settle_s=0.0), BackendConfig(fast_path_settle_s=2.0)
+    dv = np.array([0.08, -0.06, 0.0])  # 0.1 m/s: 9 cm after 0.9 s
+    e_pinned, e_young = _drift_from_a_wrong_anchor(pinned, dv), _drift_from_a_wrong_anchor(young, dv)
+    assert e_pinned[-1] > 0.06  # dead reckoning from the wrong velocity
+    assert e_young[-1] < 0.5 * e_pinned[-1], (e_young, e_pinned)  # observed 0.3x
+    # a window 1 s after the first, with fast_path_settle_s 0.5 s: pinned, as with the settling off
+    late = BackendConfig(fast_path_settle_s=0.5)
+    assert _drift_from_a_wrong_anchor(late, dv, earlier_window=True) == \
+        _drift_from_a_wrong_anchor(pinned, dv, earlier_window=True)

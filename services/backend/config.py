@@ -98,6 +98,14 @@ class BackendConfig:
     budget_ms: float = param(18.0, "per-keyframe budget of the back end's window optimisation (stats topic)", "ms")
     fast_path_budget_ms: float = param(8.0, "per-frame budget of the fast path's motion-only solve (in the "
                                        "frontend's process, services/backend/odometry.py; stats topic)", "ms")
+    fast_path_settle_s: float = param(2.0, "for this long after the back end's first window (its start or a restart) "
+                                      "the fast path solves the anchor keyframe's velocity and accelerometer bias "
+                                      "with each frame, held by priors at the window's estimate, instead of pinning "
+                                      "them: a window just initialised has not settled them, and pinned they drift "
+                                      "the frames until the next window (0: always pinned)", "s")
+    fast_path_settle_velocity_sigma: float = param(0.05, "... prior sigma of the anchor's velocity then", "m/s")
+    fast_path_settle_acc_bias_sigma: float = param(0.1, "... of its accelerometer bias", "m/s^2")
+    fast_path_settle_gyro_bias_sigma: float = param(0.001, "... of its gyroscope bias", "rad/s")
     fast_path_waits_for_window: bool = param(False, "the fast path waits (up to imu_wait_s) for the window of the "
                                              "keyframe before each frame: reproducible lockstep runs (sigmaslam run "
                                              "sets it without --realtime/--rate); off live, where no frame may wait")

@@ -99,20 +99,36 @@ def _subset(values: gtsam.Values, keys) -> gtsam.Values:
     return out
 
 
+def _retract(values: gtsam.Values, key: int, delta: np.ndarray) -> None:
+    """Apply the step ``delta`` to ``key`` in place, with gtsam's own retraction for its type."""
+    c = gtsam.Symbol(key).chr()
+    if c == ord("x"):
+        values.update(key, values.atPose3(key).retract(delta))
+    elif c == ord("b"):
+        values.update(key, values.atConstantBias(key).retract(delta))
+    else:
+        values.update(key, np.asarray(values.atVector(key)) + delta)
+
+
 def optimise_latest(values: gtsam.Values, n: int, factors: list[gtsam.NonlinearFactor], points: FixedPoints | None,
-                    iterations: int, step_tol: float = 1e-8) -> gtsam.Values:
+                    iterations: int, step_tol: float = 1e-8, also: tuple[int, ...] = ()) -> gtsam.Values:
     """Optimise X(n), V(n), B(n) against ``factors`` (gtsam factors; their other variables are held at ``values``)
-    and the fixed ``points``; returns the updated values of those three keys only. Raises RuntimeError when the
-    normal equations are singular (nothing constrains the state)."""
+    and the fixed ``points``; returns the updated values of those three keys only. ``also``: further velocity or
+    bias keys solved with them (e.g. the anchor keyframe's, held by a prior among ``factors`` instead of pinned).
+    Raises RuntimeError when the normal equations are singular (nothing constrains the state)."""
     wanted = {X(n): 0, V(n): 6, B(n): 9}
+    dim = 15
+    for key in also:
+        wanted[key] = dim
+        dim += _DIMS[gtsam.Symbol(key).chr()]
     cur = _subset(values, {k for f in factors for k in f.keys()} | set(wanted))
     cost = _cost(cur, n, factors, points)
     columns = [_columns(f.keys(), wanted) for f in factors]
     for _ in range(max(1, iterations)):
-        H, g = np.zeros((15, 15)), np.zeros(15)
+        H, g = np.zeros((dim, dim)), np.zeros(dim)
         for f, (src, dst) in zip(factors, columns):
             A, b = f.linearize(cur).jacobian()
-            A_n = np.zeros((A.shape[0], 15))
+            A_n = np.zeros((A.shape[0], dim))
             A_n[:, dst] = A[:, src]
             H += A_n.T @ A_n
             g += A_n.T @ b
@@ -130,9 +146,8 @@ def optimise_latest(values: gtsam.Values, n: int, factors: list[gtsam.NonlinearF
             raise RuntimeError("motion-only solve: no finite step")
         for _half in range(6):  # a step that raises the cost is halved
             trial = gtsam.Values(cur)
-            trial.update(X(n), cur.atPose3(X(n)).retract(delta[:6]))
-            trial.update(V(n), np.asarray(cur.atVector(V(n))) + delta[6:9])
-            trial.update(B(n), cur.atConstantBias(B(n)).retract(delta[9:]))
+            for key, at in wanted.items():
+                _retract(trial, key, delta[at:at + _DIMS[gtsam.Symbol(key).chr()]])
             c = _cost(trial, n, factors, points)
             if c <= cost:
                 break

@@ -67,6 +67,7 @@ class FrameTracker:
         # only the samples since the previous one, however old the anchor)
         self._pim: gtsam.PreintegratedCombinedMeasurements | None = None
         self._pim_end_ns = -1
+        self._first_anchor_ns: int | None = None  # the first window's stamp (since the start or a reset)
 
     def add_imu(self, stamp_ns: int, omega_S: np.ndarray, acc_S: np.ndarray) -> None:
         self.imu.add(stamp_ns, omega_S, acc_S)
@@ -78,6 +79,8 @@ class FrameTracker:
         if len(msg.T_SC):  # the back end refines the extrinsics: track with its newest (ValueError: another rig's)
             self.vision.set_extrinsics(msg.T_SC)
         self.window = msg
+        if self._first_anchor_ns is None:
+            self._first_anchor_ns = int(msg.header.stamp_ns)
         ids = np.asarray(msg.landmark_ids, np.int64)
         order = np.argsort(ids, kind="stable")
         self._lm_ids, self._lm_p = ids[order], np.asarray(msg.p_W, float).reshape(-1, 3)[order]
@@ -88,7 +91,7 @@ class FrameTracker:
     def reset(self) -> None:
         """Forget the window (the back end restarted: its next windows start a new history)."""
         self.window, self._lm_ids, self._lm_p = None, np.zeros(0, np.int64), np.zeros((0, 3))
-        self._pim, self._pim_end_ns = None, -1
+        self._pim, self._pim_end_ns, self._first_anchor_ns = None, -1, None
 
     def _preintegrate(self, bias, k_ns: int, stamp_ns: int) -> gtsam.PreintegratedCombinedMeasurements:
         """Pre-integration from the anchor ``k_ns`` to ``stamp_ns``, from the running one when it can be extended."""
@@ -138,10 +141,18 @@ class FrameTracker:
         values.insert(B(FRAME), bias)
         xy = self.vision.undistort(cams[known], uv[known])
         pts = self.vision.fixed_points(self._lm_p[row[known]], xy, cams[known])
-        factor = imu_factor(pim, (X(KEYFRAME), V(KEYFRAME), B(KEYFRAME)), (X(FRAME), V(FRAME), B(FRAME)))
+        factors = [imu_factor(pim, (X(KEYFRAME), V(KEYFRAME), B(KEYFRAME)), (X(FRAME), V(FRAME), B(FRAME)))]
+        also = []
+        if self._first_anchor_ns is not None and k_ns - self._first_anchor_ns < self.cfg.fast_path_settle_s * 1e9:
+            c = self.cfg  # a young window: its velocity and bias held by priors, not pinned
+            factors += [gtsam.PriorFactorVector(V(KEYFRAME), np.asarray(w.v_W, float),
+                                                gtsam.noiseModel.Isotropic.Sigma(3, c.fast_path_settle_velocity_sigma)),
+                        gtsam.PriorFactorConstantBias(B(KEYFRAME), bias, gtsam.noiseModel.Diagonal.Sigmas(np.array(
+                            [c.fast_path_settle_acc_bias_sigma] * 3 + [c.fast_path_settle_gyro_bias_sigma] * 3)))]
+            also = [V(KEYFRAME), B(KEYFRAME)]
         solved = True
         try:
-            values.update(optimise_latest(values, FRAME, [factor], pts, self.cfg.lm_max_iterations))
+            values.update(optimise_latest(values, FRAME, factors, pts, self.cfg.lm_max_iterations, also=tuple(also)))
         except RuntimeError:  # keep the IMU prediction
             self.failed_solves += 1
             solved = False
