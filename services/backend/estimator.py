@@ -289,8 +289,9 @@ class WindowedVioEstimator:
                 self._book.add(n, int(lm), int(c), p)
 
     def _add_still(self, n: int, k: int) -> None:
-        """One camera: relative-pose and zero-velocity factors keyframe k -> state n when the image stands still."""
-        if len(self.cameras) != 1 or n == k:
+        """Relative-pose and zero-velocity factors keyframe k -> state n when the (first camera's) image stands still:
+        one camera, or any rig with ``backend.still_stereo``."""
+        if n == k or (len(self.cameras) != 1 and not self.cfg.still_stereo):
             return
         factors, still = mono_frame_factors(self._book.by_landmark, k, n, float(self._focal[0]), self._T_SC[0][:3, :3], self.cfg,
                                             self._mono_pending)

@@ -67,9 +67,15 @@ def still_factors(k: int, n: int, still: StillMotion, sigma_rot_rad: float, sigm
             gtsam.PriorFactorVector(V(n), np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, sigma_vel_m_s))]
 
 
+def _in_first_camera(observations) -> np.ndarray | None:
+    """A landmark's normalised xy in camera 0 among one state's observations [(camera, xy)], or None."""
+    return next((xy for c, xy in observations if c == 0), None)
+
+
 def mono_frame_factors(obs: dict, k: int, n: int, focal_px: float, R_SC: np.ndarray, cfg,
                        waiting_for_hold: bool) -> tuple[list[gtsam.NonlinearFactor], bool]:
-    """One camera: the factors state n gets against keyframe k, and whether it stands still.
+    """One camera (or the first camera of a rig, ``backend.still_stereo``): the factors state n gets against
+    keyframe k, and whether it stands still.
 
     ``obs``: the estimator's landmark -> state -> [(camera, normalised xy)]. Standing still: the relative pose
     and zero velocity of :func:`still_factors`. Moving while the window has no metric hold yet
@@ -77,7 +83,8 @@ def mono_frame_factors(obs: dict, k: int, n: int, focal_px: float, R_SC: np.ndar
     ``cfg``: the back end's config (``mono_still_*``, ``mono_init_speed_sigma_m_s``)."""
     if cfg.mono_still_flow_px <= 0:
         return [], False
-    shared = [(by_state[k][0][1], by_state[n][0][1]) for by_state in obs.values() if k in by_state and n in by_state]
+    shared = [(a, b) for by_state in obs.values() if k in by_state and n in by_state
+              and (a := _in_first_camera(by_state[k])) is not None and (b := _in_first_camera(by_state[n])) is not None]
     xy = np.reshape(shared, (-1, 2, 2))
     still = still_motion(xy[:, 0], xy[:, 1], focal_px, R_SC, cfg.mono_still_flow_px, cfg.mono_still_min_features)
     if still is not None:
