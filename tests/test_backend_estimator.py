@@ -208,6 +208,7 @@ def test_a_pause_keeps_the_window_anchored():
     tr = sim.Pausing(sim.Trajectory(), t_stop=4.0)
     times, res, gt, est, _ = _run(12.5, sim.rig(3), cfg=BackendConfig(), tr=tr, rate=10.0)
     assert est.held_marginals > 10  # the pause's keyframes needed the held landmarks
+    assert est.still_frames == 0  # a stereo rig's stand-still factors are for its start only (backend.still_stereo)
     # what still fails (an ill-conditioned window) keeps the previous prior instead of a loose one
     assert est.prior_carried == est.failed_optimisations <= 3
     cov = est.prior_covariance

@@ -252,3 +252,21 @@ def test_coarsening_free_blocks_keeps_mesh_and_states(room_map):
     assert np.array_equal(meshes[0][1], meshes[1][1]) and np.allclose(meshes[0][0], meshes[1][0])
     p = np.random.default_rng(5).uniform([0, 0, 0], [6, 5, 3], (20000, 3))
     assert np.array_equal(state(BlockField.of(store), p), state(BlockField.of(copy), p))
+
+
+@pytest.mark.service
+def test_warm_up_loads_the_query_kernels_a_fresh_process_needs():
+    """shared.occupancy.query.warm_up leaves both compiled kernels ready in a fresh process (the back end calls it
+    before its first heartbeat, so its first occupancy-to-point terms do not stall it for ~0.3 s)."""
+    import subprocess
+    import sys
+
+    code = ("from shared.occupancy import query as q\n"
+            "before = (len(q._trilinear.signatures), len(q._voxels.signatures))\n"
+            "q.warm_up()\n"
+            "print(before, (len(q._trilinear.signatures), len(q._voxels.signatures)))\n")
+    from pathlib import Path
+
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True,
+                         cwd=Path(__file__).resolve().parents[1])
+    assert out.stdout.split("\n")[0] == "(0, 0) (1, 1)", out.stdout + out.stderr

@@ -32,8 +32,9 @@ class BackendConfig:
                                       "zero-velocity factors keep the pose while nothing can be triangulated; "
                                       "0 = off", "px")
     still_stereo: bool = param(True, "rigs of two or more cameras get the same stand-still factors (first camera's "
-                               "features; mono_still_*): on a start from standing still the window's velocity and "
-                               "biases settle at once instead of wandering for its first keyframes")
+                               "features; mono_still_*) until they first move: on a start from standing still the "
+                               "window's velocity and biases settle at once instead of wandering for its first "
+                               "keyframes (mid-run pauses: held marginals, not these)")
     mono_still_min_features: int = param(20, "one camera: features shared with the keyframe needed to call it still")
     mono_still_sigma_rot_rad: float = param(2e-3, "one camera: rotation sigma of the still relative-pose factor", "rad")
     mono_still_sigma_pos_m: float = param(2e-3, "one camera: translation sigma of the still relative-pose factor", "m")

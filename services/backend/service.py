@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import argparse
 import logging
+import time
 
 from services.backend.node import BackendNode
+from shared.occupancy.query import warm_up as warm_up_queries
 from shared.supervision import restart_count
 from services.system_config import service_config_and_rig
 from transport.runner import run_node
@@ -31,6 +33,10 @@ def main(args: argparse.Namespace) -> int:
         return 2
     cfg, cameras = started
     node = BackendNode(cfg, cameras, restarted=restart_count() > 0)
+    if cfg.o2p.enabled:  # before the first heartbeat: a player waiting for the back end starts after this
+        t0 = time.monotonic()
+        warm_up_queries()
+        log.info("backend: occupancy queries loaded in %.2f s", time.monotonic() - t0)
     log.info("backend: %d cameras", len(cameras))
     run_node(node, cfg.transport)
     return 0

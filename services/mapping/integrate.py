@@ -261,11 +261,11 @@ def integrate(store: BlockStore, depth: np.ndarray, sigma: np.ndarray, K: np.nda
 def warm_up(cfg: SensorModelConfig | None = None) -> None:
     """Compile (or load from cache) the numba kernels on a tiny frame, so that the first real frame (and the first
     mesh's colours: the field queries of shared/occupancy/query.py) does not pay for it."""
-    from shared.occupancy.query import BlockField, interpolate
+    from shared.occupancy.query import warm_up as warm_up_queries
 
     cfg = cfg or SensorModelConfig()
     K = np.array([[20.0, 0.0, 15.5], [0.0, 20.0, 11.5], [0.0, 0.0, 1.0]])
     depth = np.full((24, 32), 1.0, np.float32)
     store = BlockStore(cfg.voxel_size_m)
     integrate(store, depth, np.full_like(depth, cfg.sigma_min_m), K, np.eye(4), cfg)
-    interpolate(BlockField.of(store), np.array([[0.0, 0.0, 1.0]]))
+    warm_up_queries()

@@ -168,3 +168,12 @@ def state(field: BlockField, p: np.ndarray, occupied_above: float = 0.0) -> np.n
     out = np.where(L > occupied_above, OCCUPIED, FREE).astype(np.int8)
     out[w == 0] = UNKNOWN
     return out
+
+
+def warm_up() -> None:
+    """Load the compiled kernels (numba's on-disk cache; compile on a first run) with an empty field, so that a
+    process's first real query does not pay for it: ~0.1-0.3 s, which the back end's first occupancy-to-point
+    terms used to spend while it initialised."""
+    field = BlockField.of(BlockStore(0.1))
+    interpolate(field, np.zeros((1, 3)))
+    field.voxels(np.zeros((1, 3), np.int64))
