@@ -6,7 +6,9 @@ publishes the newest keyframe's state and the window's landmarks (``estimator/wi
 tracker pre-integrates the IMU from that keyframe to the frame, predicts the state, and solves the frame's pose,
 velocity and bias alone against the IMU factor from the keyframe and the reprojection factors of the landmarks the
 window has triangulated, keyframe and landmarks pinned at the window's estimate (services/backend/motion_only.py,
-the solve the estimator uses between keyframes). A keyframe's own state therefore comes from this solve too, before
+the solve the estimator uses between keyframes; for ``backend.fast_path_settle_s`` after the first window the
+keyframe's velocity and biases are solved too, held by priors, since a window just initialised has not settled them).
+A keyframe's own state therefore comes from this solve too, before
 the window is optimised; later frames use the new window as soon as it arrives (in a live run a frame or two
 after the keyframe; in stamp order, before the next frame). Covariance is not computed here (NaN).
 """
