@@ -221,10 +221,6 @@ def test_a_pause_keeps_the_window_anchored():
 def _standing_still_run(still_stereo: bool, scale: float) -> tuple[int, float]:
     """A stereo rig on a static (``scale`` 0) or moving trajectory with a biased, noisy IMU, keyframes every 0.3 s
     for 3 s: the stand-still frames found and the last keyframe's speed error [m/s]."""
-    import vio_sim as sim
-    from services.backend.config import BackendConfig
-    from services.backend.estimator import BackendCamera, WindowedVioEstimator
-
     rng = np.random.default_rng(4)
     tr = sim.Trajectory(scale=scale)
     pts, cams = sim.landmarks_cylinder(300, seed=2), sim.rig(2)

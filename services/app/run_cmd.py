@@ -270,7 +270,7 @@ def stats_summary(col: _Collector) -> dict:
                     for q, v in d["queues"].items() if v["dropped"]}
     px = out["services"].get("depth", {}).get("counters", {})
     n_px = px.get("confident_pixels", 0) + px.get("uncertain_pixels", 0)
-    out["depth_uncertain_fraction"] = px["uncertain_pixels"] / n_px if n_px else None
+    out["depth_uncertain_fraction"] = px.get("uncertain_pixels", 0) / n_px if n_px else None
     out["localisation"] = localisation_summary(col.states)
     return out
 

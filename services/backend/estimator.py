@@ -93,7 +93,8 @@ class WindowedVioEstimator:
         self._book = ObservationBook()  # observations, landmarks in the graph, their factors (observations.py)
         self._still: dict[int, list[gtsam.NonlinearFactor]] = {}  # one camera: factors of a still state (still.py)
         self.still_frames = 0
-        self._start_still_over = False  # a rig of several cameras moved since its start: no more still factors
+        # no more stand-still factors: a rig of several cameras without backend.still_stereo, or since it first moved
+        self._still_over = len(self.cameras) > 1 and not cfg.still_stereo
         # one camera: until the window stood still once or was rebuilt by mono_init, vision has no metric hold
         self._mono_pending = len(self.cameras) == 1
         self.mono_bootstraps = 0
@@ -292,13 +293,12 @@ class WindowedVioEstimator:
     def _add_still(self, n: int, k: int) -> None:
         """Relative-pose and zero-velocity factors keyframe k -> state n when the (first camera's) image stands still:
         one camera, or a rig of several with ``backend.still_stereo`` until it first moves."""
-        if n == k or (len(self.cameras) != 1 and (not self.cfg.still_stereo or self._start_still_over)):
+        if n == k or self._still_over:
             return
         factors, still = mono_frame_factors(self._book.by_landmark, k, n, float(self._focal[0]), self._T_SC[0][:3, :3], self.cfg,
                                             self._mono_pending)
-        if len(self.cameras) > 1:  # stereo: only while standing at the start (mid-run pauses have held marginals;
-            # still factors there made 5-7 of a paused run's marginalisations fail instead of 2)
-            self._start_still_over = not still
+        # several cameras: only at the start (mid-run pauses have held marginals; these made 5-7 marginalisations fail)
+        self._still_over = len(self.cameras) > 1 and not still
         if factors:
             self._still[n] = factors
         self.still_frames += still

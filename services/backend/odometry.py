@@ -70,6 +70,10 @@ class FrameTracker:
         self._pim: gtsam.PreintegratedCombinedMeasurements | None = None
         self._pim_end_ns = -1
         self._first_anchor_ns: int | None = None  # the first window's stamp (since the start or a reset)
+        # while the window is young (backend.fast_path_settle_s): the priors on its anchor's velocity and bias
+        self._settle_v = gtsam.noiseModel.Isotropic.Sigma(3, cfg.fast_path_settle_velocity_sigma)
+        self._settle_b = gtsam.noiseModel.Diagonal.Sigmas(np.array(
+            [cfg.fast_path_settle_acc_bias_sigma] * 3 + [cfg.fast_path_settle_gyro_bias_sigma] * 3))
 
     def add_imu(self, stamp_ns: int, omega_S: np.ndarray, acc_S: np.ndarray) -> None:
         self.imu.add(stamp_ns, omega_S, acc_S)
@@ -146,11 +150,9 @@ class FrameTracker:
         factors = [imu_factor(pim, (X(KEYFRAME), V(KEYFRAME), B(KEYFRAME)), (X(FRAME), V(FRAME), B(FRAME)))]
         also = []
         if self._first_anchor_ns is not None and k_ns - self._first_anchor_ns < self.cfg.fast_path_settle_s * 1e9:
-            c = self.cfg  # a young window: its velocity and bias held by priors, not pinned
-            factors += [gtsam.PriorFactorVector(V(KEYFRAME), np.asarray(w.v_W, float),
-                                                gtsam.noiseModel.Isotropic.Sigma(3, c.fast_path_settle_velocity_sigma)),
-                        gtsam.PriorFactorConstantBias(B(KEYFRAME), bias, gtsam.noiseModel.Diagonal.Sigmas(np.array(
-                            [c.fast_path_settle_acc_bias_sigma] * 3 + [c.fast_path_settle_gyro_bias_sigma] * 3)))]
+            # a young window: its velocity and bias held by priors, not pinned
+            factors += [gtsam.PriorFactorVector(V(KEYFRAME), np.asarray(w.v_W, float), self._settle_v),
+                        gtsam.PriorFactorConstantBias(B(KEYFRAME), bias, self._settle_b)]
             also = [V(KEYFRAME), B(KEYFRAME)]
         solved = True
         try:
