@@ -76,6 +76,32 @@ def test_select_depth_points_lowest_sigma_spread_and_back_projected():
         select_depth_points(depth, sigma[:5], K, 200)
 
 
+@pytest.mark.parametrize("shape, cell", [((37, 53), 4), ((40, 48), 8), ((25, 31), 1)])
+def test_select_depth_points_takes_each_cells_lowest_sigma_as_a_pixel_loop_does(shape, cell):
+    """Against a loop over the cells (partial cells at the edges, invalid pixels, ties in sigma)."""
+    rng = np.random.default_rng(cell)
+    Hs, Ws = shape
+    depth = rng.uniform(1, 4, shape).astype(np.float32)
+    sigma = np.round(rng.uniform(0.01, 0.05, shape), 2).astype(np.float32)  # few distinct values: many ties
+    depth[rng.random(shape) < 0.3] = np.nan
+    sigma[rng.random(shape) < 0.1] = 0.0
+    expected = []  # (sigma, v, u) of each cell's first lowest-sigma valid pixel in raster order
+    for v0 in range(0, Hs, cell):
+        for u0 in range(0, Ws, cell):
+            best = None
+            for v in range(v0, min(v0 + cell, Hs)):
+                for u in range(u0, min(u0 + cell, Ws)):
+                    if np.isfinite(depth[v, u]) and sigma[v, u] > 0 and (best is None or sigma[v, u] < best[0]):
+                        best = (sigma[v, u], v, u)
+            if best is not None:
+                expected.append(best)
+    p, s = select_depth_points(depth, sigma, K, len(expected) + 5, cell_px=cell)
+    assert len(p) == len(expected)
+    vi = np.rint(p[:, 1] / p[:, 2] * K[1, 1] + K[1, 2]).astype(int)
+    ui = np.rint(p[:, 0] / p[:, 2] * K[0, 0] + K[0, 2]).astype(int)
+    assert sorted(zip(vi.tolist(), ui.tolist())) == sorted((v, u) for _, v, u in expected)
+    assert np.all(np.diff(s) >= 0) and np.allclose(sigma[vi, ui], s)
+
 def test_frame_to_map_pulls_a_keyframe_back_and_needs_covisibility(o2p_room):
     msg, renderer = o2p_room
     T_true = view(2.0)  # a view whose points constrain all three translations (1.3 sees mostly one wall)

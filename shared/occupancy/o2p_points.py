@@ -23,19 +23,26 @@ def select_depth_points(depth: np.ndarray, sigma: np.ndarray, K: np.ndarray, max
     if depth.ndim != 2 or depth.shape != sigma.shape:
         raise ValueError(f"depth {depth.shape} and sigma {sigma.shape} must be equal 2-D arrays")
     H, W = depth.shape
-    v, u = np.nonzero(np.isfinite(depth) & (depth > 0) & np.isfinite(sigma) & (sigma > 0))
-    if len(v) == 0:
-        return np.empty((0, 3)), np.empty(0)
     cell = cell_px or max(1, int(np.sqrt(H * W / (4.0 * max_points))))
-    s = sigma[v, u]
-    cid = (v // cell) * (W // cell + 1) + u // cell
-    order = np.lexsort((s, cid))
-    first = order[np.r_[True, cid[order][1:] != cid[order][:-1]]]  # lowest sigma of each cell
+    # the image as cells of cell x cell pixels (padded with invalid ones), one row per cell in raster order; the
+    # lowest valid sigma of each cell is its candidate (the first in the cell's raster order among equals)
+    Hc, Wc = -(-H // cell), -(-W // cell)
+    key = np.full((Hc * cell, Wc * cell), np.inf, np.float32)
+    key[:H, :W] = np.where(np.isfinite(depth) & (depth > 0) & np.isfinite(sigma) & (sigma > 0), sigma, np.inf)
+    cells = key.reshape(Hc, cell, Wc, cell).transpose(0, 2, 1, 3).reshape(Hc * Wc, cell * cell)
+    best = np.argmin(cells, axis=1)
+    s = cells[np.arange(len(best)), best]
+    c = np.flatnonzero(np.isfinite(s))  # cells with a valid pixel
+    if len(c) == 0:
+        return np.empty((0, 3)), np.empty(0)
+    best, s = best[c], s[c]
+    v, u = (c // Wc) * cell + best // cell, (c % Wc) * cell + best % cell
     # lowest sigma first; ties (e.g. a constant heuristic sigma) broken by a fixed shuffle so the points spread
-    tie = np.random.default_rng(0).permutation(len(first))
-    keep = first[np.lexsort((tie, s[first]))[:max_points]]
-    z = depth[v[keep], u[keep]].astype(np.float64)
-    p = np.column_stack([(u[keep] - K[0, 2]) / K[0, 0] * z, (v[keep] - K[1, 2]) / K[1, 1] * z, z])
+    tie = np.random.default_rng(0).permutation(len(c))
+    keep = np.lexsort((tie, s))[:max_points]
+    v, u = v[keep], u[keep]
+    z = depth[v, u].astype(np.float64)
+    p = np.column_stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z])
     return p, s[keep].astype(np.float64)
 
 
