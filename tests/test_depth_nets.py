@@ -7,7 +7,7 @@ import torch
 
 from services.depth import weights
 from services.depth.mvs_net import MVSNet, plane_sweep_cost
-from services.depth.net_blocks import convex_upsample
+from services.depth.net_blocks import SCALE, convex_upsample, normalise_image
 from services.depth.stereo_net import StereoNet, correlation_volume
 from services.depth.views import select_sources
 
@@ -81,6 +81,39 @@ def test_convex_upsample_keeps_constants_and_range():
     x = torch.rand(1, 1, 5, 7)
     up = convex_upsample(x, torch.randn(1, 9 * 16, 5, 7) * 5)
     assert up.min() >= x.min() - 1e-6 and up.max() <= x.max() + 1e-6
+
+
+@pytest.mark.parametrize("channels_last", [False, True])
+def test_convex_upsample_equals_its_definition(channels_last):
+    """Fine pixel (S i + sy, S j + sx) = sum over the 3x3 neighbours k = 3 ky + kx of softmax_k(mask[9-way channel
+    k S^2 + S sy + sx]) x the coarse value at (i + ky - 1, j + kx - 1), edges repeated; either memory layout."""
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(2, 2, 3, 4)).astype(np.float32)
+    mask = (rng.normal(size=(2, 9 * SCALE * SCALE, 3, 4)) * 3).astype(np.float32)
+    m = torch.from_numpy(mask)
+    up = convex_upsample(torch.from_numpy(x), m.contiguous(memory_format=torch.channels_last) if channels_last else m)
+    xp = np.pad(x, ((0, 0), (0, 0), (1, 1), (1, 1)), mode="edge")
+    want = np.zeros((2, 2, 3 * SCALE, 4 * SCALE))
+    for i in range(3):
+        for j in range(4):
+            for sy in range(SCALE):
+                for sx in range(SCALE):
+                    logits = mask[:, np.arange(9) * SCALE * SCALE + sy * SCALE + sx, i, j].astype(np.float64)
+                    wgt = np.exp(logits - logits.max(1, keepdims=True))
+                    wgt /= wgt.sum(1, keepdims=True)
+                    nb = np.stack([xp[:, :, i + k // 3, j + k % 3] for k in range(9)], -1)  # (B, C, 9)
+                    want[:, :, SCALE * i + sy, SCALE * j + sx] = np.einsum("bck,bk->bc", nb, wgt)
+    assert np.allclose(up.numpy(), want, atol=1e-5)
+
+
+def test_normalise_image_gives_zero_mean_unit_std_per_image():
+    img = torch.from_numpy(np.random.default_rng(4).uniform(0, 255, (2, 1, 8, 6)).astype(np.float32))
+    img[1] = img[1] * 0.1 + 40
+    out = normalise_image(img).numpy()
+    ref = img.numpy().astype(np.float64)
+    for b in range(2):
+        assert np.allclose(out[b], (ref[b] - ref[b].mean()) / ref[b].std(ddof=1), atol=1e-5)
+    assert torch.all(normalise_image(torch.full((1, 1, 4, 4), 7.0)) == 0)  # a flat image: no division by 0
 
 
 def test_weights_round_trip_with_provenance(tmp_path):

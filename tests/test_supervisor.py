@@ -64,6 +64,19 @@ def test_validate_rejects_bad_specs():
         load_system_config(None, ["supervisor.services=[{name: x, argv: [record], restart: sometimes}]"])
 
 
+def test_children_get_the_malloc_thresholds_unless_the_environment_sets_them(tmp_path, monkeypatch):
+    for name in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_"):
+        monkeypatch.delenv(name, raising=False)
+    env = Supervisor(SupervisorConfig(start_router=False), tmp_path / "c.yaml", tmp_path)._env()
+    assert env["MALLOC_MMAP_THRESHOLD_"] == str(32 << 20) and env["MALLOC_TRIM_THRESHOLD_"] == str(256 << 20)
+    monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "12345")  # the user's own choice wins
+    env = Supervisor(SupervisorConfig(start_router=False, malloc_mmap_threshold_mb=0), tmp_path / "c.yaml",
+                     tmp_path)._env()
+    assert "MALLOC_MMAP_THRESHOLD_" not in env and env["MALLOC_TRIM_THRESHOLD_"] == "12345"
+    with pytest.raises(ConfigError, match="0..32 MiB"):
+        validate(SupervisorConfig(malloc_mmap_threshold_mb=64))
+
+
 # ----------------------------------------------------------------------------- real processes
 
 class Up:

@@ -43,6 +43,14 @@ class SupervisorConfig:
     shutdown_timeout_s: float = param(5.0, "after SIGTERM, children still alive after this long are SIGKILLed", "s")
     run_dir: str = param("runs", "parent folder of each run's folder (resolved config, outputs)")
     poll_period_s: float = param(0.05, "how often the supervisor checks its children", "s")
+    malloc_mmap_threshold_mb: int = param(
+        32, "each service's glibc malloc takes blocks up to this size from its heap, not from fresh pages "
+        "(MALLOC_MMAP_THRESHOLD_; 32 is glibc's largest): fresh pages fault on first touch, and a frame's images and "
+        "a network's temporaries are such blocks (the depth network: 40 -> 32 ms per frame). 0: glibc's default; a "
+        "value already in the environment wins", "MiB")
+    malloc_trim_threshold_mb: int = param(
+        256, "free heap a service keeps for reuse before giving it back to the OS (MALLOC_TRIM_THRESHOLD_; 0: glibc's "
+        "default; a value already in the environment wins)", "MiB")
 
     def stop_limit_s(self, spec: ServiceSpec) -> float:
         """How long ``spec``'s process may take to stop after SIGTERM before it is SIGKILLed."""

@@ -79,6 +79,10 @@ def describe_exit(returncode: int) -> str:
 
 def validate(cfg: SupervisorConfig, known_commands: dict[str, object] | None = None) -> None:
     """Raise ConfigError for an unusable service list (names, argv, limits; the loader checked the enumerations)."""
+    if not 0 <= cfg.malloc_mmap_threshold_mb <= 32 or cfg.malloc_trim_threshold_mb < 0:
+        raise ConfigError("supervisor.malloc_mmap_threshold_mb must be 0..32 MiB (glibc ignores larger ones) and "
+                          f"malloc_trim_threshold_mb >= 0, got {cfg.malloc_mmap_threshold_mb} and "
+                          f"{cfg.malloc_trim_threshold_mb}")
     seen = set()
     for i, spec in enumerate(cfg.services):
         where = f"supervisor.services[{i}]"
@@ -159,6 +163,10 @@ class Supervisor:
         env["SIGMASLAM_CONFIG"] = str(self.config_path)
         env["SIGMASLAM_RUN_DIR"] = str(self.run_dir)
         env["PYTHONUNBUFFERED"] = "1"
+        for name, mb in (("MALLOC_MMAP_THRESHOLD_", self.cfg.malloc_mmap_threshold_mb),
+                         ("MALLOC_TRIM_THRESHOLD_", self.cfg.malloc_trim_threshold_mb)):
+            if mb > 0 and name not in env:  # glibc reads these when the process starts
+                env[name] = str(int(mb) * 1024 * 1024)
         return env
 
     def _start(self, child: Child) -> None:

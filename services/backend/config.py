@@ -14,8 +14,8 @@ class BackendConfig:
     # --- window and optimisation ---
     window_keyframes: int = param(8, "keyframes kept in the optimisation window (plus the latest frame)")
     max_keyframe_interval_s: float = param(0.5, "a frame becomes a keyframe at the latest after this long", "s")
-    lm_max_iterations: int = param(6, "Levenberg-Marquardt iterations per frame")
-    lm_relative_error_tol: float = param(1e-4, "LM stops when the relative cost decrease falls below this")
+    lm_max_iterations: int = param(6, "Levenberg-Marquardt iterations per frame (the window's, and the fast path's Gauss-Newton)")
+    lm_relative_error_tol: float = param(1e-4, "LM (and the fast path) stops when the relative cost decrease falls below this")
     # --- vision ---
     sigma_px: float = param(1.0, "reprojection noise (1 sigma) of a feature observation", "px")
     cauchy_k: float = param(2.0, "Cauchy robust-loss scale, in units of sigma (whitened residual)")

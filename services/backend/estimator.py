@@ -254,7 +254,7 @@ class WindowedVioEstimator:
                                         np.array([xy for _, _, xy in seen]).reshape(-1, 2), [c for _, c, _ in seen])
         try:
             upd = optimise_latest(self.values, n, [self._imu_factors[n], *self._still.get(n, [])], pts,
-                                  self.cfg.lm_max_iterations)
+                                  self.cfg.lm_max_iterations, relative_tol=self.cfg.lm_relative_error_tol)
             self.values.update(upd)
         except RuntimeError as exc:  # keep the IMU prediction
             self.failed_optimisations += 1

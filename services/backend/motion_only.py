@@ -111,10 +111,13 @@ def _retract(values: gtsam.Values, key: int, delta: np.ndarray) -> None:
 
 
 def optimise_latest(values: gtsam.Values, n: int, factors: list[gtsam.NonlinearFactor], points: FixedPoints | None,
-                    iterations: int, step_tol: float = 1e-8, also: tuple[int, ...] = ()) -> gtsam.Values:
+                    iterations: int, step_tol: float = 1e-8, also: tuple[int, ...] = (),
+                    relative_tol: float = 0.0) -> gtsam.Values:
     """Optimise X(n), V(n), B(n) against ``factors`` (gtsam factors; their other variables are held at ``values``)
     and the fixed ``points``; returns the updated values of those three keys only. ``also``: further velocity or
     bias keys solved with them (e.g. the anchor keyframe's, held by a prior among ``factors`` instead of pinned).
+    Stops after ``iterations``, or once a step is shorter than ``step_tol`` or lowers the cost by less than
+    ``relative_tol`` of it (as gtsam's LM does with its relative error tolerance).
     Raises RuntimeError when the normal equations are singular (nothing constrains the state)."""
     wanted = {X(n): 0, V(n): 6, B(n): 9}
     dim = 15
@@ -154,8 +157,9 @@ def optimise_latest(values: gtsam.Values, n: int, factors: list[gtsam.NonlinearF
             delta = 0.5 * delta
         else:
             break
+        converged = cost - c <= relative_tol * cost or np.linalg.norm(delta) < step_tol
         cur, cost = trial, c
-        if np.linalg.norm(delta) < step_tol:
+        if converged:
             break
     out = gtsam.Values()
     out.insert(X(n), cur.atPose3(X(n)))

@@ -156,7 +156,8 @@ class FrameTracker:
             also = [V(KEYFRAME), B(KEYFRAME)]
         solved = True
         try:
-            values.update(optimise_latest(values, FRAME, factors, pts, self.cfg.lm_max_iterations, also=tuple(also)))
+            values.update(optimise_latest(values, FRAME, factors, pts, self.cfg.lm_max_iterations, also=tuple(also),
+                                          relative_tol=self.cfg.lm_relative_error_tol))
         except RuntimeError:  # keep the IMU prediction
             self.failed_solves += 1
             solved = False

@@ -23,6 +23,8 @@ class FrontendConfig:
     klt_levels: int = param(3, "KLT pyramid levels above the full image")
     klt_iterations: int = param(10, "KLT iterations per level")
     fb_max_error_px: float = param(0.7, "forward-backward tracking error above which a track is dropped", "px")
+    fb_levels: int = param(0, "pyramid levels of the forward-backward check's return track (it starts where the "
+                           "track began and must come back within fb_max_error_px: the full image suffices)")
     defer_detection: bool = param(True, "on a frame that is not a keyframe, while the estimator tracks, publish the "
                                   "tracked features first and detect and match new ones after (off the latency "
                                   "path; the window takes keyframes only, so it sees the same features). Needs "

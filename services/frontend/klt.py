@@ -9,10 +9,14 @@ from shared.camera import CameraModel
 
 
 def track(img0: np.ndarray, img1: np.ndarray, uv0: np.ndarray, guess: np.ndarray | None,
-          window_px: int, levels: int, iterations: int, fb_max_px: float, size: tuple[int, int]
-          ) -> tuple[np.ndarray, np.ndarray]:
+          window_px: int, levels: int, iterations: int, fb_max_px: float, size: tuple[int, int],
+          fb_levels: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Track ``uv0`` (N,2) from image 0 into image 1 starting at ``guess``; returns uv1 (N,2) and a mask
-    of tracks that converged both ways, came back within ``fb_max_px`` and stay inside the image (w, h)."""
+    of tracks that converged both ways, came back within ``fb_max_px`` and stay inside the image (w, h).
+
+    The return track starts at ``uv0`` and runs on ``fb_levels`` pyramid levels (None: ``levels``). A track can
+    only pass when it comes back within ``fb_max_px`` of where it started, well inside the basin of the full image
+    alone, so 0 levels decide the check as the whole pyramid does at a third of the cost (no pyramids to build)."""
     n = len(uv0)
     if n == 0:
         return np.zeros((0, 2), np.float32), np.zeros(0, bool)
@@ -25,7 +29,8 @@ def track(img0: np.ndarray, img1: np.ndarray, uv0: np.ndarray, guess: np.ndarray
         p1 = np.ascontiguousarray(guess, np.float32).reshape(-1, 1, 2).copy()
         flags = cv2.OPTFLOW_USE_INITIAL_FLOW
     p1, st1, _ = cv2.calcOpticalFlowPyrLK(img0, img1, p0, p1, winSize=win, maxLevel=levels, criteria=crit, flags=flags)
-    p0b, st0, _ = cv2.calcOpticalFlowPyrLK(img1, img0, p1, p0.copy(), winSize=win, maxLevel=levels, criteria=crit,
+    p0b, st0, _ = cv2.calcOpticalFlowPyrLK(img1, img0, p1, p0.copy(), winSize=win,
+                                           maxLevel=levels if fb_levels is None else fb_levels, criteria=crit,
                                            flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
     uv1 = p1.reshape(-1, 2)
     w, h = size

@@ -232,7 +232,7 @@ class MultiCameraTracker:
         model = cam.camera
         guess = None if R_rel is None else klt.predict_rotated(model, st.uv, self._R_C1C0(i, R_rel))
         uv1, ok = klt.track(st.image, image, st.uv, guess, cfg.klt_window_px, cfg.klt_levels, cfg.klt_iterations,
-                            cfg.fb_max_error_px, model.size)
+                            cfg.fb_max_error_px, model.size, cfg.fb_levels)
         counts["lost_klt"] += int((~ok).sum())
         uv0 = st.uv[ok]
         uv1 = uv1[ok]
@@ -291,7 +291,8 @@ class MultiCameraTracker:
                 continue
             sel = np.flatnonzero(vis)
             uv_j, ok = klt.track(self._cams[i].image, st_j.image, uv_i[sel], guess[sel], cfg.klt_window_px,
-                                 cfg.klt_levels, cfg.klt_iterations, cfg.fb_max_error_px, cam_j.camera.size)
+                                 cfg.klt_levels, cfg.klt_iterations, cfg.fb_max_error_px, cam_j.camera.size,
+                                 cfg.fb_levels)
             ok &= cross_camera_check(cam_i, cam_j, uv_i[sel], uv_j, cfg.epipolar_max_px, cfg.stereo_min_depth_m)
             if len(st_j.uv) and ok.any():  # not on top of a feature camera j already tracks
                 d2 = np.min(((uv_j[:, None, :] - st_j.uv[None, :, :]) ** 2).sum(-1), axis=1)

@@ -169,6 +169,10 @@ def main(args: argparse.Namespace) -> int:
         frames = _split_frames(Path(args.data), args.split, args.frames, args.sources)
         source = f"{args.data}/{args.split}"
     f_px = float(K[0, 0])
+    if not any((Path(args.data) / "val").glob("scene_*.npz")):
+        raise SystemExit(f"eval depth: no validation scenes in {args.data}/val (the heuristic sigmas are calibrated "
+                         "on them); render the set first: python -m tools.depth.make_dataset --out data/depth_train "
+                         "--train 40 --val 12 --test 3 (docs/depth.md)")
     hg = heuristic_gains(Path(args.data), f_px, baseline, st_net)
     q_coeff = 1.0 / (f_px * baseline)
     acc = {m: [] for m in METHODS}
