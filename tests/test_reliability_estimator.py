@@ -110,3 +110,34 @@ def test_mapping_freezes_its_submaps_when_the_back_end_resets():
     T[1, 3] = 3.0
     moved = loop.mapper.update_keyframes(np.array([0]), np.array([11]), T[None])
     assert old.id not in moved and np.allclose(old.T_WM, np.eye(4))
+
+
+def test_mapping_skips_frames_the_estimator_had_no_pose_for_and_waits_for_the_others():
+    """A depth frame at the stamp of an 'initialising' state is skipped at once and counted apart (it can never get a
+    pose); a frame whose state is merely late waits for it and is integrated when it comes."""
+    from services.mapping.config import MappingConfig
+    from services.mapping.node import MappingLoop
+    from shared.codec import Header
+    from shared.messages import DepthFrame, EstimatorState
+
+    loop = MappingLoop(MappingConfig(pose_wait_s=60.0))
+    K = np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])
+    depth = np.full((120, 160), 2.0, np.float32)
+
+    def state(t, status):
+        return EstimatorState(header=Header(stamp_ns=t), T_WS=np.eye(4), v_W=np.zeros(3), gyro_bias=np.zeros(3),
+                              acc_bias=np.zeros(3), covariance=np.full((15, 15), np.nan), status=status)
+
+    def frame(t):
+        return DepthFrame(header=Header(stamp_ns=t), depth=depth, sigma=np.full_like(depth, 0.05), K=K,
+                          T_WC=np.eye(4), T_SC=np.eye(4), source="stereo")
+
+    loop.on_state(state(1, "initialising"))
+    loop.on_depth(frame(1))
+    loop.on_depth(frame(2))  # its state has not come yet
+    loop.process_waiting()
+    assert loop.counts["skipped_no_estimate"] == 1 and loop.counts["integrated"] == 0
+    assert len(loop.waiting) == 1 and loop.counts["dropped_no_pose"] == 0
+    loop.on_state(state(2, "tracking"))
+    loop.process_waiting()
+    assert loop.counts["integrated"] == 1 and not loop.waiting and loop.counts["skipped_no_estimate"] == 1

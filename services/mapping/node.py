@@ -4,7 +4,9 @@ Subscribes ``mapping.depth_topic`` (depth/fused or depth/stereo), ``estimator/st
 stamp), ``estimator/keyframes`` (submap poses follow them) and ``estimator/trajectory_final`` (after the
 stream, with ``follow_final``, every submap moves onto the non-causal trajectory). Each depth frame is integrated at
 ``T_WC = T_WS(stamp) T_SC`` (or at its own T_WC when ``pose_source: frame`` and it is not identity);
-a frame whose state has not arrived waits up to ``pose_wait_s`` and is then dropped (counted).
+a frame whose state has not arrived waits up to ``pose_wait_s`` and is then dropped (counted); a frame whose state
+said it has no pose (the estimator was initialising or had just restarted) will never get one and is skipped at once
+(counted apart, as ``skipped_no_estimate``: not a frame the mapping lost).
 Changed submaps are re-meshed within a time budget at most every ``mesh_period_s`` and published on
 ``map/submap``; a submap that moved is re-published with its new pose. The near-surface field of a
 submap (``OccupancyField`` on ``map/field``, for the occupancy-to-point factors) goes out when the
@@ -50,6 +52,8 @@ class MappingLoop:
         self.mapper = SubmapMapper(cfg.sensor, cfg.submaps)
         self.poses = PoseBuffer(cfg.state_buffer)
         self.waiting: collections.deque[tuple[float, messages.DepthFrame]] = collections.deque(maxlen=32)
+        # stamps whose state was a placeholder without a pose (initialising, reset): their frames never get one
+        self.unposed: collections.deque[int] = collections.deque(maxlen=256)
         self.counts = collections.Counter()
         self.integrate_ms: list[float] = []
         self.to_publish: set[int] = set()
@@ -66,6 +70,7 @@ class MappingLoop:
             self.reset_pending = True  # submaps are frozen in the main loop
         if msg.status in ("initialising", "reset"):  # placeholders without a pose
             self.counts["states_without_pose"] += 1
+            self.unposed.append(int(msg.header.stamp_ns))
             return
         self.poses.add(msg.header.stamp_ns, msg.T_WS)
 
@@ -109,7 +114,9 @@ class MappingLoop:
             t_rx, msg = self.waiting.popleft()
             T_WC = self._pose(msg)
             if T_WC is None:
-                if time.monotonic() - t_rx > self.cfg.pose_wait_s:
+                if msg.header.stamp_ns in self.unposed:  # the estimator said it has no pose for this stamp
+                    self.counts["skipped_no_estimate"] += 1
+                elif time.monotonic() - t_rx > self.cfg.pose_wait_s:
                     self.counts["dropped_no_pose"] += 1
                     log.warning("depth frame %d dropped: no estimator state for its stamp", msg.header.stamp_ns)
                 else:
