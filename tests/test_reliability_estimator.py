@@ -141,3 +141,46 @@ def test_mapping_skips_frames_the_estimator_had_no_pose_for_and_waits_for_the_ot
     loop.on_state(state(2, "tracking"))
     loop.process_waiting()
     assert loop.counts["integrated"] == 1 and not loop.waiting and loop.counts["skipped_no_estimate"] == 1
+
+
+def test_mapping_checkpoints_in_a_thread_and_skips_one_that_falls_due_while_writing(tmp_path, monkeypatch):
+    """The checkpoint snapshots the map in the loop and writes it in a thread: the loop goes on integrating while the
+    file is written; a checkpoint due meanwhile is skipped (counted); the final write waits for the thread."""
+    import threading
+
+    from services.mapping import node as mapping_node
+    from services.mapping.config import MappingConfig
+    from services.mapping.io import load_map
+    from shared.codec import Header
+    from shared.messages import DepthFrame, EstimatorState
+
+    release, real_write = threading.Event(), mapping_node.write_map_arrays
+    monkeypatch.setattr(mapping_node, "write_map_arrays",
+                        lambda arrays, path: (release.wait(10.0), real_write(arrays, path))[1])
+    now = [0.0]
+    nd = mapping_node.MappingNode(MappingConfig(checkpoint_period_s=1.0, mesh_period_s=100.0), str(tmp_path),
+                                  clock=lambda: now[0])
+    K = np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])
+    depth = np.full((120, 160), 2.0, np.float32)
+
+    def frame(t):
+        T = np.eye(4)
+        T[0, 3] = 0.01 * t
+        nd.on_state(EstimatorState(header=Header(stamp_ns=t), T_WS=T, v_W=np.zeros(3), gyro_bias=np.zeros(3),
+                                   acc_bias=np.zeros(3), covariance=np.full((15, 15), np.nan), status="tracking"))
+        return nd.on_depth(DepthFrame(header=Header(stamp_ns=t), depth=depth, sigma=np.full_like(depth, 0.05), K=K,
+                                      T_WC=np.eye(4), T_SC=np.eye(4), source="stereo"))
+
+    frame(1)
+    now[0] = 1.5
+    frame(2)  # the checkpoint falls due: snapshot of 2 frames, the writer waits for `release`
+    assert nd._writer is not None and nd._writer.is_alive()
+    now[0] = 3.0
+    frame(3)  # integrated while the first checkpoint is being written; the second is skipped
+    assert nd.loop.counts["integrated"] == 3 and nd.loop.counts["checkpoints_skipped_busy"] == 1
+    release.set()
+    nd.wait_for_checkpoint()
+    saved = load_map(tmp_path / "map" / "dense.npz")
+    assert sum(sm.n_frames for sm in saved.submaps) == 2  # the snapshot, not the map as it was when written
+    nd.close()  # the final map: all three frames
+    assert sum(sm.n_frames for sm in load_map(tmp_path / "map" / "dense.npz").submaps) == 3

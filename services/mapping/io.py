@@ -22,22 +22,31 @@ class MapFileError(ValueError):
 
 def save_map(mapper: SubmapMapper, path: str | Path) -> Path:
     """Write every submap (fields, poses, keyframe binding) and the configs to ``path`` (.npz)."""
-    path = Path(path)
+    return write_map_arrays(map_arrays(mapper), path)
+
+
+def map_arrays(mapper: SubmapMapper) -> dict[str, np.ndarray]:
+    """A copy of everything :func:`save_map` writes, as named arrays: the map may go on changing while another
+    thread writes the copy (:func:`write_map_arrays`)."""
     meta = {"format": FORMAT, "sensor": to_dict(mapper.sensor), "submaps_cfg": to_dict(mapper.cfg), "submaps": []}
     arrays: dict[str, np.ndarray] = {}
     for sm in mapper.submaps:
         meta["submaps"].append({"id": sm.id, "anchor_stamp_ns": sm.anchor_stamp_ns, "n_frames": sm.n_frames,
                                 "keyframe_id": sm.keyframe_id, "keyframe_stamp_ns": sm.keyframe_stamp_ns})
-        arrays[f"s{sm.id}/T_WM"] = sm.T_WM
-        arrays[f"s{sm.id}/T_KM"] = sm.T_KM
+        arrays[f"s{sm.id}/T_WM"] = np.array(sm.T_WM)
+        arrays[f"s{sm.id}/T_KM"] = np.array(sm.T_KM)
         if sm.anchor_view is not None:
             for k, v in zip(("anchor_depth", "anchor_K", "anchor_T_MC"), sm.anchor_view):
-                arrays[f"s{sm.id}/{k}"] = v
-        for k, v in sm.store.arrays().items():
+                arrays[f"s{sm.id}/{k}"] = np.array(v)
+        for k, v in sm.store.arrays().items():  # copies
             arrays[f"s{sm.id}/{k}"] = v
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
-    atomic_write(path, lambda fh: np.savez(fh, **arrays))
-    return path
+    return arrays
+
+
+def write_map_arrays(arrays: dict[str, np.ndarray], path: str | Path) -> Path:
+    """Write :func:`map_arrays`'s snapshot to ``path`` (.npz) atomically."""
+    return atomic_write(Path(path), lambda fh: np.savez(fh, **arrays))
 
 
 def load_map(path: str | Path) -> SubmapMapper:
