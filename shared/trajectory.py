@@ -21,6 +21,15 @@ def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
                      w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], axis=-1)
 
 
+def _knots(t: np.ndarray, spacing_s: float) -> tuple[float, np.ndarray]:
+    """(spacing used, knot vector) of a least-squares spline over sample times ``t`` [s]. At least two samples per
+    knot interval: a sparse ground truth (e.g. 20 Hz) gets a smoother fit instead of an underdetermined one."""
+    spacing_s = max(float(spacing_s), 2.0 * float(np.median(np.diff(t))))
+    n_int = max(1, int(np.ceil(t[-1] / spacing_s)))
+    inner = np.linspace(t[0], t[-1], n_int + 1)[1:-1]
+    return spacing_s, np.r_[[t[0]] * (_K + 1), inner, [t[-1]] * (_K + 1)]
+
+
 def _quat_to_R(q: np.ndarray) -> np.ndarray:
     w, x, y, z = np.moveaxis(q, -1, 0)
     return np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
@@ -29,9 +38,11 @@ def _quat_to_R(q: np.ndarray) -> np.ndarray:
 
 
 class Trajectory:
-    """Smooth trajectory fitted to a PoseSeries; ``knot_spacing_s`` controls the smoothing."""
+    """Smooth trajectory fitted to a PoseSeries. ``knot_spacing_s`` sets the smoothing of the position and, unless
+    ``rotation_knot_spacing_s`` is given, of the orientation too: a ground truth whose positions are noisier than
+    its orientations (a laser tracker's) is best fitted with sparser position knots."""
 
-    def __init__(self, poses: PoseSeries, knot_spacing_s: float = 0.1):
+    def __init__(self, poses: PoseSeries, knot_spacing_s: float = 0.1, rotation_knot_spacing_s: float | None = None):
         if len(poses) < 2 * (_K + 1):
             raise ValueError(f"trajectory needs at least {2 * (_K + 1)} poses, got {len(poses)}")
         self.t0_ns = int(poses.stamps_ns[0])
@@ -41,15 +52,11 @@ class Trajectory:
         for i in range(1, len(q)):  # sign continuity
             if np.dot(q[i], q[i - 1]) < 0:
                 q[i] = -q[i]
-        # at least two samples per knot interval: a sparse ground truth (e.g. 20 Hz) gets a smoother fit instead of an
-        # underdetermined one
-        knot_spacing_s = max(knot_spacing_s, 2.0 * float(np.median(np.diff(t))))
-        self.knot_spacing_s = knot_spacing_s
-        n_int = max(1, int(np.ceil(t[-1] / knot_spacing_s)))
-        inner = np.linspace(t[0], t[-1], n_int + 1)[1:-1]
-        knots = np.r_[[t[0]] * (_K + 1), inner, [t[-1]] * (_K + 1)]
-        self._p = make_lsq_spline(t, poses.p_WS, knots, k=_K)
-        self._q = make_lsq_spline(t, q, knots, k=_K)
+        self.knot_spacing_s, knots_p = _knots(t, knot_spacing_s)
+        self.rotation_knot_spacing_s, knots_q = _knots(
+            t, knot_spacing_s if rotation_knot_spacing_s is None else rotation_knot_spacing_s)
+        self._p = make_lsq_spline(t, poses.p_WS, knots_p, k=_K)
+        self._q = make_lsq_spline(t, q, knots_q, k=_K)
 
     def _s(self, stamps_ns) -> np.ndarray:
         s = (np.asarray(stamps_ns, dtype=np.int64) - self.t0_ns) * 1e-9

@@ -234,7 +234,7 @@ def test_ensure_replica_generates_once_under_concurrency(tmp_path, monkeypatch):
         calls.append(spec)
         time.sleep(0.2)  # the other thread reaches the lock meanwhile
         out.mkdir(parents=True)
-        (out / "replica.yaml").write_text(f"frames: {len(plan(spec)['frames'])}\n")
+        (out / "replica.yaml").write_text(f"generator_version: {api.GENERATOR_VERSION}\nframes: {len(plan(spec)['frames'])}\n")
         return out
 
     monkeypatch.setattr(api, "generate", fake_generate)
@@ -258,7 +258,10 @@ def test_ensure_replica_generates_once_under_concurrency(tmp_path, monkeypatch):
     assert len(calls) == 1  # generated once, the other caller waited for it
     assert (paths[0] / "replica.yaml").is_file() and not list(tmp_path.glob("*.partial"))
     assert get() == paths[0] and len(calls) == 1  # cached: not generated again
-    assert (paths[0] / "replica.yaml").read_text() == "frames: 7\n"  # 0.3 s at 20 Hz, both ends included
+    assert (paths[0] / "replica.yaml").read_text().endswith("frames: 7\n")  # 0.3 s at 20 Hz, both ends included
+    # a replica of an older generator is made again, in the same place
+    (paths[0] / "replica.yaml").write_text("generator_version: 1\nframes: 7\n")
+    assert get() == paths[0] and len(calls) == 2 and api._current(paths[0])
 
 
 def test_compiled_texturing_matches_numpy_reference(small_scene, rig):
@@ -339,7 +342,7 @@ def test_named_profile_gets_its_own_cached_replica(tmp_path, monkeypatch):
     def fake_generate(spec, out, progress=True):
         specs.append(spec)
         out.mkdir(parents=True)
-        (out / "replica.yaml").write_text("frames: 1\n")
+        (out / "replica.yaml").write_text(f"generator_version: {api.GENERATOR_VERSION}\nframes: 1\n")
         return out
 
     monkeypatch.setattr(api, "generate", fake_generate)

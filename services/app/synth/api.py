@@ -18,10 +18,12 @@ import logging
 import shutil
 from pathlib import Path
 
+import yaml
+
 from shared.paths import data_dir
 from services.app.synth.profiles import apply_profile
 from services.app.synth.render import RenderConfig
-from services.app.synth.replica import ReplicaSpec, generate
+from services.app.synth.replica import GENERATOR_VERSION, ReplicaSpec, generate
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +38,15 @@ def replica_name(spec: ReplicaSpec) -> str:
     return f"{spec.sequence or 'custom'}-{spec.scene}-{spec.imu}-s{num(spec.start_s)}-d{dur}-seed{spec.seed}"
 
 
+def _current(folder: Path) -> bool:
+    """Whether ``folder`` holds a complete replica made by this generator version."""
+    try:
+        info = yaml.safe_load((folder / "replica.yaml").read_text()) or {}
+    except (OSError, yaml.YAMLError):
+        return False
+    return isinstance(info, dict) and info.get("generator_version", 1) == GENERATOR_VERSION
+
+
 def ensure_spec(spec: ReplicaSpec, root: Path | None = None, progress: bool = True, profile: str = "") -> Path:
     """Path of the replica of ``spec`` (default render settings, or those of ``profile``:
     services/app/synth/profiles.py), generating it if absent."""
@@ -47,12 +58,16 @@ def ensure_spec(spec: ReplicaSpec, root: Path | None = None, progress: bool = Tr
     root = Path(root) if root is not None else data_dir() / "replicas"
     root.mkdir(parents=True, exist_ok=True)
     final = root / (replica_name(spec) + (f"-{profile}" if profile else ""))
-    if (final / "replica.yaml").is_file():
+    if _current(final):
         return final
     with open(root / f".{final.name}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)  # another process may be generating it: wait for it
-        if (final / "replica.yaml").is_file():
+        if _current(final):
             return final
+        if final.exists():
+            log.warning("replica %s was made by an older generator (replica.yaml generator_version < %d): "
+                        "making it again", final, GENERATOR_VERSION)
+            shutil.rmtree(final)
         partial = root / f"{final.name}.partial"
         shutil.rmtree(partial, ignore_errors=True)
         log.info("generating replica %s (once; cached)", final)
@@ -85,7 +100,7 @@ def replica_exists(root: Path | None = None, **spec) -> bool:
     """Whether the replica of ``spec`` (default: the bundled default) is already generated and cached."""
     spec = ReplicaSpec(**{**DEFAULT, **spec})
     root = Path(root) if root is not None else data_dir() / "replicas"
-    return (root / replica_name(spec) / "replica.yaml").is_file()
+    return _current(root / replica_name(spec))
 
 
 def ensure_default_replica(progress: bool = True) -> Path:

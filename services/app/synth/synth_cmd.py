@@ -12,6 +12,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+import yaml
+
 from shared.config import from_dict, load_yaml, merge, parse_override
 from services.app.synth.scene import SCENES
 
@@ -74,5 +76,6 @@ def main(args: argparse.Namespace) -> int:
     except (FileNotFoundError, FileExistsError, ValueError, KeyError) as exc:
         print(f"sigmaslam synth: {exc}", file=sys.stderr)
         return 1
-    print(f"wrote replica {out}")
+    fit = (yaml.safe_load((out / "replica.yaml").read_text()) or {}).get("trajectory_fit", {})
+    print(f"wrote replica {out}; trajectory fit: " + ", ".join(f"{k} {v}" for k, v in fit.items()))
     return 0
