@@ -184,3 +184,29 @@ def test_mapping_checkpoints_in_a_thread_and_skips_one_that_falls_due_while_writ
     assert sum(sm.n_frames for sm in saved.submaps) == 2  # the snapshot, not the map as it was when written
     nd.close()  # the final map: all three frames
     assert sum(sm.n_frames for sm in load_map(tmp_path / "map" / "dense.npz").submaps) == 3
+
+
+def test_map_snapshots_copy_only_the_submaps_that_changed(tmp_path):
+    """map_arrays with a reuse dict gives a closed, unchanged submap's fields from the last snapshot (the same
+    arrays) and copies the current one again; the snapshot loads back as the map it was taken of."""
+    from services.mapping.config import MappingConfig
+    from services.mapping.io import map_arrays, write_map_arrays, load_map
+    from services.mapping.node import MappingLoop
+
+    loop = MappingLoop(MappingConfig())
+    K = np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])
+    depth = np.full((120, 160), 2.0, np.float32)
+    sigma = np.full_like(depth, 0.05)
+    loop.mapper.integrate(depth, sigma, K, np.eye(4), np.eye(4), 1)
+    loop.mapper.estimator_reset()  # freezes submap 0; the next frame starts submap 1
+    loop.mapper.integrate(depth, sigma, K, np.eye(4), np.eye(4), 2)
+    reuse: dict = {}
+    first = map_arrays(loop.mapper, reuse)
+    loop.mapper.integrate(depth, sigma, K, np.eye(4), np.eye(4), 3)  # submap 1 grows
+    second = map_arrays(loop.mapper, reuse)
+    assert second["s0/Lv"] is first["s0/Lv"] and second["s1/wv"] is not first["s1/wv"]
+    assert not np.array_equal(second["s1/wv"], first["s1/wv"])  # the third frame is in the new copy
+    for key, arr in map_arrays(loop.mapper).items():  # the same content as a snapshot taken afresh
+        assert np.array_equal(second[key], arr), key
+    back = load_map(write_map_arrays(second, tmp_path / "dense.npz"))
+    assert [sm.n_frames for sm in back.submaps] == [1, 2]

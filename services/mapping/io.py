@@ -25,11 +25,14 @@ def save_map(mapper: SubmapMapper, path: str | Path) -> Path:
     return write_map_arrays(map_arrays(mapper), path)
 
 
-def map_arrays(mapper: SubmapMapper) -> dict[str, np.ndarray]:
+def map_arrays(mapper: SubmapMapper, reuse: dict | None = None) -> dict[str, np.ndarray]:
     """A copy of everything :func:`save_map` writes, as named arrays: the map may go on changing while another
-    thread writes the copy (:func:`write_map_arrays`)."""
+    thread writes the copy (:func:`write_map_arrays`). ``reuse``: a dict kept between calls, in which the copy of
+    each submap's fields is kept and given again while the submap is unchanged (not the current one, same frames,
+    blocks and refined voxels): only the growing submap is copied, not the whole map."""
     meta = {"format": FORMAT, "sensor": to_dict(mapper.sensor), "submaps_cfg": to_dict(mapper.cfg), "submaps": []}
     arrays: dict[str, np.ndarray] = {}
+    current = mapper.current
     for sm in mapper.submaps:
         meta["submaps"].append({"id": sm.id, "anchor_stamp_ns": sm.anchor_stamp_ns, "n_frames": sm.n_frames,
                                 "keyframe_id": sm.keyframe_id, "keyframe_stamp_ns": sm.keyframe_stamp_ns})
@@ -38,7 +41,14 @@ def map_arrays(mapper: SubmapMapper) -> dict[str, np.ndarray]:
         if sm.anchor_view is not None:
             for k, v in zip(("anchor_depth", "anchor_K", "anchor_T_MC"), sm.anchor_view):
                 arrays[f"s{sm.id}/{k}"] = np.array(v)
-        for k, v in sm.store.arrays().items():  # copies
+        state = (sm is current, sm.n_frames, sm.store.n_blocks, sm.store.n_refined)
+        if reuse is not None and sm.id in reuse and reuse[sm.id][0] == state:
+            fields = reuse[sm.id][1]
+        else:
+            fields = sm.store.arrays()  # copies
+            if reuse is not None:
+                reuse[sm.id] = (state, fields)
+        for k, v in fields.items():
             arrays[f"s{sm.id}/{k}"] = v
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
     return arrays

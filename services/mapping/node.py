@@ -257,10 +257,10 @@ class MappingNode(ProcessNode):
     inputs = (
         Input(topics.STATE, "on_state", policy="all", note="poses by stamp (mapping.state_buffer of them)"),
         Input(topics.KEYFRAMES, "on_keyframes", note="submap poses follow their keyframes"),
-        # 16 frames (~1.6 s at 10 Hz, ~25 MB) absorb a mesh or checkpoint pause without dropping depth
-        Input(topics.DEPTH_STEREO, "on_depth", depth=16, when="mapping.depth_topic = depth/stereo (default)",
+        # 32 frames (~3.2 s at 10 Hz, ~50 MB) absorb a burst of slow integrations or a mesh pause without dropping
+        Input(topics.DEPTH_STEREO, "on_depth", depth=32, when="mapping.depth_topic = depth/stereo (default)",
               note="depth to integrate"),
-        Input(topics.DEPTH_FUSED, "on_depth", depth=16, when="mapping.depth_topic = depth/fused",
+        Input(topics.DEPTH_FUSED, "on_depth", depth=32, when="mapping.depth_topic = depth/fused",
               note="depth to integrate"),
         Input(topics.TRAJECTORY_FINAL, "on_final", note="submaps move onto it (mapping.follow_final)"),
     )
@@ -281,6 +281,7 @@ class MappingNode(ProcessNode):
         self.last_mesh = self.last_field = self.last_checkpoint = now
         self.final_pending = False
         self._writer: threading.Thread | None = None  # the checkpoint being written
+        self._unchanged: dict = {}  # the last copies of the submaps' fields (map_arrays' reuse)
 
     def on_state(self, msg: messages.EstimatorState) -> None:
         self.loop.on_state(msg)
@@ -321,14 +322,15 @@ class MappingNode(ProcessNode):
         return out
 
     def checkpoint(self) -> None:
-        """Snapshot the map here (the timed part) and write it to map/dense.npz in a thread of its own: a large map
-        takes seconds to write (1.8 s median at 34 submaps), during which depth frames would pile up. A checkpoint
+        """Snapshot the map here (the timed part; closed submaps' copies are kept from the last snapshot) and write it
+        to map/dense.npz in a thread of its own: a large map takes seconds to write (1.8 s median at 34 submaps),
+        during which depth frames would pile up. A checkpoint
         falling due while the previous one is still being written is skipped (counted)."""
         if self._writer is not None and self._writer.is_alive():
             self.loop.counts["checkpoints_skipped_busy"] += 1
             return
         with self.timer("checkpoint"):
-            arrays = map_arrays(self.loop.mapper)
+            arrays = map_arrays(self.loop.mapper, self._unchanged)
         self._writer = threading.Thread(target=self._write_checkpoint, name="mapping-checkpoint", daemon=True,
                                         args=(arrays, run_map_dir(self.out_dir) / DENSE_FILE))
         self._writer.start()
