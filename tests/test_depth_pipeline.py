@@ -47,8 +47,12 @@ def test_uncertain_pixels_are_dropped_from_every_output_and_counted(tmp_path):
     for k in (0.0, None):
         pipe = keep_all if k == 0.0 else None
         if pipe is None:  # the same weights (fixed seed), so the same depth and sigma before the cap
-            ref = np.nanmedian(outs[0].stereo[1] / outs[0].stereo[0])
-            k = float(ref)  # about half of the stereo pixels are over the cap
+            # k between two of the relative sigmas, splitting the pixels as evenly as their ties allow (an untrained
+            # network's output takes few distinct values)
+            rel = outs[0].stereo[1] / outs[0].stereo[0]
+            u = np.unique(rel[np.isfinite(rel)])
+            mids = (u[1:] + u[:-1]) / 2
+            k = float(mids[np.argmin([abs(np.mean(rel[np.isfinite(rel)] > m) - 0.5) for m in mids])])
             pipe = random_network_pipeline(tmp_path, 1.0, 1.0, mvs_sources=1, max_relative_sigma=k)
         pipe.remember_frame(1, raw[0])
         pipe.update_keyframes(np.array([1]), T1[None])
@@ -59,8 +63,8 @@ def test_uncertain_pixels_are_dropped_from_every_output_and_counted(tmp_path):
         (d0, s0), (d1, s1) = getattr(full, name), getattr(capped, name)
         with np.errstate(invalid="ignore"):
             bad = s0 > k * d0
-        if name == "stereo":  # k is its median relative sigma (the untrained MVS's sigma may be all over or under)
-            assert 0.3 < bad.sum() / np.isfinite(d0).sum() < 0.7
+        if name == "stereo":  # some stereo pixels dropped, some kept (the untrained MVS's may be all over or under)
+            assert 0.1 < bad.sum() / np.isfinite(d0).sum() < 0.9
         assert np.isnan(d1[bad]).all() and np.isnan(s1[bad]).all(), name
         np.testing.assert_array_equal(d1[~bad], d0[~bad])
         np.testing.assert_array_equal(s1[~bad], s0[~bad])
