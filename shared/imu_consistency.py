@@ -35,10 +35,16 @@ class ImuFit:
     """The fit :func:`fit_to_imu` chose and how well it agrees with the IMU."""
     trajectory: Trajectory
     offset_ns: int  # ground-truth stamps were moved by -offset_ns onto the IMU clock (on top of the coarse offset)
-    rotation_knot_spacing_s: float
-    position_knot_spacing_s: float
     gyro_mismatch_deg: float  # RMS rotation mismatch per 50 ms
     accel_mismatch_mm: float  # RMS position mismatch per 0.25 s
+
+    @property
+    def rotation_knot_spacing_s(self) -> float:
+        return self.trajectory.rotation_knot_spacing_s
+
+    @property
+    def position_knot_spacing_s(self) -> float:
+        return self.trajectory.knot_spacing_s
 
 
 def _inside(traj: Trajectory, imu: ImuData, margin_ns: int) -> np.ndarray:
@@ -109,6 +115,4 @@ def fit_to_imu(gt: PoseSeries, imu: ImuData, rotation_knots_s=ROTATION_KNOTS_S,
     fits = {s: Trajectory(gt, s, rot) for s in position_knots_s}
     mismatch = {s: accel_mismatch_mm(tr, imu) for s, tr in fits.items()}
     pos = min(mismatch, key=mismatch.get)
-    traj = fits[pos]
-    return ImuFit(traj, offset, traj.rotation_knot_spacing_s, traj.knot_spacing_s, gyro_mismatch_deg(traj, imu),
-                  mismatch[pos])
+    return ImuFit(fits[pos], offset, gyro_mismatch_deg(fits[pos], imu), mismatch[pos])

@@ -69,28 +69,42 @@ def test_frame_without_imu_coverage_is_refused_not_fatal():
     assert r is not None and np.isfinite(r.T_WS).all()
 
 
+# ----------------------------------------------------------------------------- the mapping's loop, no transport
+
+_K_SMALL = np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])
+_DEPTH_2M = np.full((120, 160), 2.0, np.float32)
+
+
+def _state(t: int, status: str = "tracking", x: float = 0.0):
+    """An estimator state at stamp ``t`` with the body at (x, 0, 0)."""
+    from shared.codec import Header
+    from shared.messages import EstimatorState
+
+    T = np.eye(4)
+    T[0, 3] = x
+    return EstimatorState(header=Header(stamp_ns=t), T_WS=T, v_W=np.zeros(3), gyro_bias=np.zeros(3),
+                          acc_bias=np.zeros(3), covariance=np.full((15, 15), np.nan), status=status)
+
+
+def _depth_frame(t: int):
+    """A small depth frame at stamp ``t``: a wall 2 m ahead, 5 cm sigma."""
+    from shared.codec import Header
+    from shared.messages import DepthFrame
+
+    return DepthFrame(header=Header(stamp_ns=t), depth=_DEPTH_2M, sigma=np.full_like(_DEPTH_2M, 0.05), K=_K_SMALL,
+                      T_WC=np.eye(4), T_SC=np.eye(4), source="stereo")
+
+
 def test_mapping_freezes_its_submaps_when_the_back_end_resets():
     """After a 'reset' state the old submaps stop following keyframes (the new back end's ids mean other
     keyframes, in another world frame) and the next depth frame starts a new submap."""
     from services.mapping.config import MappingConfig
     from services.mapping.node import MappingLoop
     from shared.codec import Header
-    from shared.messages import DepthFrame, EstimatorState, Keyframes
+    from shared.messages import Keyframes
 
     loop = MappingLoop(MappingConfig())
-    K = np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])
-    depth = np.full((120, 160), 2.0, np.float32)
-
-    def state(t, status="tracking", x=0.0):
-        T = np.eye(4)
-        T[0, 3] = x
-        return EstimatorState(header=Header(stamp_ns=t), T_WS=T, v_W=np.zeros(3), gyro_bias=np.zeros(3),
-                              acc_bias=np.zeros(3), covariance=np.full((15, 15), np.nan), status=status)
-
-    def frame(t):
-        return DepthFrame(header=Header(stamp_ns=t), depth=depth, sigma=np.full_like(depth, 0.05), K=K,
-                          T_WC=np.eye(4), T_SC=np.eye(4), source="stereo")
-
+    state, frame = _state, _depth_frame
     for t in (1, 2, 3):
         loop.on_state(state(t))
         loop.on_depth(frame(t))
@@ -117,21 +131,9 @@ def test_mapping_skips_frames_the_estimator_had_no_pose_for_and_waits_for_the_ot
     pose); a frame whose state is merely late waits for it and is integrated when it comes."""
     from services.mapping.config import MappingConfig
     from services.mapping.node import MappingLoop
-    from shared.codec import Header
-    from shared.messages import DepthFrame, EstimatorState
 
     loop = MappingLoop(MappingConfig(pose_wait_s=60.0))
-    K = np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])
-    depth = np.full((120, 160), 2.0, np.float32)
-
-    def state(t, status):
-        return EstimatorState(header=Header(stamp_ns=t), T_WS=np.eye(4), v_W=np.zeros(3), gyro_bias=np.zeros(3),
-                              acc_bias=np.zeros(3), covariance=np.full((15, 15), np.nan), status=status)
-
-    def frame(t):
-        return DepthFrame(header=Header(stamp_ns=t), depth=depth, sigma=np.full_like(depth, 0.05), K=K,
-                          T_WC=np.eye(4), T_SC=np.eye(4), source="stereo")
-
+    state, frame = _state, _depth_frame
     loop.on_state(state(1, "initialising"))
     loop.on_depth(frame(1))
     loop.on_depth(frame(2))  # its state has not come yet
@@ -151,8 +153,6 @@ def test_mapping_checkpoints_in_a_thread_and_skips_one_that_falls_due_while_writ
     from services.mapping import node as mapping_node
     from services.mapping.config import MappingConfig
     from services.mapping.io import load_map
-    from shared.codec import Header
-    from shared.messages import DepthFrame, EstimatorState
 
     release, real_write = threading.Event(), mapping_node.write_map_arrays
     monkeypatch.setattr(mapping_node, "write_map_arrays",
@@ -160,16 +160,10 @@ def test_mapping_checkpoints_in_a_thread_and_skips_one_that_falls_due_while_writ
     now = [0.0]
     nd = mapping_node.MappingNode(MappingConfig(checkpoint_period_s=1.0, mesh_period_s=100.0), str(tmp_path),
                                   clock=lambda: now[0])
-    K = np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])
-    depth = np.full((120, 160), 2.0, np.float32)
 
     def frame(t):
-        T = np.eye(4)
-        T[0, 3] = 0.01 * t
-        nd.on_state(EstimatorState(header=Header(stamp_ns=t), T_WS=T, v_W=np.zeros(3), gyro_bias=np.zeros(3),
-                                   acc_bias=np.zeros(3), covariance=np.full((15, 15), np.nan), status="tracking"))
-        return nd.on_depth(DepthFrame(header=Header(stamp_ns=t), depth=depth, sigma=np.full_like(depth, 0.05), K=K,
-                                      T_WC=np.eye(4), T_SC=np.eye(4), source="stereo"))
+        nd.on_state(_state(t, x=0.01 * t))
+        return nd.on_depth(_depth_frame(t))
 
     frame(1)
     now[0] = 1.5
@@ -194,8 +188,7 @@ def test_map_snapshots_copy_only_the_submaps_that_changed(tmp_path):
     from services.mapping.node import MappingLoop
 
     loop = MappingLoop(MappingConfig())
-    K = np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])
-    depth = np.full((120, 160), 2.0, np.float32)
+    K, depth = _K_SMALL, _DEPTH_2M
     sigma = np.full_like(depth, 0.05)
     loop.mapper.integrate(depth, sigma, K, np.eye(4), np.eye(4), 1)
     loop.mapper.estimator_reset()  # freezes submap 0; the next frame starts submap 1
