@@ -129,6 +129,35 @@ def test_moving_start_refines_gravity():
             for r, T in zip(res, gt)]
     assert tilt[0] > 1.0  # the accelerometer-only guess is off (the body accelerates) ...
     assert max(tilt[-5:]) < 1.0, tilt[-5:]  # ... and vision + IMU refine it below 1 degree
+    # three cameras that do not overlap: no stereo, so no gravity alignment (gravity_align.py) is tried
+    assert est.gravity_alignment is None and est.gravity_alignment_failures == 0
+
+
+def _stereo_rig(baseline: float = 0.11) -> list:
+    """Two stereo pairs, looking forward and backward (each camera of sim.rig(2) and its twin ``baseline`` to
+    its right)."""
+    cams = []
+    for c in sim.rig(2):
+        for dx in (0.0, baseline):
+            T = c.T_SC.copy()
+            T[:3, 3] += T[:3, :3] @ [dx, 0.0, 0.0]
+            cams.append(sim.SimCamera(T, c.K, c.dist))
+    return cams
+
+
+def test_a_stereo_moving_start_is_turned_to_its_measured_gravity_once():
+    """Stereo rig, moving start: once the window spans backend.moving_align_after_s the window is aligned to the
+    gravity it measures (scale 1 as the check), once; from then on the tilt stays within what the unknown
+    accelerometer bias allows (|ACC_BIAS| / g = 0.35 deg, with margin)."""
+    cfg = BackendConfig(moving_align_after_s=1.0)
+    times, res, gt, est, _ = _run(4.0, _stereo_rig(), cfg=cfg, t0=2.0, init_gt=False)
+    info = est.gravity_alignment
+    assert info is not None and abs(info.scale - 1.0) < 0.01 and info.keyframes >= 4, info
+    tilt = np.array([np.degrees(np.arccos(np.clip((r.T_WS[:3, :3].T @ [0, 0, 1.0]) @ (T[:3, :3].T @ [0, 0, 1.0]),
+                                                  -1, 1))) for r, T in zip(res, gt)])
+    assert tilt[0] > 1.0
+    after = times >= 3.2  # the alignment's keyframe is the first 1 s after the start (keyframes every 0.2 s)
+    assert tilt[after].max() < 0.6, tilt[after]
 
 
 def test_window_size_stays_bounded():

@@ -17,7 +17,7 @@ from shared.codec import Header
 from shared.config import to_dict
 from shared.euroc_reader import DatasetError, EurocDataset
 from shared.euroc_writer import write_euroc
-from shared.messages import Control, EstimatorState
+from shared.messages import Control, EstimatorState, MultiCameraFrame
 from tools.dataset_convert import euroc_to_mcap, mcap_to_euroc
 from transport.node import Node
 
@@ -363,3 +363,28 @@ def test_run_progress_line_counts_states_and_sequence_time():
         col.states.append(SimpleNamespace(header=SimpleNamespace(stamp_ns=1_000_000_000 + k * 50_000_000), status=status))
     line = progress_line(col, 20.4)
     assert line == "20 s: 10 states (initialising 3, tracking 7), 0.5 s into the sequence", line
+
+
+def test_a_start_in_mid_flight_leaves_out_the_earlier_frames_and_imu(tmp_path, dataset):
+    """player.start_s: the first frame played is the first at or after first + start; IMU from the margin before
+    it (EuRoC folder) or from the start (a recording); the frames' seq counts from 0; past the end: a clear error."""
+    ds = EurocDataset(dataset)
+    start = 3 * 50_000_000 - 1  # just before the 4th frame
+    msgs = list(ds.messages(imu_margin_ns=20_000_000, start_ns=start))
+    frames = [m for m in msgs if isinstance(m, MultiCameraFrame)]
+    imu = [m.header.stamp_ns for m in msgs if not isinstance(m, MultiCameraFrame)]
+    assert [f.header.stamp_ns for f in frames] == ds.frame_stamps_ns[3:].tolist()
+    assert [f.header.seq for f in frames] == list(range(N_FRAMES - 3))
+    assert T0 + 150_000_000 - 20_000_000 <= min(imu) < T0 + 150_000_000 - 15_000_000
+    whole = [m.header.stamp_ns for m in ds.messages(imu_margin_ns=20_000_000) if not isinstance(m, MultiCameraFrame)]
+    assert imu == [t for t in whole if t >= min(imu)]  # nothing else left out
+    with pytest.raises(DatasetError, match="no frame 10.0 s or more after the first"):
+        list(ds.messages(start_ns=10_000_000_000))
+    with pytest.raises(ValueError):
+        list(ds.messages(start_ns=-1))
+    mcap = tmp_path / "tiny.mcap"
+    euroc_to_mcap(dataset, mcap)
+    rec = list(open_source(mcap).messages(start_ns=start))
+    first = min(m.header.stamp_ns for m in open_source(mcap).messages())
+    assert min(m.header.stamp_ns for m in rec) >= first + start
+    assert [m.header.stamp_ns for m in rec if isinstance(m, MultiCameraFrame)] == ds.frame_stamps_ns[3:].tolist()

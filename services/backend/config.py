@@ -77,11 +77,28 @@ class BackendConfig:
     integration_sigma: float = param(1e-4, "position integration noise density of the pre-integration", "m/s/sqrt(Hz)")
     # --- priors and initialisation ---
     prior_sigma_rot_rad: float = param(1e-3, "first state's roll/pitch/yaw prior after a static start", "rad")
-    prior_sigma_tilt_moving_rad: float = param(0.03, "first state's roll/pitch prior after a moving start", "rad")
+    prior_sigma_tilt_moving_rad: float = param(0.03, "first state's roll/pitch prior after a moving start, until "
+                                               "the gravity alignment (moving_align_after_s)", "rad")
+    prior_sigma_tilt_aligned_rad: float = param(1e-3, "... and of the oldest state once the window was turned to its "
+                                                "measured gravity: held firmly (a loosely held tilt wanders for "
+                                                "seconds and bends the trajectory)", "rad")
+    moving_align_after_s: float = param(1.0, "several cameras, moving start: once the window's keyframes span this "
+                                        "long (or fill the window), gravity and the velocities are measured from them and the IMU and the "
+                                        "window is turned to that gravity (services/backend/gravity_align.py; "
+                                        "0 = never)", "s")
+    moving_align_min_stereo: int = param(10, "... only when the newest keyframe sees at least this many landmarks in "
+                                         "two cameras at once (without overlapping cameras vision has no scale of its "
+                                         "own to tell the tilt by)")
+    moving_align_max_scale_error: float = param(0.1, "... the alignment is refused (and tried again at the next "
+                                                "keyframe, up to 3x moving_align_after_s) when its free scale is off "
+                                                "1 by more than this (relative)")
     prior_sigma_pos_m: float = param(1e-3, "first state's position prior", "m")
     prior_sigma_vel_m_s: float = param(0.01, "first state's velocity prior after a static start", "m/s")
     prior_sigma_vel_moving_m_s: float = param(1.0, "first state's velocity prior after a moving start", "m/s")
-    prior_sigma_gyro_bias: float = param(5e-3, "initial gyro bias prior", "rad/s")
+    prior_sigma_gyro_bias: float = param(5e-3, "initial gyro bias prior after a static start (the mean gyro reading)",
+                                         "rad/s")
+    prior_sigma_gyro_bias_moving: float = param(0.05, "initial gyro bias prior after a moving start (taken as zero: "
+                                                "EuRoC's are up to 0.08 rad/s)", "rad/s")
     prior_sigma_acc_bias: float = param(0.1, "initial accelerometer bias prior", "m/s^2")
     marginals_landmark_sigma_m: float = param(10.0, "when the window's marginals are indeterminant (landmarks seen from "
                                               "one place only: a still body), they are computed again with priors "

@@ -22,6 +22,8 @@ class PlayerConfig:
     lockstep_timeout_s: float = param(3.0, "mode 'lockstep': longest wait for the estimator's answer to a frame", "s")
     start_paused: bool = param(False, "wait for a 'resume' control command before the first message")
     max_frames: int = param(0, "stop after this many frames (0 = all)")
+    start_s: float = param(0.0, "begin this long after the first frame, as if the sensors were switched on there "
+                           "(a start in mid-flight); earlier frames and IMU samples are not played", "s")
     end_linger_s: float = param(0.5, "stay on the bus this long after publishing sensors/end", "s")
     imu_margin_s: float = param(1.0, "EuRoC folders: play IMU samples only from this long before the first camera "
                                 "frame to this long after the last (a trimmed folder may hold minutes of IMU "
@@ -31,5 +33,5 @@ class PlayerConfig:
         if not self.rate > 0 or not self.lockstep_timeout_s > 0:
             raise ValueError(f"player.rate and player.lockstep_timeout_s must be positive, got {self.rate}, "
                              f"{self.lockstep_timeout_s}")
-        if self.max_frames < 0 or self.end_linger_s < 0:
-            raise ValueError("player.max_frames and player.end_linger_s must be >= 0")
+        if self.max_frames < 0 or self.end_linger_s < 0 or self.start_s < 0:
+            raise ValueError("player.max_frames, player.end_linger_s and player.start_s must be >= 0")

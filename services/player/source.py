@@ -24,10 +24,11 @@ class Source:
     name: str
     stats: dict[str, int]
 
-    def messages(self, imu_margin_ns: int | None = None) -> Iterator[ImuSample | MultiCameraFrame]:
+    def messages(self, imu_margin_ns: int | None = None, start_ns: int = 0) -> Iterator[ImuSample | MultiCameraFrame]:
         """Messages in time order. ``imu_margin_ns`` (not None): leave out IMU samples more than this long before
         the first or after the last frame, where the source knows its frames' span up front (EuRoC folders;
-        a recording plays every sample)."""
+        a recording plays every sample). ``start_ns`` > 0: begin this long into the data (EuRoC: after the first
+        frame; a recording: after its first message)."""
         raise NotImplementedError
 
 
@@ -37,8 +38,8 @@ class EurocSource(Source):
         self.name = str(path)
         self.stats = self.ds.stats
 
-    def messages(self, imu_margin_ns: int | None = None):
-        return self.ds.messages(imu_margin_ns)
+    def messages(self, imu_margin_ns: int | None = None, start_ns: int = 0):
+        return self.ds.messages(imu_margin_ns, start_ns)
 
 
 class McapSource(Source):
@@ -54,13 +55,14 @@ class McapSource(Source):
         self.path, self.name = p, str(p)
         self.stats = {"undecodable": 0, "backwards_stamps": 0, "other_messages": 0}
 
-    def messages(self, imu_margin_ns: int | None = None):
+    def messages(self, imu_margin_ns: int | None = None, start_ns: int = 0):
         from mcap.reader import make_reader
 
         from shared.codec import NATIVE_ENCODING
 
         last = {ImuSample: -1, MultiCameraFrame: -1}
         seq = {ImuSample: 0, MultiCameraFrame: 0}
+        begin = None  # stamp of the first message + start_ns: earlier ones are not played
         suffixes = ("/" + topics.IMU.key, "/" + topics.FRAME.key)
         with open(self.path, "rb") as f:
             try:
@@ -85,6 +87,9 @@ class McapSource(Source):
                                     last[kind])
                         continue
                     last[kind] = msg.header.stamp_ns
+                    begin = msg.header.stamp_ns + start_ns if begin is None else begin
+                    if msg.header.stamp_ns < begin:
+                        continue
                     yield _with_seq(msg, seq[kind])
                     seq[kind] += 1
             except Exception as exc:  # a truncated/corrupt file: stop cleanly, say why

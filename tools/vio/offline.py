@@ -2,6 +2,8 @@
 
     python -m tools.vio.offline DATASET [--max-frames N] [--set frontend.x=y] [--profile] [--out DIR]
 
+(``--set player.start_s=S`` starts S seconds into the sequence: a start in mid-flight.)
+
 Prints per-stage medians (wall and the CPU time of the running thread: on a shared machine the CPU time is the
 steadier measure) and the causal ATE (SE(3)) when the folder has ground truth; ``--out`` writes the causal
 trajectory (TUM). The services' own nodes on the in-process runner (services/app/inprocess.py), in the order of a
