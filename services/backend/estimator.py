@@ -133,14 +133,11 @@ class WindowedVioEstimator:
         self.values.insert(X(n), gtsam.Pose3(T))
         self.values.insert(V(n), np.asarray(v_W, float))
         self.values.insert(B(n), make_bias(gyro_bias, acc_bias))
-        tilt = c.prior_sigma_rot_rad if static else c.prior_sigma_tilt_moving_rad
-        sv = c.prior_sigma_vel_m_s if static else c.prior_sigma_vel_moving_m_s
-        pose_sig = np.array([tilt, tilt, c.prior_sigma_rot_rad] + [c.prior_sigma_pos_m] * 3)
-        bias_sig = np.array([c.prior_sigma_acc_bias] * 3
-                            + [c.prior_sigma_gyro_bias if static else c.prior_sigma_gyro_bias_moving] * 3)
-        self._priors = state_priors(n, gtsam.Pose3(T), np.asarray(v_W, float), make_bias(gyro_bias, acc_bias),
-                                    pose_sig, sv, bias_sig)
-        self._prior_cov = np.diag(np.r_[pose_sig, [sv] * 3, bias_sig] ** 2)  # marginal_prior's order
+        if static:
+            self.reset_prior(n, c.prior_sigma_rot_rad, c.prior_sigma_vel_m_s, c.prior_sigma_gyro_bias)
+        else:
+            self.reset_prior(n, c.prior_sigma_tilt_moving_rad, c.prior_sigma_vel_moving_m_s,
+                             c.prior_sigma_gyro_bias_moving)
         self.keyframes = [n]
         # several cameras, moving start: gravity is measured again from the first keyframes (gravity_align.py)
         self._gravity_pending = not static and len(self.cameras) > 1 and c.moving_align_after_s > 0
@@ -284,13 +281,8 @@ class WindowedVioEstimator:
         self._gravity_pending = False
         log.info("moving start: window turned %.2f deg to the gravity its %d keyframes measure (scale %.3f)",
                  got[1].rotation_deg, got[1].keyframes, got[1].scale)
-        a = states[0]
-        pose_sig = np.array([c.prior_sigma_tilt_aligned_rad] * 2 + [c.prior_sigma_rot_rad] + [c.prior_sigma_pos_m] * 3)
-        bias_sig = np.array([c.prior_sigma_acc_bias] * 3 + [c.prior_sigma_gyro_bias_moving] * 3)
-        sv = c.prior_sigma_vel_moving_m_s
-        self._priors = state_priors(a, self.values.atPose3(X(a)), self.values.atVector(V(a)),
-                                    self.values.atConstantBias(B(a)), pose_sig, sv, bias_sig)
-        self._prior_cov = np.diag(np.r_[pose_sig, [sv] * 3, bias_sig] ** 2)
+        self.reset_prior(states[0], c.prior_sigma_tilt_aligned_rad, c.prior_sigma_vel_moving_m_s,
+                         c.prior_sigma_gyro_bias_moving)
         graph = self._build_graph(n)
         params.setOrdering(self._schur_ordering())
         try:
@@ -547,9 +539,16 @@ class WindowedVioEstimator:
             return None
 
     # ---------------------------------------------------------------- writes (mono_init's rebuild)
-    def replace_priors(self, factors: list[gtsam.NonlinearFactor]) -> None:
-        """The window's prior factors (on its oldest state) replaced by ``factors``."""
-        self._priors = list(factors)
+    def reset_prior(self, state: int, tilt_sigma: float, vel_sigma: float, gyro_bias_sigma: float) -> None:
+        """The window's prior: independent priors on ``state`` (its oldest) at its current estimate, with these
+        roll/pitch [rad], velocity [m/s] and gyro bias [rad/s] sigmas and the config's yaw, position and
+        accelerometer bias sigmas; its covariance is the one carried when marginals fail."""
+        c = self.cfg
+        pose_sig = np.array([tilt_sigma, tilt_sigma, c.prior_sigma_rot_rad] + [c.prior_sigma_pos_m] * 3)
+        bias_sig = np.array([c.prior_sigma_acc_bias] * 3 + [gyro_bias_sigma] * 3)
+        self._priors = state_priors(state, self.values.atPose3(X(state)), self.values.atVector(V(state)),
+                                    self.values.atConstantBias(B(state)), pose_sig, vel_sigma, bias_sig)
+        self._prior_cov = np.diag(np.r_[pose_sig, [vel_sigma] * 3, bias_sig] ** 2)  # marginal_prior's order
 
     def forget_triangulations(self) -> None:
         """Every landmark leaves the graph (its observations stay; it is triangulated again from the poses)."""

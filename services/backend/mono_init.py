@@ -20,10 +20,9 @@ from __future__ import annotations
 import cv2
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import B, V, X
+from gtsam.symbol_shorthand import V, X
 
 from services.backend.init import rotation_aligning
-from services.backend.priors import state_priors
 from services.backend.triangulation import triangulate
 
 
@@ -169,10 +168,7 @@ def bootstrap(est, n: int, min_features: int, min_parallax_rad: float, ransac_px
         est.values.update(X(s), gtsam.Pose3(T))
         est.values.update(V(s), R_WCa @ v_0[k])
     c = est.cfg
-    pose_sig = np.array([c.prior_sigma_tilt_moving_rad] * 2 + [c.prior_sigma_rot_rad] + [c.prior_sigma_pos_m] * 3)
-    bias_sig = np.array([c.prior_sigma_acc_bias] * 3 + [c.prior_sigma_gyro_bias] * 3)
-    est.replace_priors(state_priors(a, est.values.atPose3(X(a)), est.values.atVector(V(a)),
-                                    est.values.atConstantBias(B(a)), pose_sig, 0.1, bias_sig))
+    est.reset_prior(a, c.prior_sigma_tilt_moving_rad, 0.1, c.prior_sigma_gyro_bias)
     est.forget_triangulations()  # triangulated from the drifting poses: start again
     return ""
 
