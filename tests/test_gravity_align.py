@@ -21,12 +21,15 @@ def _up_error_deg(T, T_gt):
     return float(np.degrees(np.arccos(np.clip(up @ up_gt, -1, 1))))
 
 
-def _window(tilt: np.ndarray, acc_bias: np.ndarray, gyro_bias_error: np.ndarray = np.zeros(3)):
+def _window(tilt: np.ndarray, acc_bias: np.ndarray, gyro_bias_error: np.ndarray = np.zeros(3), motion: float = 1.0):
     """Keyframes every 0.2 s over 1.2 s of an accelerating, turning flight: values at the ground truth turned by
     ``tilt`` about the first position (as a wrongly tilted W would hold them), the window's bias estimate
     (``acc_bias``, the true gyro bias + ``gyro_bias_error``), and the exact pre-integrations between keyframes
     (integrated at a zero bias, as a moving start's first window has them)."""
-    tr = sim.Trajectory()
+    tr = sim.Trajectory(scale=motion)
+    if motion == 0.0:  # standing, tilted: the attitude of a drone on uneven ground
+        tr.e_amp = np.zeros((3, 2))
+        tr.yaw_rate = 0.0
     times = 3.0 + 0.2 * np.arange(7)
     st, om, ac = sim.imu(tr, 2.9, times[-1] + 0.1, 400.0)
     om = om + GYRO_BIAS
@@ -105,3 +108,13 @@ def test_an_inconsistent_window_is_refused():
         T[:3, 3] = p0 + 1.3 * (T[:3, 3] - p0)
         values.update(X(k), gtsam.Pose3(T))
     assert align_window(values, list(range(7)), pims, T_SC, 9.81, max_scale_error=0.1) is None
+
+
+def test_a_window_that_stands_still_is_aligned_with_its_scale_held():
+    """A stereo window that barely moved (a drone on the ground with its rotors running fails the static test):
+    the free scale is undetermined, so below min_travel_m it is held at 1 and gravity still comes out."""
+    values, pims, gt, _, _ = _window(np.radians(2.0) * np.array([1.0, 0.0, 0.0]), np.zeros(3), motion=0.0)
+    assert align_window(values, list(range(7)), pims, T_SC, 9.81, max_scale_error=0.1) is None  # scale free
+    out, info = align_window(values, list(range(7)), pims, T_SC, 9.81, max_scale_error=0.1, min_travel_m=0.2)
+    assert info.scale == 1.0 and info.rotation_deg == pytest.approx(2.0, abs=0.05)
+    assert max(_up_error_deg(out.atPose3(X(k)).matrix(), gt[k]) for k in range(7)) < 0.05

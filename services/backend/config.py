@@ -89,6 +89,9 @@ class BackendConfig:
     moving_align_min_stereo: int = param(10, "... only when the newest keyframe sees at least this many landmarks in "
                                          "two cameras at once (without overlapping cameras vision has no scale of its "
                                          "own to tell the tilt by)")
+    moving_align_min_travel_m: float = param(0.2, "... its free scale is the check when the cameras travelled this "
+                                             "far over the window; below, the scale is held at 1 (a drone standing "
+                                             "with its rotors running fails the static test, and shows no scale)", "m")
     moving_align_max_scale_error: float = param(0.1, "... the alignment is refused (and tried again at the next "
                                                 "keyframe, up to 3x moving_align_after_s) when its free scale is off "
                                                 "1 by more than this (relative)")

@@ -270,7 +270,7 @@ class WindowedVioEstimator:
             self._gravity_pending = False       # the window's positions follow the IMU and show no tilt to align
             return graph
         got = align_window(self.values, states, [self._imu_factors[s].preintegratedMeasurements() for s in states[1:]],
-                           self._T_SC[0], c.gravity_m_s2, c.moving_align_max_scale_error)
+                           self._T_SC[0], c.gravity_m_s2, c.moving_align_max_scale_error, c.moving_align_min_travel_m)
         if got is None:
             self.gravity_alignment_failures += 1
             log.info("moving start: the window's gravity alignment was refused (implausible, or its scale off by "

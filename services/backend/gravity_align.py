@@ -10,7 +10,8 @@ knows, and turns the whole window once:
 1. each keyframe's body pose relative to the oldest one (vision's, metric with stereo) and the IMU deltas between
    consecutive keyframes (pre-integrated) give the keyframes' velocities
    and gravity in the oldest keyframe's frame by the linear least squares of :func:`services.backend.mono_init.align`
-   (its scale, which should come out 1, is the check); the deltas take the window's gyro bias but a zero
+   (its scale, which should come out 1, is the check; held at 1 when the window barely moved, as a drone standing
+   with its rotors running, which fails the static test, does); the deltas take the window's gyro bias but a zero
    accelerometer bias, which the window's estimate has bent to fit its tilt;
 2. the window (poses, velocities, landmarks) is rotated about the oldest keyframe's position by the smallest
    rotation that takes that gravity to -z of W (yaw kept), the velocities replaced by the alignment's, the
@@ -50,11 +51,12 @@ def imu_deltas(pim, bias: gtsam.imuBias.ConstantBias, gravity: float
     return nav.attitude().matrix(), nav.position() - 0.5 * g * dt * dt, nav.velocity() - g * dt, dt
 
 
-def gravity_in_window(values: gtsam.Values, states: list[int], pims: list, T_SC: np.ndarray, gravity: float
-                      ) -> tuple[np.ndarray, np.ndarray, float] | None:
+def gravity_in_window(values: gtsam.Values, states: list[int], pims: list, T_SC: np.ndarray, gravity: float,
+                      min_travel_m: float = 0.0) -> tuple[np.ndarray, np.ndarray, float] | None:
     """(gravity (3,) in W as the window's poses and IMU deltas see it, velocities (K,3) in W, scale) for the
     keyframes ``states`` (oldest first; ``pims[k]`` the pre-integration from states[k] to states[k+1]); None when
-    the alignment is implausible."""
+    the alignment is implausible. The scale is solved for (a check: 1 for a consistent window) when the cameras
+    travelled ``min_travel_m`` or more, else held at 1 (a body that stands or hovers shows gravity, not scale)."""
     T = [values.atPose3(X(s)).matrix() for s in states]
     R_WC0 = T[0][:3, :3] @ T_SC[:3, :3]
     T_C0W = np.linalg.inv(T[0] @ T_SC)
@@ -65,8 +67,9 @@ def gravity_in_window(values: gtsam.Values, states: list[int], pims: list, T_SC:
     # has absorbed the tilt (1.2 m/s^2 for 7 deg), which would hide it here
     deltas = [imu_deltas(p, gtsam.imuBias.ConstantBias(np.zeros(3), values.atConstantBias(B(s)).gyroscope()), gravity)
               for p, s in zip(pims, states[:-1])]
+    travel = float(np.max(np.linalg.norm(c_0 - c_0[0], axis=1)))
     res = align(R_0S, c_0, T_SC[:3, 3], np.array([d[1] for d in deltas]), np.array([d[2] for d in deltas]),
-                np.array([d[3] for d in deltas]), gravity)
+                np.array([d[3] for d in deltas]), gravity, None if travel >= min_travel_m else 1.0)
     if res is None:
         return None
     scale, v_0, g_0 = res
@@ -90,11 +93,11 @@ def turn_window(values: gtsam.Values, states: list[int], landmarks, R: np.ndarra
 
 
 def align_window(values: gtsam.Values, states: list[int], pims: list, T_SC: np.ndarray, gravity: float,
-                 max_scale_error: float) -> tuple[gtsam.Values, GravityAlignment] | None:
+                 max_scale_error: float, min_travel_m: float = 0.0) -> tuple[gtsam.Values, GravityAlignment] | None:
     """The window turned so that the gravity it measures points along -z of W (see the module doc), with the
-    alignment's velocities and a zero accelerometer bias; None when the alignment is implausible or its scale is
-    off by more than ``max_scale_error`` (relative)."""
-    got = gravity_in_window(values, states, pims, T_SC, gravity)
+    alignment's velocities and a zero accelerometer bias; None when the alignment is implausible or its scale
+    (solved for from ``min_travel_m`` of travel) is off by more than ``max_scale_error`` (relative)."""
+    got = gravity_in_window(values, states, pims, T_SC, gravity, min_travel_m)
     if got is None or abs(got[2] - 1.0) > max_scale_error:
         return None
     g_W, v_W, scale = got

@@ -39,28 +39,34 @@ def two_view(xy_a: np.ndarray, xy_b: np.ndarray, ransac_rad: float) -> tuple[np.
 
 
 def align(R_0S: np.ndarray, c_0: np.ndarray, t_SC: np.ndarray, dp: np.ndarray, dv: np.ndarray, dt: np.ndarray,
-          gravity: float) -> tuple[float, np.ndarray, np.ndarray] | None:
+          gravity: float, scale: float | None = None) -> tuple[float, np.ndarray, np.ndarray] | None:
     """Metric scale s, velocities (K,3) and gravity (3,) in the frame of the first camera, from up-to-scale
     camera centres ``c_0`` (K,3), body rotations ``R_0S`` (K,3,3), lever arm ``t_SC`` and the IMU deltas of
     consecutive keyframes ``dp``, ``dv`` (K-1,3) (in the earlier body frame), ``dt`` (K-1,) [s].
 
     Body position p_k = s c_k - R_0S_k t_SC; p_k+1 = p_k + v_k dt + g dt^2 / 2 + R_k dp_k;
     v_k+1 = v_k + g dt + R_k dv_k. Solved once freely, then with |g| = ``gravity`` (direction of the first
-    solve). None when the solution is implausible (negative scale, |g| far from ``gravity``)."""
+    solve). ``scale`` given (metric centres: a stereo window): s is that, not solved for (a window that barely
+    moved does not tell it). None when the solution is implausible (negative scale, |g| far from ``gravity``)."""
     K = len(c_0)
     lever = R_0S @ t_SC  # (K,3)
+    free = scale is None  # the unknowns: K velocities, then s if free, then g if not fixed
 
     def solve(g_fixed: np.ndarray | None):
-        n = 3 * K + 1 + (3 if g_fixed is None else 0)
+        n = 3 * K + int(free) + (3 if g_fixed is None else 0)
+        gcol = 3 * K + int(free)
         rows, rhs = [], []
         for k in range(K - 1):
             R, h = R_0S[k], dt[k]
             A = np.zeros((3, n))
             A[:, 3 * k:3 * k + 3] = -h * np.eye(3)
-            A[:, 3 * K] = c_0[k + 1] - c_0[k]
             b = R @ dp[k] + lever[k + 1] - lever[k]
+            if free:
+                A[:, 3 * K] = c_0[k + 1] - c_0[k]
+            else:
+                b = b - scale * (c_0[k + 1] - c_0[k])
             if g_fixed is None:
-                A[:, 3 * K + 1:] = -0.5 * h * h * np.eye(3)
+                A[:, gcol:] = -0.5 * h * h * np.eye(3)
             else:
                 b = b + 0.5 * h * h * g_fixed
             rows.append(A)
@@ -70,23 +76,22 @@ def align(R_0S: np.ndarray, c_0: np.ndarray, t_SC: np.ndarray, dp: np.ndarray, d
             A[:, 3 * k:3 * k + 3] = -np.eye(3)
             b = R @ dv[k]
             if g_fixed is None:
-                A[:, 3 * K + 1:] = -h * np.eye(3)
+                A[:, gcol:] = -h * np.eye(3)
             else:
                 b = b + h * g_fixed
             rows.append(A)
             rhs.append(b)
         x = np.linalg.lstsq(np.concatenate(rows), np.concatenate(rhs), rcond=None)[0]
-        return x
+        return x, (float(x[3 * K]) if free else float(scale))
 
     if K < 4:
         return None
-    x = solve(None)
-    g = x[3 * K + 1:]
-    if not 0.8 * gravity < np.linalg.norm(g) < 1.2 * gravity or x[3 * K] <= 0:
+    x, s = solve(None)
+    g = x[3 * K + int(free):]
+    if not 0.8 * gravity < np.linalg.norm(g) < 1.2 * gravity or s <= 0:
         return None
     g = g / np.linalg.norm(g) * gravity
-    x = solve(g)
-    s = float(x[3 * K])
+    x, s = solve(g)
     if s <= 0:
         return None
     return s, x[:3 * K].reshape(K, 3), g
