@@ -158,13 +158,14 @@ class EurocDataset:
         ``imu_margin_ns``: yield only the IMU samples from this long before the first frame to this long after
         the last (the rest is counted in ``stats['imu_outside_frames']``); None: every sample. ``start_ns`` > 0:
         begin that long after the first frame, as if the sensors were switched on there (mid-flight): earlier
-        frames are left out, and earlier IMU samples too, but for the margin. Each frame's images are
+        frames are left out, and earlier IMU samples too, but for the margin (they count as outside the frames). Each frame's images are
         read right after the frame before it is yielded, so that a player at sensor rate does not decode them when
         they fall due (two 752x480 PNGs cost ~5 ms).
         """
         i = j = seq_i = seq_f = 0
         ahead, ahead_j = None, -1  # the next frame's images, read as soon as the frame before it was yielded
         ti, tf = self.imu_stamps_ns, self.frame_stamps_ns
+        values = self.imu_values
         if start_ns < 0:
             raise ValueError(f"start_ns must be >= 0, got {start_ns}")
         if start_ns > 0 and len(tf):
@@ -172,11 +173,8 @@ class EurocDataset:
             if not len(tf):
                 raise DatasetError(f"{self.root}: no frame {start_ns * 1e-9:.1f} s or more after the first; the "
                                    f"sequence spans {(self.frame_stamps_ns[-1] - self.frame_stamps_ns[0]) * 1e-9:.1f} s")
-            margin = 0 if imu_margin_ns is None else imu_margin_ns
-            ti_keep = ti >= tf[0] - margin
-            ti, imu_values = ti[ti_keep], self.imu_values[ti_keep]
-        else:
-            imu_values = self.imu_values
+            if imu_margin_ns is None:  # every sample from the start on
+                ti, values = ti[ti >= tf[0]], values[ti >= tf[0]]
         span = (int(tf[0]), int(tf[-1])) if len(tf) else None
         if imu_margin_ns is not None and span is not None:
             keep = (ti >= span[0] - imu_margin_ns) & (ti <= span[1] + imu_margin_ns)
@@ -184,10 +182,7 @@ class EurocDataset:
             if not keep.all():
                 log.info("%s: %d of %d IMU samples lie more than %.2f s outside the frames' span; not played",
                          self.root / "imu0" / "data.csv", int((~keep).sum()), len(ti), imu_margin_ns * 1e-9)
-            ti = ti[keep]
-            values = imu_values[keep]
-        else:
-            values = imu_values
+            ti, values = ti[keep], values[keep]
         while i < len(ti) or j < len(tf):
             if j >= len(tf) or (i < len(ti) and ti[i] <= tf[j]):
                 v = values[i]

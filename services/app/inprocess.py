@@ -30,6 +30,7 @@ import numpy as np
 
 from services.backend.node import BackendNode
 from services.frontend.process_node import FrontendProcessNode
+from services.player.config import PlayerConfig
 from shared import topics
 from shared.config import override
 from shared.dataflow import InProcessRunner, ProcessNode
@@ -38,14 +39,12 @@ from shared.messages import EstimatorState, FinalTrajectory, Header, ImuSample, 
 from shared.rig import load_rig_config
 
 
-def dataset_source(ds: EurocDataset, max_frames: int = 0, imu_margin_s: float = 1.0, seconds: float = 0.0,
-                   start_s: float = 0.0) -> Iterator:
-    """(topic, message) of a dataset as the player sends them (IMU and frames in time order, IMU only within
-    ``imu_margin_s`` of the frames; ``start_s`` > 0 begins that long after the first frame, ``max_frames`` > 0
-    stops after that many frames, ``seconds`` > 0 before the first frame more than that long after the first one
-    played [s]), then the player's StreamEnd."""
+def dataset_source(ds: EurocDataset, player: PlayerConfig, max_frames: int = 0, seconds: float = 0.0) -> Iterator:
+    """(topic, message) of a dataset as the player of config ``player`` sends them (IMU and frames in time order,
+    within its IMU margin, from its start; ``max_frames`` > 0 stops after that many frames, ``seconds`` > 0 before
+    the first frame more than that long after the first one played [s]), then the player's StreamEnd."""
     frames, first, last = 0, None, 0
-    for msg in ds.messages(None if imu_margin_s < 0 else int(round(imu_margin_s * 1e9)), int(round(start_s * 1e9))):
+    for msg in player.messages(ds):
         if isinstance(msg, ImuSample):
             yield topics.IMU, msg
             continue
@@ -156,7 +155,7 @@ def run_in_process(dataset: str, cfg, max_frames: int = 0, depth: bool = False, 
     collect = _Collector(nodes)
     runner = InProcessRunner(list(nodes.values()), taps=[collect, *taps])
     ds = EurocDataset(dataset)
-    runner.run(dataset_source(ds, max_frames, cfg.player.imu_margin_s, seconds, cfg.player.start_s))
+    runner.run(dataset_source(ds, cfg.player, max_frames, seconds))
     if mapping and not collect.final:
         collect.snapshot_map()
     if len(collect.loop_s) < len(collect.busy_before):  # the last frame call published no state

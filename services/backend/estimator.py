@@ -30,7 +30,6 @@ Design choices:
 from __future__ import annotations
 
 import dataclasses
-import logging
 from typing import Sequence
 
 import gtsam
@@ -42,7 +41,7 @@ from services.backend.cameras import BackendCamera, camera_from_calib  # noqa: F
 from services.backend.config import BackendConfig
 from services.backend.extrinsics import ExtrinsicRefinement
 from services.backend.frame_result import FrameResult, to_message_covariance
-from services.backend.gravity_align import GravityAlignment, align_window
+from services.backend.gravity_align import GravityAlignment, MovingStartAligner
 from services.backend.imu_factors import ImuBuffer, imu_factor, make_bias, make_params, predict
 from services.backend.motion_only import optimise_latest
 from services.backend.priors import marginal_prior, state_priors, window_marginals
@@ -56,8 +55,6 @@ from services.backend.triangulation import new_landmarks
 from services.backend.vision_factors import ProjectionModel
 from services.backend.window_rules import (BackendInputError, keyframe_due,  # noqa: F401 (re-exported)
                                            observation_arrays, reprojection_outliers)
-
-log = logging.getLogger("sigmaslam.backend")
 
 
 def _state_keys(n: int) -> list[int]:
@@ -113,9 +110,7 @@ class WindowedVioEstimator:
         self.last_error = ""
         self._marginals: gtsam.Marginals | None = None
         self._first_frame_pending = False
-        self._gravity_pending = False  # a moving start's window waits to be turned to its measured gravity
-        self.gravity_alignment: GravityAlignment | None = None
-        self.gravity_alignment_failures = 0
+        self._gravity = MovingStartAligner(cfg)  # a moving start's window is turned to its measured gravity
         self._extra_factors = tuple(extra_factors)
         self._on_marginalise = tuple(on_marginalise)
 
@@ -139,8 +134,7 @@ class WindowedVioEstimator:
             self.reset_prior(n, c.prior_sigma_tilt_moving_rad, c.prior_sigma_vel_moving_m_s,
                              c.prior_sigma_gyro_bias_moving)
         self.keyframes = [n]
-        # several cameras, moving start: gravity is measured again from the first keyframes (gravity_align.py)
-        self._gravity_pending = not static and len(self.cameras) > 1 and c.moving_align_after_s > 0
+        self._gravity.start(static, len(self.cameras))
         if self._extrinsics is not None:
             self._extrinsics.start(self.values, self._T_SC)
         self.initialised = True
@@ -202,20 +196,16 @@ class WindowedVioEstimator:
                     self._still.clear()  # only the speed priors of the wait: the rebuild knows the velocities
                     self.mono_bootstraps += 1
         self._triangulate_new(n)
-        graph = self._build_graph(n)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(self.cfg.lm_max_iterations)
         params.setRelativeErrorTol(self.cfg.lm_relative_error_tol)
-        params.setOrdering(self._schur_ordering())  # landmarks first: cheaper than COLAMD at this size
         try:
-            self.values = gtsam.LevenbergMarquardtOptimizer(graph, self.values, params).optimize()
+            graph = self._optimise(n, params)
         except RuntimeError as exc:  # e.g. an indeterminant system: fall back to the IMU chain alone
             self.failed_optimisations += 1
             self.last_error = str(exc)
             self.forget_triangulations()
-            graph = self._build_graph(n)
-            params.setOrdering(self._schur_ordering())
-            self.values = gtsam.LevenbergMarquardtOptimizer(graph, self.values, params).optimize()
+            graph = self._optimise(n, params)
         if self._extrinsics is not None:
             self._T_SC = self._extrinsics.read(self.values)
             self._vision.set_extrinsics(self._T_SC)
@@ -223,8 +213,13 @@ class WindowedVioEstimator:
         # (a pass over every observation of the window) is only worth it when the frame stays
         if (keyframe or self.cfg.reject_outliers_every_frame) and self._reject_outliers():
             graph = self._build_graph(n)
-        if keyframe and self._gravity_pending and n != last_kf:
-            graph = self._align_gravity(n, graph, params)
+        if keyframe and n != last_kf and self._gravity.try_align(self, n):  # a moving start's window turned
+            try:
+                graph = self._optimise(n, params)
+            except RuntimeError as exc:
+                self.failed_optimisations += 1
+                self.last_error = str(exc)
+                graph = self._build_graph(n)
         if keyframe and self.time_offset is not None and n != self.keyframes[-1]:  # time_offset.py
             e, g = interval_residual(self.values, self.imu, self.stamps, self.keyframes[-1], n)
             self.time_offset.update(e, g, np.radians(self.cfg.time_offset_rotation_sigma_deg))
@@ -255,41 +250,11 @@ class WindowedVioEstimator:
         self.imu.prune_before(self.stamps[self.keyframes[-1]])
         return result
 
-    def _align_gravity(self, n: int, graph: gtsam.NonlinearFactorGraph, params) -> gtsam.NonlinearFactorGraph:
-        """A moving start's window, once its keyframes (and ``n``) span ``moving_align_after_s``: turned to the
-        gravity it measures, its oldest state's prior reset there, optimised again (gravity_align.py). The graph
-        of the window as it is afterwards."""
-        c, states = self.cfg, [*self.keyframes, n]
-        span_s = (self.stamps[n] - self.stamps[states[0]]) * 1e-9
-        # due once the keyframes span moving_align_after_s, or when the window is full before that (keyframes
-        # every 0.1 s: 8 span 0.8 s), before its oldest keyframe is marginalised with the tilt it has
-        if len(states) < 4 or (span_s < c.moving_align_after_s and len(self.keyframes) < c.window_keyframes):
-            return graph
-        stereo = sum(len({cam for cam, _ in obs}) > 1 for obs in self._book.of_state(n).values())
-        if stereo < c.moving_align_min_stereo:  # cameras that do not overlap: no metric hold of vision's own, so
-            self._gravity_pending = False       # the window's positions follow the IMU and show no tilt to align
-            return graph
-        got = align_window(self.values, states, [self._imu_factors[s].preintegratedMeasurements() for s in states[1:]],
-                           self._T_SC[0], c.gravity_m_s2, c.moving_align_max_scale_error, c.moving_align_min_travel_m)
-        if got is None:
-            self.gravity_alignment_failures += 1
-            log.info("moving start: the window's gravity alignment was refused (implausible, or its scale off by "
-                     "more than %.0f %%)", 100 * c.moving_align_max_scale_error)
-            self._gravity_pending = span_s < 3 * c.moving_align_after_s  # else keep the window as it is
-            return graph
-        self.values, self.gravity_alignment = got
-        self._gravity_pending = False
-        log.info("moving start: window turned %.2f deg to the gravity its %d keyframes measure (scale %.3f)",
-                 got[1].rotation_deg, got[1].keyframes, got[1].scale)
-        self.reset_prior(states[0], c.prior_sigma_tilt_aligned_rad, c.prior_sigma_vel_moving_m_s,
-                         c.prior_sigma_gyro_bias_moving)
+    def _optimise(self, n: int, params: gtsam.LevenbergMarquardtParams) -> gtsam.NonlinearFactorGraph:
+        """The window's graph (newest state ``n``) built and optimised into ``values``; returns the graph."""
         graph = self._build_graph(n)
-        params.setOrdering(self._schur_ordering())
-        try:
-            self.values = gtsam.LevenbergMarquardtOptimizer(graph, self.values, params).optimize()
-        except RuntimeError as exc:
-            self.failed_optimisations += 1
-            self.last_error = str(exc)
+        params.setOrdering(self._schur_ordering())  # landmarks first: cheaper than COLAMD at this size
+        self.values = gtsam.LevenbergMarquardtOptimizer(graph, self.values, params).optimize()
         return graph
 
     def _motion_only_frame(self, n: int, k: int) -> FrameResult:
@@ -503,6 +468,16 @@ class WindowedVioEstimator:
         """(15,15) covariance of the prior on the window's oldest state, order (rotation, position, velocity,
         accelerometer bias, gyro bias) (a copy)."""
         return self._prior_cov.copy()
+
+    @property
+    def gravity_alignment(self) -> GravityAlignment | None:
+        """What the moving start's gravity alignment did (None: not done, gravity_align.py)."""
+        return self._gravity.result
+
+    @property
+    def gravity_alignment_failures(self) -> int:
+        """Gravity alignments of a moving start refused so far."""
+        return self._gravity.failures
 
     @property
     def mono_pending(self) -> bool:

@@ -23,6 +23,7 @@ flight).
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import gtsam
@@ -31,6 +32,8 @@ from gtsam.symbol_shorthand import B, L, V, X
 
 from services.backend.init import rotation_aligning
 from services.backend.mono_init import align
+
+log = logging.getLogger("sigmaslam.backend")
 
 
 @dataclass(frozen=True)
@@ -78,15 +81,14 @@ def gravity_in_window(values: gtsam.Values, states: list[int], pims: list, T_SC:
 
 def turn_window(values: gtsam.Values, states: list[int], landmarks, R: np.ndarray, pivot: np.ndarray
                 ) -> gtsam.Values:
-    """``values`` with the poses of ``states``, their velocities and the ``landmarks`` rotated by ``R`` about
-    ``pivot`` (a rigid motion of W: vision's residuals are unchanged)."""
+    """``values`` with the poses of ``states`` and the ``landmarks`` rotated by ``R`` about ``pivot`` (a rigid motion
+    of W: vision's residuals are unchanged; the velocities are the caller's to set)."""
     out = gtsam.Values(values)
     for s in states:
         Tk = values.atPose3(X(s)).matrix()
         Tn = np.eye(4)
         Tn[:3, :3], Tn[:3, 3] = R @ Tk[:3, :3], pivot + R @ (Tk[:3, 3] - pivot)
         out.update(X(s), gtsam.Pose3(Tn))
-        out.update(V(s), R @ values.atVector(V(s)))
     for lm in landmarks:
         out.update(L(lm), pivot + R @ (values.atPoint3(L(lm)) - pivot))
     return out
@@ -111,3 +113,50 @@ def align_window(values: gtsam.Values, states: list[int], pims: list, T_SC: np.n
         out.update(B(s), gtsam.imuBias.ConstantBias(np.zeros(3), b.gyroscope()))
     angle = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
     return out, GravityAlignment(angle, float(scale), len(states))
+
+
+class MovingStartAligner:
+    """When a window's gravity alignment is due, and what came of it: started by the estimator's initialisation,
+    tried at each keyframe while pending (:meth:`try_align`), done once or given up."""
+
+    def __init__(self, cfg) -> None:
+        self.cfg = cfg  # BackendConfig
+        self.pending = False
+        self.result: GravityAlignment | None = None
+        self.failures = 0
+
+    def start(self, static: bool, n_cameras: int) -> None:
+        """A new window: due after a moving start of a rig of several cameras (mono_init rebuilds one camera's)."""
+        self.pending = not static and n_cameras > 1 and self.cfg.moving_align_after_s > 0
+
+    def try_align(self, est, n: int) -> bool:
+        """At keyframe ``n`` (about to join the window of ``est``, a WindowedVioEstimator): the window turned to the
+        gravity it measures and its oldest state's prior reset there, when due (the keyframes span
+        ``moving_align_after_s``, or fill the window before that: keyframes every 0.1 s span 0.8 s in 8, and the
+        oldest would be marginalised with the tilt it has). True when it was: the caller optimises again."""
+        c = self.cfg
+        if not self.pending:
+            return False
+        states = [*est.keyframes, n]
+        span_s = (est.stamps[n] - est.stamps[states[0]]) * 1e-9
+        if len(states) < 4 or (span_s < c.moving_align_after_s and len(est.keyframes) < c.window_keyframes):
+            return False
+        stereo = sum(len({cam for cam, _ in obs}) > 1 for obs in est.observations_of(n).values())
+        if stereo < c.moving_align_min_stereo:  # cameras that do not overlap: no metric hold of vision's own, so
+            self.pending = False                # the window's positions follow the IMU and show no tilt to align
+            return False
+        got = align_window(est.values, states, [est.imu_factor_to(s).preintegratedMeasurements() for s in states[1:]],
+                           est.T_SC[0], c.gravity_m_s2, c.moving_align_max_scale_error, c.moving_align_min_travel_m)
+        if got is None:
+            self.failures += 1
+            log.info("moving start: the window's gravity alignment was refused (implausible, or its scale off by "
+                     "more than %.0f %%)", 100 * c.moving_align_max_scale_error)
+            self.pending = span_s < 3 * c.moving_align_after_s  # else keep the window as it is
+            return False
+        est.values, self.result = got
+        self.pending = False
+        log.info("moving start: window turned %.2f deg to the gravity its %d keyframes measure (scale %.3f)",
+                 self.result.rotation_deg, self.result.keyframes, self.result.scale)
+        est.reset_prior(states[0], c.prior_sigma_tilt_aligned_rad, c.prior_sigma_vel_moving_m_s,
+                        c.prior_sigma_gyro_bias_moving)
+        return True

@@ -35,3 +35,9 @@ class PlayerConfig:
                              f"{self.lockstep_timeout_s}")
         if self.max_frames < 0 or self.end_linger_s < 0 or self.start_s < 0:
             raise ValueError("player.max_frames, player.end_linger_s and player.start_s must be >= 0")
+
+    def messages(self, source):
+        """``source``'s messages (a player source or an EuRoC folder's reader) within the IMU margin, from the start
+        this config asks for."""
+        return source.messages(None if self.imu_margin_s < 0 else int(round(self.imu_margin_s * 1e9)),
+                               int(round(self.start_s * 1e9)))

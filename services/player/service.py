@@ -105,8 +105,7 @@ def main(args: argparse.Namespace) -> int:
         last_frame_ns = 0
         t_wall0 = t_data0 = None
         try:
-            messages = iter(ds.messages(None if pc.imu_margin_s < 0 else int(round(pc.imu_margin_s * 1e9)),
-                                        int(round(pc.start_s * 1e9))))
+            messages = iter(pc.messages(ds))
         except DatasetError as exc:
             print(f"sigmaslam player: {exc}", flush=True)
             return 2
