@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from shared.euroc import PoseSeries
-from shared.imu_consistency import accel_mismatch_mm, fit_to_imu, gyro_mismatch_deg, refine_offset
+from shared.imu_consistency import accel_mismatch_mm, fit_to_imu, follow_imu, gyro_mismatch_deg, refine_offset
 from shared.imu_sim import ImuNoise, simulate_imu
 from shared.trajectory import Trajectory, _qmul
 
@@ -72,3 +72,48 @@ def test_fit_to_imu_smooths_noisy_positions_and_keeps_clean_orientations(flight)
     assert np.sqrt(np.mean(np.sum((fit.trajectory.position(t) - truth.position(t)) ** 2, axis=1))) < 2e-3
     with pytest.raises(ValueError, match="at least one candidate"):
         fit_to_imu(noisy, imu, rotation_knots_s=())
+
+
+def _rotation_error_deg(a: Trajectory, b: Trajectory, t: np.ndarray) -> np.ndarray:
+    from shared.geometry import so3_log
+    return np.degrees(np.linalg.norm(so3_log(np.einsum("nji,njk->nik", a.rotation(t), b.rotation(t))), axis=1))
+
+
+def test_follow_imu_takes_the_fine_motion_the_ground_truth_got_wrong_from_the_imu(flight):
+    truth, gt, imu = flight
+    # a motion-capture ground truth that wobbles where the body did not: 0.3 deg at 1.3 Hz and 0.2 deg at 3.1 Hz
+    # about changing axes, and 2 mm of slow jitter in position (what a lost marker or a laser tracker does)
+    s = (gt.stamps_ns - gt.stamps_ns[0]) * 1e-9
+    wobble = np.radians(np.column_stack([0.3 * np.sin(2 * np.pi * 1.3 * s), 0.2 * np.sin(2 * np.pi * 3.1 * s + 1),
+                                         0.25 * np.sin(2 * np.pi * 0.7 * s + 2)]))
+    from shared.geometry import R_to_quat_wxyz, so3_exp
+    q = R_to_quat_wxyz(truth.rotation(gt.stamps_ns) @ so3_exp(wobble))
+    dp = 0.002 * np.column_stack([np.sin(2 * np.pi * 0.9 * s), np.sin(2 * np.pi * 1.7 * s + 1), np.sin(2 * np.pi * 2.3 * s)])
+    bad = dataclasses.replace(gt, p_WS=gt.p_WS + dp, q_WS_wxyz=q)
+    spline = fit_to_imu(bad, imu, rotation_knots_s=(0.01,), position_knots_s=(0.05,), follow=False)
+    fit = fit_to_imu(bad, imu, rotation_knots_s=(0.01,), position_knots_s=(0.05,))
+    assert fit.spline_gyro_mismatch_deg == pytest.approx(spline.gyro_mismatch_deg)
+    assert fit.gyro_mismatch_deg < spline.gyro_mismatch_deg / 5
+    assert fit.accel_mismatch_mm < spline.accel_mismatch_mm / 5
+    t = imu.stamps_ns[400:-400]  # 2 s inside the ends, where the zero-phase filters have settled
+    rot_before, rot_after = _rotation_error_deg(spline.trajectory, truth, t), _rotation_error_deg(fit.trajectory, truth, t)
+    assert np.sqrt(np.mean(rot_after ** 2)) < np.sqrt(np.mean(rot_before ** 2)) / 5
+    pos_before = np.linalg.norm(spline.trajectory.position(t) - truth.position(t), axis=1)
+    pos_after = np.linalg.norm(fit.trajectory.position(t) - truth.position(t), axis=1)
+    assert np.sqrt(np.mean(pos_after ** 2)) < np.sqrt(np.mean(pos_before ** 2)) / 3
+
+
+def test_follow_imu_keeps_an_exact_ground_truth_whatever_the_imu_biases(flight):
+    truth, gt, imu = flight
+    biased = dataclasses.replace(imu, omega_S=imu.omega_S + [0.05, -0.03, 0.08], acc_S=imu.acc_S + [0.2, -0.1, 0.15])
+    followed = follow_imu(truth, biased)
+    t = imu.stamps_ns[400:-400]
+    assert _rotation_error_deg(followed, truth, t).max() < 0.05
+    # the accelerometer's white noise, integrated twice above 0.3 Hz, moves the position by ~1 mm
+    assert np.linalg.norm(followed.position(t) - truth.position(t), axis=1).max() < 2e-3
+    assert gyro_mismatch_deg(followed, biased) < 0.006 and accel_mismatch_mm(followed, biased) < 0.3
+    with pytest.raises(ValueError, match="cut-off"):
+        follow_imu(truth, imu, rotation_cutoff_hz=0.0)
+    with pytest.raises(ValueError, match="at least 100"):
+        follow_imu(truth, dataclasses.replace(imu, stamps_ns=imu.stamps_ns[:50], omega_S=imu.omega_S[:50],
+                                              acc_S=imu.acc_S[:50]))

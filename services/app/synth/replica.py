@@ -3,8 +3,8 @@
 Steps: read the ground truth (EuRoC CSV or TUM) and, for ``imu='real'``, the recorded imu0 data;
 estimate the clock offset between the two (:func:`shared.imu_sim.time_offset`) and shift the ground
 truth onto the IMU/camera clock; fit a smooth :class:`shared.trajectory.Trajectory` (with a recorded IMU, the
-knot spacings and the offset that agree best with it: :mod:`shared.imu_consistency`; the agreement reached is
-written to ``replica.yaml``, ``trajectory_fit``); render every
+knot spacings and the offset that agree best with it, then the IMU's own fine motion on top:
+:mod:`shared.imu_consistency`; the agreement reached is written to ``replica.yaml``, ``trajectory_fit``); render every
 camera at the real image stamps from it; write imu0 (real samples, or simulated from the trajectory
 with the imu0 noise model) and ``state_groundtruth_estimate0`` (17 columns, sampled from the same
 trajectory at the IMU stamps) so that images, IMU and ground truth agree. Output: the EuRoC ASL
@@ -25,7 +25,8 @@ from shared.config import param, to_dict
 from shared.depth_io import choose_scale, write_depth_png, write_depth_sensor_yaml
 from shared.euroc import PoseSeries, read_trajectory
 from shared.euroc_writer import write_euroc
-from shared.imu_consistency import POSITION_KNOTS_S, ROTATION_KNOTS_S, fit_to_imu
+from shared.imu_consistency import (POSITION_CUTOFF_HZ, POSITION_KNOTS_S, ROTATION_CUTOFF_HZ, ROTATION_KNOTS_S,
+                                    fit_to_imu)
 from shared.imu_sim import ImuData, ImuNoise, read_imu_csv, simulate_imu, time_offset
 from shared.paths import euroc_files
 from shared.trajectory import Trajectory
@@ -34,7 +35,8 @@ from services.app.synth.scene import build_scene
 
 # Bumped whenever a replica of the same spec would come out different; a cached replica of an older version is
 # made again (services/app/synth/api.py). 2: the trajectory fitted to the recorded IMU (shared/imu_consistency.py).
-GENERATOR_VERSION = 2
+# 3: the IMU's fine motion on top of that fit (imu_consistency.follow_imu): images that agree with the recorded IMU.
+GENERATOR_VERSION = 3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -133,7 +135,7 @@ def plan(spec: ReplicaSpec) -> dict:
     if spec.imu not in ("real", "sim"):
         raise ValueError(f"replica: imu must be 'real' or 'sim', got {spec.imu!r}")
     gt = read_trajectory(files["groundtruth"])
-    offset_ns, corr, consistency = 0, float("nan"), {}
+    offset_ns, corr = 0, float("nan")
     real = read_imu_csv(files["imu"]) if "imu" in files else None
     if spec.imu == "real":
         offset_ns, _, c = time_offset(Trajectory(gt), real)
@@ -143,10 +145,17 @@ def plan(spec: ReplicaSpec) -> dict:
                          (spec.knot_spacing_s,) if spec.knot_spacing_s else POSITION_KNOTS_S)
         traj, offset_ns = fit.trajectory, offset_ns + fit.offset_ns  # and to 0.1 ms
         gt = dataclasses.replace(gt, stamps_ns=gt.stamps_ns - fit.offset_ns)
-        consistency = {"gyro_mismatch_deg_per_50ms": round(fit.gyro_mismatch_deg, 4),
+        consistency = {"position_knot_spacing_s": round(fit.position_knot_spacing_s, 4),
+                       "rotation_knot_spacing_s": round(fit.rotation_knot_spacing_s, 4),
+                       "spline_gyro_mismatch_deg_per_50ms": round(fit.spline_gyro_mismatch_deg, 4),
+                       "spline_accel_mismatch_mm_per_250ms": round(fit.spline_accel_mismatch_mm, 3),
+                       "follows_imu_above_hz": {"rotation": ROTATION_CUTOFF_HZ, "position": POSITION_CUTOFF_HZ},
+                       "gyro_mismatch_deg_per_50ms": round(fit.gyro_mismatch_deg, 4),
                        "accel_mismatch_mm_per_250ms": round(fit.accel_mismatch_mm, 3)}
     else:
         traj = Trajectory(gt, spec.knot_spacing_s or 0.05, spec.rotation_knot_spacing_s or None)
+        consistency = {"position_knot_spacing_s": round(traj.knot_spacing_s, 4),
+                       "rotation_knot_spacing_s": round(traj.rotation_knot_spacing_s, 4)}
     frames = np.loadtxt(files["image_timestamps"], dtype=np.int64, comments="#", ndmin=1)
     if np.any(np.diff(frames) <= 0):
         raise ValueError(f"{files['image_timestamps']}: image timestamps not strictly increasing")
@@ -245,9 +254,7 @@ def generate(spec: ReplicaSpec, out: str | Path, progress: bool = True) -> Path:
             "frames": int(len(frames)), "imu_samples": int(len(imu_stamps)),
             "generator_version": GENERATOR_VERSION,
             "groundtruth_clock_offset_ns": int(p["offset_ns"]), "offset_correlation": p["offset_corr"],
-            "trajectory_fit": {"position_knot_spacing_s": round(traj.knot_spacing_s, 4),
-                               "rotation_knot_spacing_s": round(traj.rotation_knot_spacing_s, 4),
-                               **p["imu_consistency"]},
+            "trajectory_fit": p["imu_consistency"],
             "scene": {"name": scene.name, "seed": scene.seed, "triangles": int(len(scene.triangles)),
                       "room_min": scene.room_min.tolist(), "room_max": scene.room_max.tolist()},
             "depth_scale_m": scale, "stats": stats, "generation_s": round(time.monotonic() - t_start, 1)}
