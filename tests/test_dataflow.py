@@ -4,6 +4,7 @@ pacing, idle inputs, ticks and the graph of declarations."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from shared import topics
 from shared.dataflow import Emit, InProcessRunner, Input, ProcessNode, graph
@@ -155,3 +156,33 @@ def test_after_publish_runs_after_each_trigger_before_the_next():
     assert node.log == [(k, 1_000_000_000 + i * 50_000_000) for i in range(3) for k in ("frame", "after")]
     assert [ok for _, ok in waiter.handled] == [True] * 3  # what the handler emitted still arrives
     assert len(runner.times[("late_poser", "after_publish")]) == 3
+
+
+def _paced_rate(costs_s, period_s: float = 0.1, frame_dt_s: float = 0.05, rule=None) -> float:
+    """Messages handled per second by the live runner's pacing (a frame every ``frame_dt_s``, handling costs
+    ``costs_s`` in turn), simulated on a clock: the frame taken is the newest one at the take."""
+    from transport.runner import next_trigger_time
+    rule = rule or next_trigger_time
+    now, next_t, taken, last_frame = 0.0, 0.0, 0, -1
+    for cost in costs_s:
+        now = max(now, next_t)
+        frame = int(np.floor(now / frame_dt_s + 1e-9))  # the newest frame; wait for the next when it was taken
+        if frame <= last_frame:
+            frame, now = last_frame + 1, (last_frame + 1) * frame_dt_s
+        last_frame, taken = frame, taken + 1
+        next_t = rule(next_t, now, period_s)
+        now += cost
+    return taken / now
+
+
+def test_paced_trigger_keeps_its_average_rate_when_some_messages_are_slow():
+    # the depth service at 10 Hz on 20 Hz frames: 40 ms per frame, every fifth 160 ms (an MVS keyframe)
+    costs = [0.04, 0.04, 0.04, 0.04, 0.16] * 40
+    assert _paced_rate(costs) == pytest.approx(10.0, abs=0.15)
+    # the old rule (a period after each take) loses the slow ones' overrun: ~9.2 Hz
+    assert _paced_rate(costs, rule=lambda scheduled, now, period: now + period) < 9.4
+    # a node slower than its period on every message runs as fast as it can, without bursts
+    assert _paced_rate([0.15] * 100) == pytest.approx(1 / 0.15, rel=0.05)
+    from transport.runner import next_trigger_time
+    assert next_trigger_time(0.0, 10.0, 0.1) == pytest.approx(9.95)  # after a long stall: one more at once,
+    assert next_trigger_time(9.95, 10.01, 0.1) == pytest.approx(10.05)  # then on the schedule again

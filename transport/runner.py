@@ -9,8 +9,9 @@ The node's declared inputs become subscribers (their queue policy and depth), it
 blocks on the trigger input; before each trigger message it drains the side inputs (first those the trigger waits
 for, up to ``node.wait_s`` until one is stamped at or after the trigger, then the others in declared order), sheds
 a backlog with the node's ``shed`` method when the trigger input declares one, and times the trigger's handler as
-the node's stage in ``stats/<name>``, publishes what it returned, then calls the node's ``after_publish``; with ``node.trigger_period_s`` it takes a trigger message at most that often
-(a keep-latest trigger queue then drops the ones in between, counted). While no trigger message comes it drains the side inputs, hands the idle
+the node's stage in ``stats/<name>``, publishes what it returned, then calls the node's ``after_publish``; with ``node.trigger_period_s`` it takes trigger messages on a
+schedule of that period (:func:`next_trigger_time`: a message that took longer than the period is made up by taking
+the next one sooner, so the average rate holds; a keep-latest trigger queue drops the ones in between, counted). While no trigger message comes it drains the side inputs, hands the idle
 inputs (end of stream) to the node and calls its ``tick``. What the handlers return is published in order. A node without a trigger
 input handles every input as it arrives and ticks between (every ``POLL_S / 10``). At a stop, what the side and
 idle inputs hold is handled before ``node.close()``.
@@ -27,6 +28,14 @@ from shared.ratelimit import RateLimitedLog
 from transport.config import TransportConfig
 from transport.node import Node
 from transport.queues import Empty
+
+
+def next_trigger_time(scheduled: float, now: float, period_s: float) -> float:
+    """When a paced node may take its next trigger message, having just taken one at ``now`` that was due at
+    ``scheduled`` (monotonic seconds): one period after the due time, so that a slow message is made up by a sooner
+    next one and the average rate stays 1 / ``period_s``; but the debt carried is at most half a period, so after a
+    long stall (or idle) one message at most follows at once, not a burst."""
+    return max(scheduled + period_s, now - 0.5 * period_s)
 
 log = logging.getLogger(__name__)
 
@@ -109,7 +118,7 @@ def run_node(node: ProcessNode, cfg: TransportConfig, stopped=None, ready=None) 
                     log.warning("%s: %d messages behind, skipped %d to catch up", node.name, len(pending), skipped)
                 pending = deque(kept)
             msg = pending.popleft()
-            next_t = time.monotonic() + node.trigger_period_s
+            next_t = next_trigger_time(next_t, time.monotonic(), node.trigger_period_s)
             stamp = int(msg.header.stamp_ns)
             w.drain(waited)
             deadline = time.monotonic() + node.wait_s

@@ -4,7 +4,8 @@ depth, sigma, K and T_SC of the rectified left camera, T_WC when the estimator k
 otherwise).
 
 :class:`DepthNode` wraps :class:`services.depth.pipeline.DepthPipeline`. Frames wait in a keep-latest queue of one
-and are taken at most every 1 / ``depth.rate_hz``: a frame that a newer one replaces first is dropped and counted
+and are taken on a schedule of 1 / ``depth.rate_hz`` (a frame that took longer than that is made up by taking the
+next one sooner: transport.runner.next_trigger_time): a frame that a newer one replaces first is dropped and counted
 (the ``sensors/frame`` queue's drops in ``stats/depth``), so the service never blocks upstream. A frame waits up to
 ``depth.pose_wait_s`` for its estimator state. A frame that cannot be processed (missing camera, wrong image
 size) is dropped, counted and logged. With MVS on, every frame's left image is remembered (a second, keep-all
