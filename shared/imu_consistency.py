@@ -29,6 +29,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from scipy.integrate import cumulative_trapezoid
 from scipy.signal import butter, sosfiltfilt
 
 from shared.euroc import PoseSeries
@@ -129,10 +130,8 @@ def _highpass(x: np.ndarray, dt_s: float, cutoff_hz: float) -> np.ndarray:
 
 
 def _integrate(x: np.ndarray, dt_s: float) -> np.ndarray:
-    """Trapezoidal running integral of ``x`` (N, 3), zero at the first sample."""
-    out = np.zeros_like(x)
-    out[1:] = np.cumsum(0.5 * (x[1:] + x[:-1]) * dt_s, axis=0)
-    return out
+    """Trapezoidal running integral of ``x`` (N, 3) along time, zero at the first sample."""
+    return cumulative_trapezoid(x, dx=dt_s, axis=0, initial=0.0)
 
 
 def follow_imu(traj: Trajectory, imu: ImuData, rotation_cutoff_hz: float = ROTATION_CUTOFF_HZ,

@@ -29,6 +29,10 @@ from transport.config import TransportConfig
 from transport.node import Node
 from transport.queues import Empty
 
+log = logging.getLogger(__name__)
+
+POLL_S = 0.1  # how long the loop blocks on the trigger input before draining the others [s]
+
 
 def next_trigger_time(scheduled: float, now: float, period_s: float) -> float:
     """When a paced node may take its next trigger message, having just taken one at ``now`` that was due at
@@ -36,10 +40,6 @@ def next_trigger_time(scheduled: float, now: float, period_s: float) -> float:
     next one and the average rate stays 1 / ``period_s``; but the debt carried is at most half a period, so after a
     long stall (or idle) one message at most follows at once, not a burst."""
     return max(scheduled + period_s, now - 0.5 * period_s)
-
-log = logging.getLogger(__name__)
-
-POLL_S = 0.1  # how long the loop blocks on the trigger input before draining the others [s]
 
 
 class _Wiring:
