@@ -194,7 +194,9 @@ def test_bench_pipeline_end_to_end(tmp_path):
     assert st["n"] >= 10 and 0 < st["median"] < 30_000
     assert st["n"] + res["drops"]["estimator_frames"] >= 0.8 * n_frames  # every frame: a state or a counted drop
     fe = res["latency_ms"]["features"]  # the tracks: every frame, sent by the frontend process after the state
-    assert fe["n"] >= st["n"] - 5 and 0 < st["median"] <= fe["median"], (fe, st)
+    # the two topics arrive on separate subscriber threads, whose clock reads can swap by a fraction of a
+    # millisecond (CI saw medians 9.38 ms state, 9.34 ms tracks), so the order is checked to 1 ms
+    assert fe["n"] >= st["n"] - 5 and 0 < st["median"] <= fe["median"] + 1.0, (fe, st)
     assert res["latency_ms"]["depth"]["n"] >= 1 and res["latency_ms"]["depth"]["median"] > 0
     if FULL:
         assert res["latency_ms"]["map"]["n"] >= 1 and res["latency_ms"]["map"]["median"] > 0
