@@ -63,6 +63,24 @@ def refine_batch(shards: list[dict], rng: np.random.Generator, batch: int, crop:
             t("valid"))
 
 
+class RefineBatches(torch.utils.data.IterableDataset):
+    """Endless :func:`refine_batch` batches of the complete ``train`` shards under ``root``, for a
+    ``torch.utils.data.DataLoader(..., batch_size=None, num_workers=N)``: each loader process draws from its own
+    generator, seeded by (seed, worker index), so a run is a function of the seed and the number of workers. The
+    crops cost ~4.5 ms per sample on one core (the hole filling runs on whole frames), which alone would starve a GPU."""
+
+    def __init__(self, root: str | Path, batch: int, crop: tuple[int, int], seed: int) -> None:
+        super().__init__()
+        self.root, self.batch, self.crop, self.seed = Path(root), batch, tuple(crop), seed
+
+    def __iter__(self):
+        info = torch.utils.data.get_worker_info()
+        rng = np.random.default_rng([self.seed, 7_000 + (info.id if info is not None else 0)])
+        shards = load_shards(self.root, "train")
+        while True:
+            yield refine_batch(shards, rng, self.batch, self.crop)
+
+
 def validation_frames(shards: list[dict], per_shard: int = 8):
     """(frame dict) for the first ``per_shard`` frames of every validation shard, cropped to multiples of 16."""
     for sh in shards:

@@ -196,17 +196,25 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--checkpoint-minutes", type=float, default=10.0,
                    help="write <out>_partial.pt (uncalibrated) this often while training; 0: never")
     p.add_argument("--init", default="", help="start from these weights (same architecture), e.g. to fine-tune")
+    p.add_argument("--loader-workers", type=int, default=0, help="stereo_refine: processes that cut the training "
+                   "crops (0: in the training loop; a GPU needs several). Shards rendered after the start are not used")
     a = p.parse_args(argv)
     torch.manual_seed(a.seed)
+    if a.device.startswith("cuda"):
+        torch.backends.cudnn.benchmark = True  # fixed crop size: let cuDNN pick its fastest convolutions once
     torch.set_num_threads(a.threads)
     rng = np.random.default_rng(a.seed)
     root = Path(a.data)
     real = []
     if a.net == "stereo_refine":
         from tools.depth.real_pairs import load_real_pairs, proxy_loss, real_batch
-        from tools.depth.stereo_shards import load_shards, refine_batch
+        from tools.depth.stereo_shards import RefineBatches, load_shards, refine_batch
 
         train = load_shards(root, "train")
+        if a.loader_workers > 0:
+            loader = iter(torch.utils.data.DataLoader(
+                RefineBatches(root, a.batch, tuple(a.crop), a.seed), batch_size=None, num_workers=a.loader_workers,
+                pin_memory=a.device.startswith("cuda"), prefetch_factor=4, persistent_workers=True))
         real = load_real_pairs(a.real_pairs) if a.real_pairs else []
         if real:
             print(f"[{a.net}] {len(real)} real pairs for the proxy loss", flush=True)
@@ -237,7 +245,8 @@ def main(argv: list[str] | None = None) -> int:
         for g in opt.param_groups:
             g["lr"] = lr
         if a.net == "stereo_refine":
-            left, right, d0, matched, u_gt, valid = (x.to(a.device) for x in refine_batch(train, rng, a.batch, tuple(a.crop)))
+            batch = next(loader) if a.loader_workers > 0 else refine_batch(train, rng, a.batch, tuple(a.crop))
+            left, right, d0, matched, u_gt, valid = (x.to(a.device, non_blocking=True) for x in batch)
             u, su = net.refine(left, right, d0, matched)
             loss = stereo_loss(u, su, u_gt, valid & (u_gt > 0))
             if real:
@@ -259,7 +268,7 @@ def main(argv: list[str] | None = None) -> int:
         torch.nn.utils.clip_grad_norm_(net.parameters(), 5.0)
         opt.step()
         step += 1
-        if step % 200 == 0 and a.net == "stereo_refine" and len(list((root / "train").glob("shard_????"))) > len(train):
+        if step % 200 == 0 and a.net == "stereo_refine" and not a.loader_workers and len(list((root / "train").glob("shard_????"))) > len(train):
             train = load_shards(root, "train")  # shards still rendering when training started join in
         elif step % 200 == 0 and a.net != "stereo_refine" and len(list((root / "train").glob("scene_?????.npz"))) > len(train):
             train = load_split(root, "train")  # scenes still rendering when training started join in
@@ -292,6 +301,8 @@ def main(argv: list[str] | None = None) -> int:
         "gain": gain, "gain_domain": domain, "init": a.init or None,
         "command": "python -m tools.depth.train " + " ".join(argv if argv is not None else sys.argv[1:]),
         "seed": a.seed, "steps": step, "train_wall_s": round(time.time() - t0), "train_cpu_s": round(time.process_time() - c0), "device": a.device,
+        "device_name": torch.cuda.get_device_name() if a.device.startswith("cuda") else None,
+        "batch": a.batch, "loader_workers": a.loader_workers,
         "threads": a.threads, "data": {"root": str(root), "train_scenes": [s["name"] for s in train],
                                        "val_scenes": [s["name"] for s in val], **data_meta,
                                        "real_pairs": {"folders": a.real_pairs, "pairs": len(real),
