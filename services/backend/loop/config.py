@@ -16,8 +16,9 @@ class LoopConfig:
     # --- place recognition ---
     min_age_s: float = param(10.0, "loop candidates are at least this much older than the query keyframe", "s")
     min_score: float = param(0.05, "least raw L1 bag-of-words score of a candidate")
-    min_normalised: float = param(0.6, "least score relative to the query's score with its predecessor keyframe")
-    max_candidates: int = param(2, "candidates verified per query keyframe")
+    min_normalised: float = param(0.4, "least score relative to the query's score with its predecessor keyframe "
+                                  "(0.6 until stop 38: revisits from another viewpoint fell below it)")
+    max_candidates: int = param(3, "candidates verified per query keyframe (PnP decides; 2 until stop 38)")
     # --- geometric verification ---
     max_hamming: int = param(50, "largest Hamming distance of a descriptor match", "bits")
     ransac_px: float = param(3.0, "PnP RANSAC and refinement inlier threshold", "px")
