@@ -116,6 +116,32 @@ def test_a_shard_is_written_whole_and_read_back(tmp_path):
         load_shards(tmp_path, "train")
 
 
+def test_loader_processes_give_seeded_batches_that_differ_per_process(tmp_path):
+    """train.py --loader-workers: each DataLoader process cuts crops from its own (seed, worker) generator, so two
+    runs with the same seed see the same batches and two processes never repeat each other's."""
+    from tools.depth.make_stereo_data import render_shard
+    from tools.depth.stereo_shards import RefineBatches
+
+    render_shard((str(tmp_path), "train", 3, 0, 2, None))
+
+    def first_batches(n: int) -> list:
+        loader = torch.utils.data.DataLoader(RefineBatches(tmp_path, 2, (64, 96), seed=5), batch_size=None,
+                                             num_workers=2)
+        out = []
+        for batch in loader:
+            out.append(batch)
+            if len(out) == n:
+                return out
+        return out
+
+    a, b = first_batches(4), first_batches(4)
+    assert a[0][0].shape == (2, 1, 64, 96) and a[0][4].shape == (2, 64, 96)
+    for x, y in zip(a, b):  # same seed: the same crops, in the same order
+        assert all(torch.equal(p, q) for p, q in zip(x, y))
+    # batches alternate between the two processes: process 0's first against process 1's first
+    assert not torch.equal(a[0][0], a[1][0])
+
+
 def test_recalibrate_sets_the_median_rule_gain_and_keeps_the_old_one_on_record(tmp_path):
     import json
 
