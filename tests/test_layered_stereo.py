@@ -119,6 +119,8 @@ def test_a_shard_is_written_whole_and_read_back(tmp_path):
 def test_loader_processes_give_seeded_batches_that_differ_per_process(tmp_path):
     """train.py --loader-workers: each DataLoader process cuts crops from its own (seed, worker) generator, so two
     runs with the same seed see the same batches and two processes never repeat each other's."""
+    import itertools
+
     from tools.depth.make_stereo_data import render_shard
     from tools.depth.stereo_shards import RefineBatches
 
@@ -127,12 +129,7 @@ def test_loader_processes_give_seeded_batches_that_differ_per_process(tmp_path):
     def first_batches(n: int) -> list:
         loader = torch.utils.data.DataLoader(RefineBatches(tmp_path, 2, (64, 96), seed=5), batch_size=None,
                                              num_workers=2)
-        out = []
-        for batch in loader:
-            out.append(batch)
-            if len(out) == n:
-                return out
-        return out
+        return list(itertools.islice(loader, n))
 
     a, b = first_batches(4), first_batches(4)
     assert a[0][0].shape == (2, 1, 64, 96) and a[0][4].shape == (2, 64, 96)

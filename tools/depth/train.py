@@ -200,7 +200,8 @@ def main(argv: list[str] | None = None) -> int:
                    "crops (0: in the training loop; a GPU needs several). Shards rendered after the start are not used")
     a = p.parse_args(argv)
     torch.manual_seed(a.seed)
-    if a.device.startswith("cuda"):
+    cuda = a.device.startswith("cuda")
+    if cuda:
         torch.backends.cudnn.benchmark = True  # fixed crop size: let cuDNN pick its fastest convolutions once
     torch.set_num_threads(a.threads)
     rng = np.random.default_rng(a.seed)
@@ -214,7 +215,7 @@ def main(argv: list[str] | None = None) -> int:
         if a.loader_workers > 0:
             loader = iter(torch.utils.data.DataLoader(
                 RefineBatches(root, a.batch, tuple(a.crop), a.seed), batch_size=None, num_workers=a.loader_workers,
-                pin_memory=a.device.startswith("cuda"), prefetch_factor=4, persistent_workers=True))
+                pin_memory=cuda, prefetch_factor=4, persistent_workers=True))
         real = load_real_pairs(a.real_pairs) if a.real_pairs else []
         if real:
             print(f"[{a.net}] {len(real)} real pairs for the proxy loss", flush=True)
@@ -301,7 +302,7 @@ def main(argv: list[str] | None = None) -> int:
         "gain": gain, "gain_domain": domain, "init": a.init or None,
         "command": "python -m tools.depth.train " + " ".join(argv if argv is not None else sys.argv[1:]),
         "seed": a.seed, "steps": step, "train_wall_s": round(time.time() - t0), "train_cpu_s": round(time.process_time() - c0), "device": a.device,
-        "device_name": torch.cuda.get_device_name() if a.device.startswith("cuda") else None,
+        "device_name": torch.cuda.get_device_name() if cuda else None,
         "batch": a.batch, "loader_workers": a.loader_workers,
         "threads": a.threads, "data": {"root": str(root), "train_scenes": [s["name"] for s in train],
                                        "val_scenes": [s["name"] for s in val], **data_meta,
