@@ -15,7 +15,7 @@ import vio_sim as sim
 from services.backend.config import BackendConfig
 from services.backend.estimator import BackendCamera, WindowedVioEstimator
 from services.backend.loop.config import LoopConfig
-from services.backend.loop.history import KeyframeHistory
+from services.backend.loop.history import KeyframeHistory, KeyframeRecord
 from services.backend.loop.loop_closer import LoopCloser
 from services.backend.loop.loop_thread import ThreadedLoopCloser
 from services.backend.loop.verification import FeatureSet
@@ -163,3 +163,37 @@ def test_a_second_session_localises_in_the_first_ones_saved_map():
     assert len(extended) > len(saved) and len(extended.meta["sessions"]) == 2
     assert np.array_equal(extended.T_WS[:len(saved)], saved.T_WS)  # the saved map did not move
     assert int(np.sum(extended.edge_kind == 1)) >= 2  # the matches tie the sessions
+
+
+def _stored_closer(n_neighbours):
+    """A closer holding five marginalised keyframes (states 10..50) that see overlapping landmark ranges; a third
+    of each one's features have no landmark position."""
+    cams = sim.rig(2)
+    closer = LoopCloser(LoopConfig(verify_neighbours=n_neighbours, min_inliers=5),
+                        [BackendCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams])
+    rng = np.random.default_rng(0)
+    for k in range(1, 6):
+        ids = np.arange(10 * k, 10 * k + 15, dtype=np.int64)  # 5 shared with the next keyframe
+        fs = FeatureSet(ids, np.zeros(15, np.int16), rng.uniform(0, 500, (15, 2)),
+                        rng.integers(0, 256, (15, 32), dtype=np.uint8))
+        stamp = k * 10**9
+        closer.add_keyframe_features(stamp, fs)
+        known = {int(i): np.array([i, 2.0 * k, 1.0]) for i in ids if i % 3}  # landmark 3j: no position
+        closer.add_record(KeyframeRecord(10 * k, stamp, np.eye(4), np.zeros(3), None, {int(i): [] for i in ids}, known))
+    return closer
+
+
+def test_verification_set_joins_the_neighbours_landmarks_once_each():
+    own_fs, own_p = _stored_closer(0).verification_set(30)
+    assert set(own_fs.landmark_ids) == {i for i in range(30, 45) if i % 3}
+    fs, p = _stored_closer(1).verification_set(30)
+    assert set(fs.landmark_ids) == {i for i in range(20, 55) if i % 3}  # states 20, 30 and 40
+    assert len(fs.landmark_ids) == len(set(fs.landmark_ids)) == len(p) == len(fs.uv) == len(fs.descriptors)
+    n_own = len(own_fs.landmark_ids)  # the candidate's own come first, unchanged
+    np.testing.assert_array_equal(fs.landmark_ids[:n_own], own_fs.landmark_ids)
+    np.testing.assert_array_equal(fs.descriptors[:n_own], own_fs.descriptors)
+    np.testing.assert_array_equal(p[:n_own], own_p)
+    # a shared landmark keeps the candidate's observation; one seen only by a neighbour keeps the neighbour's
+    assert np.all(np.isfinite(p)) and p[list(fs.landmark_ids).index(44), 1] == 6.0
+    assert p[list(fs.landmark_ids).index(22), 1] == 4.0
+    assert set(_stored_closer(1).verification_set(50)[0].landmark_ids) == {i for i in range(40, 65) if i % 3}

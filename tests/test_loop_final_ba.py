@@ -1,6 +1,8 @@
 """Final bundle adjustment over all keyframes (with IMU) on simulated VIO data: it improves the ATE of the
 causal trajectory; the keyframe history (the estimator's marginalisation listener) is complete."""
 
+import dataclasses
+
 import numpy as np
 
 import vio_sim as sim
@@ -70,3 +72,30 @@ def test_follow_keyframes_moves_frames_with_their_keyframe():
     shift[:3, 3] = [1.0, 0, 0]
     out = follow_keyframes(stamps, T, np.array([0, 300]), np.array([T[0], shift @ T[3]]))
     assert np.allclose(out[:3], T[:3]) and np.allclose(out[3:, :3, 3], T[3:, :3, 3] + [1.0, 0, 0])
+
+
+def test_loop_observations_merge_a_new_track_into_the_old_landmark():
+    """Cut every track in two halfway (a new landmark id from the middle keyframe on, as when a place is seen
+    again): the loop observations that pair each new id with its old one put back the uncut problem."""
+    stamps, T_causal, gt, est, hist = _run(t_end=10.0)
+    records = hist.records + hist.capture_window(est)
+    whole = bundle_adjust(records, est.cameras, est.cfg.sigma_px, est.cfg.cauchy_k)
+    mid, NEW = len(records) // 2, 10**6
+    cut = records[:mid] + [dataclasses.replace(r, obs={lm + NEW: o for lm, o in r.obs.items()},
+                                               landmarks={lm + NEW: p for lm, p in r.landmarks.items()})
+                           for r in records[mid:]]
+    both = sorted(set().union(*(r.obs for r in records[:mid])) & set().union(*(r.obs for r in records[mid:])))
+    first = {lm: next(r for r in records[mid:] if lm in r.obs) for lm in both}  # the new track's first keyframe
+    pairs = [(first[lm].state, *first[lm].obs[lm][0], lm, lm + NEW) for lm in both]
+    q = records[mid]
+    apart = bundle_adjust(cut, est.cameras, est.cfg.sigma_px, est.cfg.cauchy_k)
+    joined = bundle_adjust(cut, est.cameras, est.cfg.sigma_px, est.cfg.cauchy_k, loop_observations=pairs)
+    assert len(pairs) > 10 and joined.merged == len(pairs) and apart.merged == 0
+    assert (joined.observations, joined.landmarks) == (whole.observations, whole.landmarks)
+    assert apart.landmarks > whole.landmarks and apart.observations < whole.observations
+    assert np.abs(joined.T_WS[:, :3, 3] - whole.T_WS[:, :3, 3]).max() < 1e-3
+    # two landmarks one keyframe sees side by side are two points: such a pair is left apart
+    a, b = list(q.obs)[:2]
+    kept = bundle_adjust(records, est.cameras, est.cfg.sigma_px, est.cfg.cauchy_k,
+                         loop_observations=[(q.state, *q.obs[a][0], a, b)])
+    assert kept.merged == 0 and kept.observations == whole.observations

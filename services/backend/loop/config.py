@@ -24,6 +24,9 @@ class LoopConfig:
     ransac_px: float = param(3.0, "PnP RANSAC and refinement inlier threshold", "px")
     min_inliers: int = param(25, "PnP inliers needed to accept a loop")
     min_inlier_ratio: float = param(0.35, "share of descriptor matches that must be PnP inliers")
+    verify_neighbours: int = param(2, "stored keyframes on each side of a candidate whose landmarks join its PnP "
+                                   "verification (0: the candidate's own, as until stop 39): a revisit from a few "
+                                   "metres or degrees away shares too few landmarks with one keyframe")
     sigma_px: float = param(1.0, "feature noise used for the loop constraint's covariance", "px")
     cov_inflation: float = param(4.0, "loop covariance = this x the inverse reprojection information "
                                  "(the old landmarks are uncertain too)")

@@ -4,7 +4,10 @@ The graph holds every keyframe's (pose, velocity, bias) linked by the IMU factor
 recorded observation as a Cauchy-robust reprojection factor (the window's noise model), landmarks seen at
 least twice (initial positions: their last window estimate), the accepted loop constraints (relative poses,
 and the loop keyframe's PnP inliers as observations of the old landmarks), and a gauge prior on the first
-keyframe, and the map-to-map occupancy-to-point terms (eq. 5-7) between keyframes anchoring submaps. Frames
+keyframe, and the map-to-map occupancy-to-point terms (eq. 5-7) between keyframes anchoring submaps. A loop's PnP
+inlier says that the query feature's own landmark (a new track of the point) is the old landmark it matched: the
+two are merged into one, so every keyframe that saw the new track observes the old landmark (not merged when a
+keyframe observes both: they are not one point then). Frames
 between keyframes follow their keyframe:
 ``T_final(t) = T_final(kf) T_causal(kf)^-1 T_causal(t)`` with kf the latest keyframe at or before t.
 """
@@ -30,16 +33,18 @@ class FinalBaResult:
     initial_error: float
     final_error: float
     map_to_map: int = 0  # map-to-map terms in the graph
+    merged: int = 0  # landmarks merged into an older one through loop observations
 
 
 def bundle_adjust(records: list[KeyframeRecord], cameras, sigma_px: float = 1.0, cauchy_k: float = 2.0,
                   loops: list[tuple[int, int, np.ndarray, np.ndarray]] = (), max_iterations: int = 30,
                   prior_sigma_rot: float = 1e-3, prior_sigma_pos: float = 1e-3,
-                  loop_observations: list[tuple[int, int, np.ndarray, int]] = (), map_to_map=(), anchors=(),
-                  T_init: np.ndarray | None = None) -> FinalBaResult:
+                  loop_observations: list[tuple[int, int, np.ndarray, int, int]] = (), map_to_map=(), anchors=(),
+                  T_init: np.ndarray | None = None, merge_loop_landmarks: bool = True) -> FinalBaResult:
     """``records`` of all keyframes (time order, no duplicates); ``cameras``: the estimator's BackendCamera
     list; ``loops``: (old state, new state, T_old_new, covariance 6x6); ``loop_observations``: (state, camera,
-    normalised xy, landmark id) observations of old landmarks by loop keyframes (PnP inliers); ``map_to_map``:
+    normalised xy, old landmark id, the feature's own landmark id) observations of old landmarks by loop keyframes
+    (PnP inliers); ``merge_loop_landmarks``: merge each such own landmark into the old one; ``map_to_map``:
     services.backend.o2p_terms.MapToMap terms (those whose anchors are among the keyframes join); ``anchors``:
     (state, T_WS, covariance 6x6) poses of keyframes in a saved map's frame (their matches to the map's fixed
     keyframes): robust pose priors that place the whole run in the map's frame, the first keyframe's gauge prior
@@ -82,7 +87,10 @@ def bundle_adjust(records: list[KeyframeRecord], cameras, sigma_px: float = 1.0,
                                             gtsam.noiseModel.Isotropic.Sigma(2, sigma_px / c.focal_px)) for c in cameras]
     body = [gtsam.Pose3(c.T_SC) for c in cameras]
     n_lm = n_obs = 0
-    for s, c, xy, lm in loop_observations:
+    root = _merge_landmarks(obs, p_init, [(lm, own) for _, _, _, lm, own in loop_observations]) \
+        if merge_loop_landmarks else {}
+    for s, c, xy, lm, _ in loop_observations:
+        lm = root.get(lm, lm)
         if s in states and lm in obs and all(s != s2 for s2, _, _ in obs[lm]):
             obs[lm].append((s, c, np.asarray(xy, float)))
     for lm, lst in obs.items():
@@ -114,7 +122,27 @@ def bundle_adjust(records: list[KeyframeRecord], cameras, sigma_px: float = 1.0,
     out = gtsam.LevenbergMarquardtOptimizer(g, vals, params).optimize()
     return FinalBaResult(np.array([r.stamp_ns for r in recs], np.int64),
                          np.array([out.atPose3(X(r.state)).matrix() for r in recs]), n_lm, n_obs, e0, g.error(out),
-                          n_m2m)
+                         n_m2m, len(root))
+
+
+def _merge_landmarks(obs: dict[int, list], p_init: dict[int, np.ndarray], pairs: list[tuple[int, int]]) -> dict[int, int]:
+    """Merge landmark ``own`` into ``old`` for each pair, in ``obs`` (landmark -> [(state, camera, xy)]) and
+    ``p_init`` (landmark -> initial position) in place: the merged landmark keeps the old id and the old initial
+    position (the new one's where the old has none). Returns merged id -> the id it joined.
+    Pairs whose landmarks are observed by one keyframe in common are left apart."""
+    root: dict[int, int] = {}
+    find = lambda i: find(root[i]) if i in root else i  # noqa: E731
+    for old, own in pairs:
+        a, b = find(int(old)), find(int(own))
+        if a == b or a not in obs or b not in obs:
+            continue
+        if {s for s, _, _ in obs[a]} & {s for s, _, _ in obs[b]}:
+            continue
+        obs[a].extend(obs.pop(b))
+        if a not in p_init and b in p_init:
+            p_init[a] = p_init[b]
+        root[b] = a
+    return {i: find(i) for i in root}
 
 
 def follow_keyframes(stamps_ns: np.ndarray, T_causal: np.ndarray, kf_stamps_ns: np.ndarray,

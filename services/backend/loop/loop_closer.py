@@ -5,7 +5,8 @@ the frontend), the records of keyframes leaving the window (:meth:`LoopCloser.ad
 estimator's marginalisation hook) and the tracking status (:meth:`LoopCloser.note_status`).
 
 * A new keyframe's bag is scored against the *marginalised* keyframes (they carry 3D landmarks) older than
-  ``min_age_s``; the best candidates are verified by PnP against the old keyframe's landmarks. Counts:
+  ``min_age_s``; the best candidates are verified by PnP against the landmarks of the old keyframe and of its
+  ``verify_neighbours`` stored neighbours on each side (:meth:`LoopCloser.verification_set`). Counts:
   proposed (candidates), verified (PnP accepted), accepted (loop factor added).
 * A verified loop waits until the query keyframe leaves the window itself, then enters the pose graph as a
   relative-pose factor between the two nodes; the graph is solved and the correction ``T_W'W`` (window
@@ -28,6 +29,7 @@ caller only enqueues.
 
 from __future__ import annotations
 
+import bisect
 import collections
 import logging
 import time
@@ -61,7 +63,9 @@ class VerifiedLoop:
     covariance: np.ndarray
     inliers: int
     relocalisation: bool
-    observations: tuple = ()  # (camera (I,), normalised xy (I,2), old landmark ids (I,)) of the PnP inliers
+    # (camera (I,), normalised xy (I,2), old landmark ids (I,), the query features' own landmark ids (I,)) of the
+    # PnP inliers
+    observations: tuple = ()
 
 
 class LoopCloser:
@@ -77,11 +81,13 @@ class LoopCloser:
         self._focal = np.array([c.focal_px for c in cameras], float)
         self._features: dict[int, tuple[FeatureSet, np.ndarray]] = {}  # stamp -> (features, bag), not yet marginalised
         self._old: dict[int, tuple[FeatureSet, np.ndarray, KeyframeRecord]] = {}  # state -> (features, p_W, record)
+        self._old_keys: list[int] = []  # the keys of _old, sorted (a saved map's after this session's)
         self._prev_record: KeyframeRecord | None = None
         self._prev_bag: np.ndarray | None = None
         self._pending: list[VerifiedLoop] = []
         self.loops: list[tuple[int, int, np.ndarray, np.ndarray]] = []  # (old state, new state, T_old_new, cov)
-        self.loop_observations: list[tuple[int, int, np.ndarray, int]] = []  # (state, camera, xy, old landmark)
+        # (state, camera, xy, old landmark, the query feature's own landmark): the final BA's loop observations
+        self.loop_observations: list[tuple[int, int, np.ndarray, int, int]] = []
         self.counts = collections.Counter()
         self._lost_since: int | None = None
         self._reloc_before: int | None = None  # relocalisation mode: candidates older than this stamp
@@ -116,7 +122,7 @@ class LoopCloser:
             self.graph.add_fixed_node(key, m.T_WS[i])
             self.node_stamps[key] = int(m.stamps_ns[i])
             if len(fs.landmark_ids) and np.isfinite(p_W[:, 0]).sum() >= self.cfg.min_inliers:
-                self._old[key] = (fs, np.asarray(p_W, float), rec)
+                self._store_old(key, fs, np.asarray(p_W, float), rec)
                 self.db.add(key, PRIOR_STAMP_NS, self.voc.bag(fs.descriptors))
         self.prior = m
         self._localiser = MapLocaliser(self.cfg, self.counts)
@@ -167,7 +173,7 @@ class LoopCloser:
         out = []
         for c in cands:
             self.counts["proposed"] += 1
-            old_fs, old_p, _ = self._old[c.key]
+            old_fs, old_p = self.verification_set(c.key)
             res = verify_pnp(fs, old_fs, old_p, self._undistort, self._T_SC, self._focal, cfg.sigma_px,
                              cfg.max_hamming, cfg.ransac_px, cfg.min_inliers, cfg.min_inlier_ratio, cfg.cov_inflation)
             if not res.accepted:
@@ -177,7 +183,8 @@ class LoopCloser:
             cams = np.asarray(fs.camera_index, np.int64)[res.query_index]
             xy = self._normalised(fs)[res.query_index]
             # a saved map's landmark ids are another session's: its matches give no observations of this one's
-            obs = () if self._is_prior(c.key) else (cams, xy, np.asarray(old_fs.landmark_ids, np.int64)[res.old_index])
+            obs = () if self._is_prior(c.key) else (cams, xy, np.asarray(old_fs.landmark_ids, np.int64)[res.old_index],
+                                                    np.asarray(fs.landmark_ids, np.int64)[res.query_index])
             loop = VerifiedLoop(c.key, int(stamp_ns), res.T_WS, res.covariance, res.inliers, reloc, obs)
             self._pending.append(loop)
             out.append(loop)
@@ -193,6 +200,29 @@ class LoopCloser:
         while len(self._features) > 200:
             self._features.pop(next(iter(self._features)))
         return out
+
+    def _store_old(self, key: int, fs: FeatureSet, p_W: np.ndarray, rec: KeyframeRecord) -> None:
+        if key not in self._old:
+            bisect.insort(self._old_keys, key)
+        self._old[key] = (fs, p_W, rec)
+
+    def verification_set(self, key: int) -> tuple[FeatureSet, np.ndarray]:
+        """What a candidate ``key`` is verified against: the features with a known landmark position of the stored
+        keyframe ``key`` and of up to ``loop.verify_neighbours`` stored keyframes on each side of it (of the same
+        session, or of the same saved map), one feature per landmark, the candidate's own first. All positions are
+        in the frame the candidate's were (neighbours left the window a few keyframes apart: their drift is
+        negligible against a loop's). Returns (features, p_W (K,3))."""
+        i, n = bisect.bisect_left(self._old_keys, key), self.cfg.verify_neighbours
+        near = [k for k in self._old_keys[max(0, i - n):i + n + 1] if k != key and self._is_prior(k) == self._is_prior(key)]
+        sets = [self._old[k] for k in [key, *sorted(near, key=lambda k: abs(k - key))]]
+        fs = [s[0] for s in sets]
+        ids = np.concatenate([f.landmark_ids for f in fs]).astype(np.int64)
+        p_W = np.concatenate([s[1] for s in sets]).reshape(-1, 3)
+        known = np.flatnonzero(np.isfinite(p_W).all(1))
+        _, first = np.unique(ids[known], return_index=True)  # index of each landmark's first occurrence
+        keep = known[np.sort(first)]
+        cat = lambda attr: np.concatenate([getattr(f, attr) for f in fs])[keep]  # noqa: E731
+        return FeatureSet(ids[keep], cat("camera_index"), cat("uv"), cat("descriptors")), p_W[keep]
 
     # ------------------------------------------------------------------ marginalised keyframes
     def add_record(self, rec: KeyframeRecord) -> bool:
@@ -216,7 +246,7 @@ class LoopCloser:
             fs, bag = feats
             p_W = np.array([rec.landmarks.get(int(i), (np.nan,) * 3) for i in fs.landmark_ids], float).reshape(-1, 3)
             if np.isfinite(p_W[:, 0]).sum() >= self.cfg.min_inliers:
-                self._old[rec.state] = (fs, p_W, rec)
+                self._store_old(rec.state, fs, p_W, rec)
                 self.db.add(rec.state, rec.stamp_ns, bag)
         self._add_ready_map_to_map()
         solved = self._solve_if_due(rec.stamp_ns)
@@ -270,8 +300,7 @@ class LoopCloser:
         self.graph.add_loop(LoopConstraint(old.state, rec.state, T_old_new, lp.covariance))
         self.loops.append((old.state, rec.state, T_old_new, lp.covariance))
         if lp.observations:  # the query keyframe observes the old landmarks: used by the final BA
-            cams, xy, lms = lp.observations
-            self.loop_observations += [(rec.state, int(c), p, int(lm)) for c, p, lm in zip(cams, xy, lms)]
+            self.loop_observations += self._observations_of(rec.state, lp)
         self.counts["accepted"] += 1
         self._dirty = True
         return self._solve_if_due(rec.stamp_ns)
@@ -356,8 +385,12 @@ class LoopCloser:
             old = self._old[lp.old_state][2]
             loops.append((old.state, rec.state, inv_T(old.T_WS) @ lp.T_WS_query, lp.covariance))
             if lp.observations:
-                obs += [(rec.state, int(c), p, int(lm)) for c, p, lm in zip(*lp.observations)]
+                obs += self._observations_of(rec.state, lp)
         return loops, obs
+
+    @staticmethod
+    def _observations_of(state: int, lp: VerifiedLoop) -> list[tuple[int, int, np.ndarray, int, int]]:
+        return [(state, int(c), p, int(lm), int(own)) for c, p, lm, own in zip(*lp.observations)]
 
     def correction(self) -> np.ndarray:
         return self.graph.correction()
