@@ -158,6 +158,21 @@ def test_suite_sequences_and_scenes():
     assert parse_rates(argparse.Namespace(rate=2.0, rates="0")) == [2.0]
 
 
+def test_suite_deletes_a_scored_runs_dense_map_and_nothing_else(tmp_path):
+    from tools.eval.suite import drop_dense_map
+
+    files = {"submaps/submap_000.ply": 300, "submaps/submap_001.ply": 200, "map/dense.npz": 1000,
+             "mesh_from_checkpoint.ply": 50, "map/sparse.npz": 70, "mesh.ply": 40, "trajectory_causal.txt": 10,
+             "stats.json": 5}
+    for name, size in files.items():
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_bytes(b"x" * size)
+    assert drop_dense_map(tmp_path) == 1550
+    left = sorted(str(f.relative_to(tmp_path)) for f in tmp_path.rglob("*") if f.is_file())
+    assert left == ["map/sparse.npz", "mesh.ply", "stats.json", "trajectory_causal.txt"]
+    assert drop_dense_map(tmp_path) == 0  # nothing left to delete: no error
+
+
 @pytest.mark.e2e
 def test_bench_pipeline_end_to_end(tmp_path):
     """Reduced: 4 s of a small EuRoC-layout dataset (tests/e2e_dataset.py); full: 25 s of the default replica."""

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
 from pathlib import Path
 
@@ -63,6 +64,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", help="YAML system config of the runs (default: built-in defaults), e.g. configs/demo.yaml")
     p.add_argument("--hilti-points", type=int, default=12, help="control points per sequence for the Hilti score")
     p.add_argument("--skip-run", action="store_true", help="use the run folders already under --out")
+    p.add_argument("--keep-maps", action="store_true",
+                   help="keep each pipeline run's dense map (RUN/submaps/, RUN/map/dense.npz: hundreds of MB for a "
+                        "whole sequence); by default they are deleted once the run is scored (mesh.ply and the "
+                        "trajectories stay)")
     p.add_argument("--in-process", action="store_true",
                    help="the estimator alone in one process (frontend, back end, loop closure, final BA; no depth, "
                         "mapping, transport), reproducible: Table I in minutes (--rates is ignored)")
@@ -133,6 +138,21 @@ def evaluate_sequence(seq: str, replica: Path, run_dir: Path, out: Path, hilti_p
         except (ValueError, RuntimeError) as exc:
             row["error_mesh"] = str(exc)
     return row
+
+
+DENSE_MAP_FILES = ("submaps", "map/dense.npz", "mesh_from_checkpoint.ply")  # under a run folder
+
+
+def drop_dense_map(run_dir: Path) -> int:
+    """Delete a scored run's dense map (:data:`DENSE_MAP_FILES`); the trajectories, stats, the sparse map and
+    mesh.ply stay. Returns the bytes freed."""
+    freed = 0
+    for name in DENSE_MAP_FILES:
+        path = run_dir / name
+        files = [f for f in path.rglob("*") if f.is_file()] if path.is_dir() else [path] if path.is_file() else []
+        freed += sum(f.stat().st_size for f in files)
+        shutil.rmtree(path) if path.is_dir() else path.unlink(missing_ok=True)
+    return freed
 
 
 def mesh_from_checkpoint(run_dir: Path) -> Path:
@@ -277,6 +297,10 @@ def main(args: argparse.Namespace) -> int:
                 rows[key] = {"error_run": str(exc)}
                 rc = 1
             rows[key].update(sequence=seq, imu=imu, mode=mode_name(rate), scene=scenes[seq])
+            if not (args.in_process or args.skip_run or args.keep_maps):
+                freed = drop_dense_map(seq_out / "run")
+                print(f"[eval suite] {key}: dense map deleted after scoring ({freed / 1e6:.0f} MB; --keep-maps keeps it)",
+                      flush=True)
             print(f"[eval suite] {key}: {json.dumps({k: v for k, v in rows[key].items() if k != 'replica'})}",
                   flush=True)
     timing = pooled_timing([d for d in stage_dirs if d.is_dir()])
