@@ -243,7 +243,8 @@ class LoopClosingBackend:
                            if old in closer.graph.fixed]
             res = bundle_adjust(records, est.cameras_in_use(), est.cfg.sigma_px, est.cfg.cauchy_k, loops,
                                 self.cfg.final_ba_iterations, loop_observations=closer.loop_observations + late_obs,
-                                map_to_map=closer.map_to_map_for_final(), anchors=anchors, T_init=T_init)
+                                map_to_map=closer.map_to_map_for_final(), anchors=anchors, T_init=T_init,
+                                merge_loop_landmarks=self.cfg.final_ba_merge_landmarks)
             T_final = self._follow(stamps, T_pub, res.stamps_ns, res.T_WS)
             n_kf = len(res.stamps_ns)
             log.info("final BA: %d keyframes, %d landmarks (%d merged through loops), %d observations, %d map-to-map, "

@@ -72,4 +72,6 @@ class LoopConfig:
     # --- final bundle adjustment ---
     final_ba: bool = param(True, "at the end of the stream, bundle-adjust all keyframes and publish "
                            "estimator/trajectory_final")
+    final_ba_merge_landmarks: bool = param(True, "the final BA merges each loop inlier's own landmark (a new track) into "
+                                           "the old landmark it matched (false: the query keyframe only observes it)")
     final_ba_iterations: int = param(30, "Levenberg-Marquardt iterations of the final bundle adjustment")
