@@ -201,6 +201,27 @@ def test_normalised_gain_removes_a_global_gain():
     assert normalised_gain(np.zeros((4, 4), np.uint8), 110.0).max() == 0  # a black frame stays black
 
 
+def test_running_level_undoes_a_gain_jump_and_keeps_a_dark_scene_dark():
+    """frontend.gain_time_constant_s: the level images are scaled to follows the camera's own mean slowly."""
+    import numpy as np
+
+    from services.frontend.tracker import RunningLevel, normalised_gain
+
+    rng = np.random.default_rng(1)
+    scene = rng.uniform(10, 70, (120, 160))  # a dark scene: mean ~40 DN
+    lv = RunningLevel(1.0)
+    out = []
+    for k in range(60):  # 20 Hz; the exposure jumps by 1.25x at frame 20
+        raw = np.round(scene * (1.25 if k >= 20 else 1.0)).astype(np.uint8)
+        out.append(normalised_gain(raw, lv.update(float(raw.mean()), 0.05)).mean())
+    out = np.array(out)
+    assert abs(out[0] - scene.mean()) < 1.0  # no amplification to a fixed level
+    assert abs(out[20] - out[19]) < 0.02 * out[19]  # the jump is undone in the frame after it ...
+    assert out[19] < out[59] < 1.25 * out[19]  # ... and fades in over the time constant (3 s later: most of it)
+    assert out[59] > out[19] + 0.8 * 0.25 * out[19]
+    assert lv.update(0.0, 0.05) == lv.level  # a black frame leaves the level alone
+
+
 def test_deferred_detection_leaves_keyframes_and_tracks_unchanged(stereo_seq):
     """With may_defer, a frame that is not a keyframe comes out with its tracked features only; its new features
     (detected by finish_frame, after the output is sent) are carried from the next frame on. Keyframes, ids and

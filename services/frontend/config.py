@@ -34,6 +34,10 @@ class FrontendConfig:
                                  "(KLT assumes constant brightness: auto-exposure jumps and left/right gain "
                                  "differences break it)")
     normalised_mean_dn: float = param(110.0, "the mean grey level images are scaled to with normalise_gain", "DN")
+    gain_time_constant_s: float = param(0.0, "with normalise_gain: each camera's images are scaled to a running mean "
+                                        "of that camera's own mean grey levels with this time constant, instead of "
+                                        "to normalised_mean_dn: a sudden gain change is undone, a dark scene stays "
+                                        "dark (0: the fixed level)", "s")
     # --- outlier rejection ---
     ransac_threshold_px: float = param(1.0, "fundamental-matrix RANSAC inlier threshold (undistorted pixels)", "px")
     ransac_confidence: float = param(0.995, "RANSAC confidence")

@@ -36,6 +36,25 @@ def normalised_gain(image: np.ndarray, mean_dn: float) -> np.ndarray:
     return cv2.convertScaleAbs(image, alpha=mean_dn / m)
 
 
+class RunningLevel:
+    """The grey level one camera's images are scaled to with ``frontend.gain_time_constant_s``: a running mean of
+    its images' mean levels (time constant ``tau_s``), so that a sudden exposure or gain change is undone in the
+    frames after it and fades in over ~tau_s, while a scene's own brightness is kept."""
+
+    def __init__(self, tau_s: float) -> None:
+        self.tau_s = float(tau_s)
+        self.level: float | None = None
+
+    def update(self, mean_dn: float, dt_s: float) -> float:
+        """The level for an image of mean ``mean_dn`` taken ``dt_s`` after the previous one."""
+        if mean_dn > 1.0:  # a black image says nothing of the gain
+            if self.level is None:
+                self.level = float(mean_dn)
+            else:
+                self.level += (float(mean_dn) - self.level) * (1.0 - np.exp(-max(dt_s, 0.0) / self.tau_s))
+        return float(mean_dn) if self.level is None else self.level
+
+
 class FrontendInputError(ValueError):
     """Images that do not fit the rig (count, size, type) or time going backwards."""
 
@@ -94,6 +113,7 @@ class MultiCameraTracker:
         # the tracker works on copies whose unprojection is a table lookup
         self.cameras = [dataclasses.replace(c, camera=LookupCamera(c.camera)) for c in cameras]
         self._cams = [_CameraState() for _ in cameras]
+        self._levels = [RunningLevel(cfg.gain_time_constant_s) for _ in cameras] if cfg.gain_time_constant_s > 0 else None
         self._pairs = overlapping_pairs(self.cameras, cfg.min_view_overlap_cos)
         self._R_SC = [np.asarray(c.T_SC, float)[:3, :3] for c in cameras]
         self._next_id = int(first_landmark_id)
@@ -163,12 +183,14 @@ class MultiCameraTracker:
         self.finish_frame()
         images = self._check(stamp_ns, images)
         cfg = self.cfg
-        if cfg.normalise_gain:
+        dt_s = 0.0 if self._last_stamp is None else (int(stamp_ns) - self._last_stamp) * 1e-9
+        if cfg.normalise_gain and self._levels is not None:
+            images = [normalised_gain(im, lv.update(float(im.mean()), dt_s)) for im, lv in zip(images, self._levels)]
+        elif cfg.normalise_gain:
             images = [normalised_gain(im, cfg.normalised_mean_dn) for im in images]
         counts: collections.Counter = collections.Counter()
         use_prior = cfg.use_gyro_prior and R_S_prev_cur is not None
         R_rel = np.asarray(R_S_prev_cur, float) if R_S_prev_cur is not None else np.eye(3)
-        dt_s = 0.0 if self._last_stamp is None else (int(stamp_ns) - self._last_stamp) * 1e-9
         for i, (cam, st) in enumerate(zip(self.cameras, self._cams)):
             if st.image is not None and len(st.ids):
                 self._track_temporal(i, cam, st, images[i], R_rel if use_prior else None, counts, dt_s)
