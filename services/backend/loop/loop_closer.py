@@ -210,8 +210,9 @@ class LoopCloser:
         """What a candidate ``key`` is verified against: the features with a known landmark position of the stored
         keyframe ``key`` and of up to ``loop.verify_neighbours`` stored keyframes on each side of it (of the same
         session, or of the same saved map), one feature per landmark, the candidate's own first. All positions are
-        in the frame the candidate's were (neighbours left the window a few keyframes apart: their drift is
-        negligible against a loop's). Returns (features, p_W (K,3))."""
+        in the window's world frame, each as the window had it when its keyframe left (neighbours leave a few
+        keyframes apart; around a tracking loss the window may drift between them, which is one reason the inlier
+        threshold stays at 25). Returns (features, p_W (K,3))."""
         i, n = bisect.bisect_left(self._old_keys, key), self.cfg.verify_neighbours
         near = [k for k in self._old_keys[max(0, i - n):i + n + 1] if k != key and self._is_prior(k) == self._is_prior(key)]
         sets = [self._old[k] for k in [key, *sorted(near, key=lambda k: abs(k - key))]]
