@@ -28,9 +28,10 @@ from shared.camera import CameraCalib
 from shared.geometry import inv_T
 
 
-def normalised_gain(image: np.ndarray, mean_dn: float) -> np.ndarray:
-    """``image`` (uint8) scaled so that its mean grey level is ``mean_dn`` (a global gain; saturates at 255)."""
-    m = float(image.mean())
+def normalised_gain(image: np.ndarray, mean_dn: float, image_mean: float | None = None) -> np.ndarray:
+    """``image`` (uint8) scaled so that its mean grey level is ``mean_dn`` (a global gain; saturates at 255);
+    ``image_mean``: the image's mean when the caller has it already."""
+    m = float(image.mean()) if image_mean is None else float(image_mean)
     if m <= 1.0:
         return image
     return cv2.convertScaleAbs(image, alpha=mean_dn / m)
@@ -113,7 +114,7 @@ class MultiCameraTracker:
         # the tracker works on copies whose unprojection is a table lookup
         self.cameras = [dataclasses.replace(c, camera=LookupCamera(c.camera)) for c in cameras]
         self._cams = [_CameraState() for _ in cameras]
-        self._levels = [RunningLevel(cfg.gain_time_constant_s) for _ in cameras] if cfg.gain_time_constant_s > 0 else None
+        self._levels = [RunningLevel(cfg.gain_time_constant_s) for _ in cameras]
         self._pairs = overlapping_pairs(self.cameras, cfg.min_view_overlap_cos)
         self._R_SC = [np.asarray(c.T_SC, float)[:3, :3] for c in cameras]
         self._next_id = int(first_landmark_id)
@@ -184,10 +185,10 @@ class MultiCameraTracker:
         images = self._check(stamp_ns, images)
         cfg = self.cfg
         dt_s = 0.0 if self._last_stamp is None else (int(stamp_ns) - self._last_stamp) * 1e-9
-        if cfg.normalise_gain and self._levels is not None:
-            images = [normalised_gain(im, lv.update(float(im.mean()), dt_s)) for im, lv in zip(images, self._levels)]
-        elif cfg.normalise_gain:
-            images = [normalised_gain(im, cfg.normalised_mean_dn) for im in images]
+        if cfg.normalise_gain:
+            means = [float(im.mean()) for im in images]
+            levels = [lv.update(m, dt_s) if lv.tau_s > 0 else cfg.normalised_mean_dn for m, lv in zip(means, self._levels)]
+            images = [normalised_gain(im, lv, m) for im, lv, m in zip(images, levels, means)]
         counts: collections.Counter = collections.Counter()
         use_prior = cfg.use_gyro_prior and R_S_prev_cur is not None
         R_rel = np.asarray(R_S_prev_cur, float) if R_S_prev_cur is not None else np.eye(3)

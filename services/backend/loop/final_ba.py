@@ -21,6 +21,7 @@ import numpy as np
 from gtsam.symbol_shorthand import B, L, V, X
 
 from services.backend.loop.history import KeyframeRecord
+from services.backend.vision_factors import ProjectionModel
 from shared.geometry import inv_T
 
 
@@ -82,10 +83,7 @@ def bundle_adjust(records: list[KeyframeRecord], cameras, sigma_px: float = 1.0,
         for lm, lst in r.obs.items():
             obs.setdefault(lm, []).extend((r.state, c, xy) for c, xy in lst)
         p_init.update(r.landmarks)
-    cal = gtsam.Cal3_S2(1.0, 1.0, 0.0, 0.0, 0.0)
-    noise = [gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(cauchy_k),
-                                            gtsam.noiseModel.Isotropic.Sigma(2, sigma_px / c.focal_px)) for c in cameras]
-    body = [gtsam.Pose3(c.T_SC) for c in cameras]
+    projection = ProjectionModel(cameras, sigma_px, cauchy_k)  # the window's reprojection factors
     n_lm = n_obs = 0
     root = _merge_landmarks(obs, p_init, [(lm, own) for _, _, _, lm, own in loop_observations]) \
         if merge_loop_landmarks else {}
@@ -99,8 +97,7 @@ def bundle_adjust(records: list[KeyframeRecord], cameras, sigma_px: float = 1.0,
         vals.insert(L(lm), T0[:3, :3] @ np.asarray(p_init[lm], float) + T0[:3, 3])
         n_lm += 1
         for s, c, xy in lst:
-            g.add(gtsam.GenericProjectionFactorCal3_S2(np.asarray(xy, float), noise[c], X(s), L(lm), cal, False,
-                                                       False, body[c]))
+            g.add(projection.factor(np.asarray(xy, float), c, X(s), L(lm)))
             n_obs += 1
     for old, new, T_rel, cov in loops:
         if old in states and new in states:
