@@ -27,6 +27,13 @@ class LoopConfig:
     verify_neighbours: int = param(2, "stored keyframes on each side of a candidate whose landmarks join its PnP "
                                    "verification (0: the candidate's own, as until stop 39): a revisit from a few "
                                    "metres or degrees away shares too few landmarks with one keyframe")
+    guided_seed_inliers: int = param(12, "a PnP pose with at least this many inliers is expanded by guided matching: "
+                                     "the landmarks of the candidate and guided_neighbours stored keyframes on each "
+                                     "side are projected at it and matched near where they fall, then the pose is "
+                                     "refined and judged again against min_inliers (0: off, as until stop 40)")
+    guided_neighbours: int = param(8, "stored keyframes on each side of a candidate whose landmarks guided matching "
+                                   "projects")
+    guided_radius_px: float = param(12.0, "guided matching pairs a feature with landmarks projecting this close", "px")
     sigma_px: float = param(1.0, "feature noise used for the loop constraint's covariance", "px")
     cov_inflation: float = param(4.0, "loop covariance = this x the inverse reprojection information "
                                  "(the old landmarks are uncertain too)")

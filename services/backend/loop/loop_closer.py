@@ -45,7 +45,7 @@ from services.backend.loop.place_recognition import PlaceDatabase
 from services.backend.loop.pose_graph import LoopConstraint, PoseGraph
 from services.backend.loop.saved_map import (LOOP, ODOMETRY, SparseMap, SparseMapError, build_map, concatenate,
                                              vocabulary_id)
-from services.backend.loop.verification import FeatureSet, verify_pnp
+from services.backend.loop.verification import FeatureSet, Guide, normalised_xy, verify_pnp
 from services.backend.loop.vocabulary import DEFAULT_PATH, Vocabulary, l1_score
 from shared.geometry import inv_T
 
@@ -174,8 +174,16 @@ class LoopCloser:
         for c in cands:
             self.counts["proposed"] += 1
             old_fs, old_p = self.verification_set(c.key)
+            guide = None
+            if cfg.guided_seed_inliers > 0:
+                guide = Guide(*self.verification_set(c.key, cfg.guided_neighbours), cfg.guided_seed_inliers,
+                              cfg.guided_radius_px)
             res = verify_pnp(fs, old_fs, old_p, self._undistort, self._T_SC, self._focal, cfg.sigma_px,
-                             cfg.max_hamming, cfg.ransac_px, cfg.min_inliers, cfg.min_inlier_ratio, cfg.cov_inflation)
+                             cfg.max_hamming, cfg.ransac_px, cfg.min_inliers, cfg.min_inlier_ratio, cfg.cov_inflation,
+                             guide)
+            if res.expanded:
+                self.counts["guided"] += 1
+                old_fs = guide.features
             if not res.accepted:
                 self.counts["rejected_pnp"] += 1
                 continue
@@ -206,14 +214,15 @@ class LoopCloser:
             bisect.insort(self._old_keys, key)
         self._old[key] = (fs, p_W, rec)
 
-    def verification_set(self, key: int) -> tuple[FeatureSet, np.ndarray]:
+    def verification_set(self, key: int, neighbours: int | None = None) -> tuple[FeatureSet, np.ndarray]:
         """What a candidate ``key`` is verified against: the features with a known landmark position of the stored
-        keyframe ``key`` and of up to ``loop.verify_neighbours`` stored keyframes on each side of it (of the same
-        session, or of the same saved map), one feature per landmark, the candidate's own first. All positions are
-        in the window's world frame, each as the window had it when its keyframe left (neighbours leave a few
-        keyframes apart; around a tracking loss the window may drift between them, which is one reason the inlier
-        threshold stays at 25). Returns (features, p_W (K,3))."""
-        i, n = bisect.bisect_left(self._old_keys, key), self.cfg.verify_neighbours
+        keyframe ``key`` and of up to ``neighbours`` (default ``loop.verify_neighbours``) stored keyframes on each
+        side of it (of the same session, or of the same saved map), one feature per landmark, the candidate's own
+        first. All positions are in the window's world frame, each as the window had it when its keyframe left
+        (neighbours leave a few keyframes apart; around a tracking loss the window may drift between them, which is
+        one reason the inlier threshold stays at 25). Returns (features, p_W (K,3))."""
+        i = bisect.bisect_left(self._old_keys, key)
+        n = self.cfg.verify_neighbours if neighbours is None else neighbours
         near = [k for k in self._old_keys[max(0, i - n):i + n + 1] if k != key and self._is_prior(k) == self._is_prior(key)]
         sets = [self._old[k] for k in [key, *sorted(near, key=lambda k: abs(k - key))]]
         fs = [s[0] for s in sets]
@@ -356,11 +365,7 @@ class LoopCloser:
 
     def _normalised(self, fs: FeatureSet) -> np.ndarray:
         """Normalised coordinates (n,2) of a keyframe's distorted pixels."""
-        cams, uv = np.asarray(fs.camera_index, np.int64), np.asarray(fs.uv, float)
-        xy = np.zeros((len(cams), 2))
-        for c in np.unique(cams):
-            xy[cams == c] = self._undistort[c](uv[cams == c])
-        return xy
+        return normalised_xy(fs, self._undistort)
 
     def _solve_if_due(self, stamp_ns: int) -> bool:
         """Solve the pose graph when loops were added and the last solve is ``min_solve_interval_s`` old (gtsam

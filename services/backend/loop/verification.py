@@ -8,6 +8,13 @@ camera with most matches (normalised coordinates, so any distortion model works)
 of all cameras by Gauss-Newton; the loop is accepted only with enough inliers and inlier share. The pose's
 covariance is the inverse of the reprojection information of the inliers (sigma_px), inflated by
 ``cov_inflation`` to account for the landmarks' own uncertainty.
+
+Guided matching (``guide``): a pose with at least ``guide.seed_inliers`` inliers, too few to accept, is a seed.
+The landmarks of a wider set (the candidate and more of its neighbours) are projected into the query's cameras at
+the seed pose, each query feature is matched to the landmark of smallest Hamming distance that falls within
+``guide.radius_px`` of it (mutually), and the pose is refined again over these matches. A true revisit seen from
+a few metres or degrees away shares few *mutual nearest neighbours* with the old keyframe, but many of its
+features lie where the old landmarks project; a wrong seed finds few matches where it projects them.
 """
 
 from __future__ import annotations
@@ -40,7 +47,18 @@ class PnpResult:
     T_WS: np.ndarray | None = None  # current body pose in the old keyframe's world frame
     covariance: np.ndarray | None = None  # (6,6) of T_WS, gtsam Pose3 tangent order [rot_S, t_S]
     query_index: np.ndarray | None = None  # (I,) inlier features of the query ...
-    old_index: np.ndarray | None = None  # (I,) ... and the old keyframe's features they match
+    old_index: np.ndarray | None = None  # (I,) ... and the old keyframe's features they match (the guide's: expanded)
+    expanded: bool = False  # the pose was expanded by guided matching
+
+
+@dataclass(frozen=True)
+class Guide:
+    """Guided matching of :func:`verify_pnp`: the wider set whose landmarks are projected at a seed pose."""
+
+    features: FeatureSet
+    p_W: np.ndarray  # (K,3) positions of the set's landmarks, NaN where unknown
+    seed_inliers: int  # a RANSAC pose with at least this many inliers is expanded
+    radius_px: float  # a query feature matches landmarks projecting within this distance
 
 
 def mutual_matches(a: np.ndarray, b: np.ndarray, max_distance: int) -> tuple[np.ndarray, np.ndarray]:
@@ -70,24 +88,84 @@ def _residuals_jacobian(T_WS, p_W, xy, T_SC_per_obs):
     return r, J, z
 
 
+def match_by_projection(T_WS: np.ndarray, cams: np.ndarray, xy: np.ndarray, desc: np.ndarray, p_W: np.ndarray,
+                        p_desc: np.ndarray, T_SC: np.ndarray, focal_px: np.ndarray, radius_px: float,
+                        max_hamming: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs (iq, il) of query features (camera ``cams``, normalised ``xy``, descriptors ``desc``) and landmarks
+    (``p_W`` (L,3), descriptors ``p_desc``) seen by body pose ``T_WS``: each query feature with the landmark of
+    smallest Hamming distance (at most ``max_hamming``) among those projecting in front of its camera within
+    ``radius_px`` of it, kept when that feature is also the landmark's best."""
+    nq, nl = len(cams), len(p_W)
+    if nq == 0 or nl == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    T_SW = inv_T(T_WS)
+    p_S = p_W @ T_SW[:3, :3].T + T_SW[:3, 3]
+    far = np.iinfo(np.int32).max
+    cost = np.full((nq, nl), far, np.int32)
+    h = hamming(desc, p_desc)
+    for c in np.unique(cams):
+        T_CS = inv_T(T_SC[c])
+        p_C = p_S @ T_CS[:3, :3].T + T_CS[:3, 3]
+        front = p_C[:, 2] > 1e-3
+        proj = p_C[:, :2] / np.where(front, p_C[:, 2], 1.0)[:, None]
+        qi = np.flatnonzero(cams == c)
+        d2 = ((xy[qi, None, :] - proj[None, :, :]) ** 2).sum(axis=2) * float(focal_px[c]) ** 2
+        near = (d2 <= radius_px ** 2) & front[None, :]
+        cost[qi] = np.where(near, h[qi], far)
+    best_l = np.argmin(cost, axis=1)
+    best_q = np.argmin(cost, axis=0)
+    ok = (cost[np.arange(nq), best_l] <= max_hamming) & (best_q[best_l] == np.arange(nq))
+    iq = np.flatnonzero(ok)
+    return iq, best_l[iq]
+
+
+def _refine(T_WS, p_W, xy, T_SC_obs, f_obs, ransac_px, sigma_px, iterations=5):
+    """Gauss-Newton of body pose ``T_WS`` over the matches within ``ransac_px`` (re-selected each step). Returns
+    (T_WS, inlier mask)."""
+    inliers = np.zeros(len(p_W), bool)
+    for _ in range(iterations):
+        r, J, z = _residuals_jacobian(T_WS, p_W, xy, T_SC_obs)
+        err_px = np.linalg.norm(r, axis=1) * f_obs
+        inliers = (z > 0) & (err_px < ransac_px)
+        if inliers.sum() < 6:
+            break
+        w = (f_obs[inliers] / sigma_px)[:, None, None]
+        Jw, rw = (J[inliers] * w).reshape(-1, 6), (r[inliers] * w[:, :, 0]).reshape(-1)
+        dx = np.linalg.lstsq(Jw, -rw, rcond=None)[0]
+        dT = np.eye(4)
+        dT[:3, :3], dT[:3, 3] = so3_exp(dx[:3]), dx[3:]
+        T_WS = T_WS @ dT
+    return T_WS, inliers
+
+
+def normalised_xy(fs: FeatureSet, undistort, index: np.ndarray | None = None) -> np.ndarray:
+    """Normalised coordinates (M,2) of the features ``index`` (all: None) of ``fs``."""
+    index = np.arange(len(fs.camera_index)) if index is None else index
+    cams, uv = np.asarray(fs.camera_index, np.int64)[index], np.asarray(fs.uv, float)[index]
+    xy = np.zeros((len(index), 2))
+    for c in np.unique(cams):
+        xy[cams == c] = undistort[c](uv[cams == c])
+    return xy
+
+
 def verify_pnp(query: FeatureSet, old: FeatureSet, old_p_W: np.ndarray, undistort, T_SC: np.ndarray,
                focal_px: np.ndarray, sigma_px: float = 1.0, max_hamming: int = 50, ransac_px: float = 3.0,
-               min_inliers: int = 20, min_inlier_ratio: float = 0.3, cov_inflation: float = 4.0) -> PnpResult:
+               min_inliers: int = 20, min_inlier_ratio: float = 0.3, cov_inflation: float = 4.0,
+               guide: Guide | None = None) -> PnpResult:
     """Verify that ``query`` sees the landmarks of ``old`` (positions ``old_p_W`` (K,3), NaN where unknown).
 
     ``undistort[c]`` maps distorted pixels (M,2) of camera c to normalised coordinates; ``T_SC`` (C,4,4);
-    ``focal_px`` (C,) converts pixel thresholds to normalised units."""
+    ``focal_px`` (C,) converts pixel thresholds to normalised units. With ``guide``, a seed pose is expanded by
+    guided matching (module doc); the result's ``old_index`` then indexes ``guide.features``."""
+    seed = min_inliers if guide is None else min(min_inliers, guide.seed_inliers)
     known = np.flatnonzero(np.all(np.isfinite(old_p_W), axis=1))
     iq, io = mutual_matches(query.descriptors, old.descriptors[known], max_hamming)
     io = known[io]
     m = len(iq)
-    if m < min_inliers:
+    if m < seed:
         return PnpResult(False, "too few descriptor matches", m, 0)
     cams = np.asarray(query.camera_index, np.int64)[iq]
-    xy = np.zeros((m, 2))
-    for c in np.unique(cams):
-        sel = cams == c
-        xy[sel] = undistort[c](np.asarray(query.uv, float)[iq][sel])
+    xy = normalised_xy(query, undistort, iq)
     p_W = np.asarray(old_p_W, float)[io]
     best_c = int(np.bincount(cams).argmax())
     sel = np.flatnonzero(cams == best_c)
@@ -101,31 +179,31 @@ def verify_pnp(query: FeatureSet, old: FeatureSet, old_p_W: np.ndarray, undistor
     T_CW = np.eye(4)
     T_CW[:3, :3], T_CW[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.ravel()
     T_WS = inv_T(T_CW) @ inv_T(T_SC[best_c])
-    T_SC_obs = np.asarray(T_SC)[cams]
-    f_obs = np.asarray(focal_px, float)[cams]
-    inliers = np.zeros(m, bool)
-    for _ in range(5):  # Gauss-Newton over the inliers of all cameras
-        r, J, z = _residuals_jacobian(T_WS, p_W, xy, T_SC_obs)
-        err_px = np.linalg.norm(r, axis=1) * f_obs
-        inliers = (z > 0) & (err_px < ransac_px)
-        if inliers.sum() < 6:
-            break
-        w = (f_obs[inliers] / sigma_px)[:, None, None]
-        Jw, rw = (J[inliers] * w).reshape(-1, 6), (r[inliers] * w[:, :, 0]).reshape(-1)
-        dx = np.linalg.lstsq(Jw, -rw, rcond=None)[0]
-        T_WS = T_WS.copy()
-        dT = np.eye(4)
-        dT[:3, :3], dT[:3, 3] = so3_exp(dx[:3]), dx[3:]
-        T_WS = T_WS @ dT
+    T_SC = np.asarray(T_SC)
+    focal_px = np.asarray(focal_px, float)
+    T_WS, inliers = _refine(T_WS, p_W, xy, T_SC[cams], focal_px[cams], ransac_px, sigma_px)
     n_in = int(inliers.sum())
+    expanded = guide is not None and guide.seed_inliers <= n_in
+    if expanded:  # guided matching over the wider set at the seed pose
+        wide_known = np.flatnonzero(np.all(np.isfinite(guide.p_W), axis=1))
+        q_cams = np.asarray(query.camera_index, np.int64)
+        iq, il = match_by_projection(T_WS, q_cams, normalised_xy(query, undistort), query.descriptors,
+                                     np.asarray(guide.p_W, float)[wide_known], guide.features.descriptors[wide_known],
+                                     T_SC, focal_px, guide.radius_px, max_hamming)
+        io, m, cams = wide_known[il], len(iq), q_cams[iq]
+        if m < 6:
+            return PnpResult(False, "guided matching found too few matches", m, 0, T_WS)
+        xy, p_W = normalised_xy(query, undistort, iq), np.asarray(guide.p_W, float)[io]
+        T_WS, inliers = _refine(T_WS, p_W, xy, T_SC[cams], focal_px[cams], ransac_px, sigma_px)
+        n_in = int(inliers.sum())
     if n_in < min_inliers or n_in < min_inlier_ratio * m:
-        return PnpResult(False, f"{n_in} inliers of {m} matches", m, n_in, T_WS)
-    r, J, _ = _residuals_jacobian(T_WS, p_W[inliers], xy[inliers], T_SC_obs[inliers])
-    w = (f_obs[inliers] / sigma_px)[:, None, None]
+        return PnpResult(False, f"{n_in} inliers of {m} matches", m, n_in, T_WS, expanded=expanded)
+    r, J, _ = _residuals_jacobian(T_WS, p_W[inliers], xy[inliers], T_SC[cams][inliers])
+    w = (focal_px[cams][inliers] / sigma_px)[:, None, None]
     Jw = (J * w).reshape(-1, 6)
     info = Jw.T @ Jw
     try:
         cov = np.linalg.inv(info) * cov_inflation
     except np.linalg.LinAlgError:
-        return PnpResult(False, "degenerate inlier geometry", m, n_in, T_WS)
-    return PnpResult(True, "accepted", m, n_in, T_WS, 0.5 * (cov + cov.T), iq[inliers], io[inliers])
+        return PnpResult(False, "degenerate inlier geometry", m, n_in, T_WS, expanded=expanded)
+    return PnpResult(True, "accepted", m, n_in, T_WS, 0.5 * (cov + cov.T), iq[inliers], io[inliers], expanded)
