@@ -30,14 +30,15 @@ class FrontendConfig:
                                   "path; the window takes keyframes only, so it sees the same features). Needs "
                                   "kf_max_interval_s <= backend.max_keyframe_interval_s")
     use_gyro_prior: bool = param(True, "start KLT at the position predicted by the gyro-integrated rotation")
+    match_gain: bool = param(False, "before each KLT (frame to frame, camera to camera) scale the brighter image "
+                             "of the pair to the darker one's mean grey level: KLT assumes constant brightness, "
+                             "which auto-exposure jumps and left/right gain differences break (off: on whole "
+                             "replicas it helps the hard profile and costs the plain one, docs/results/estimator.md; "
+                             "replaces stop 39's running-level gain_time_constant_s)")
     normalise_gain: bool = param(False, "scale every image to the same mean brightness before tracking and matching "
                                  "(KLT assumes constant brightness: auto-exposure jumps and left/right gain "
                                  "differences break it)")
     normalised_mean_dn: float = param(110.0, "the mean grey level images are scaled to with normalise_gain", "DN")
-    gain_time_constant_s: float = param(0.0, "with normalise_gain: each camera's images are scaled to a running mean "
-                                        "of that camera's own mean grey levels with this time constant, instead of "
-                                        "to normalised_mean_dn: a sudden gain change is undone, a dark scene stays "
-                                        "dark (0: the fixed level)", "s")
     # --- outlier rejection ---
     ransac_threshold_px: float = param(1.0, "fundamental-matrix RANSAC inlier threshold (undistorted pixels)", "px")
     ransac_confidence: float = param(0.995, "RANSAC confidence")

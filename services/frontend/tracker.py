@@ -28,32 +28,23 @@ from shared.camera import CameraCalib
 from shared.geometry import inv_T
 
 
-def normalised_gain(image: np.ndarray, mean_dn: float, image_mean: float | None = None) -> np.ndarray:
-    """``image`` (uint8) scaled so that its mean grey level is ``mean_dn`` (a global gain; saturates at 255);
-    ``image_mean``: the image's mean when the caller has it already."""
-    m = float(image.mean()) if image_mean is None else float(image_mean)
+def normalised_gain(image: np.ndarray, mean_dn: float) -> np.ndarray:
+    """``image`` (uint8) scaled so that its mean grey level is ``mean_dn`` (a global gain; saturates at 255)."""
+    m = float(image.mean())
     if m <= 1.0:
         return image
     return cv2.convertScaleAbs(image, alpha=mean_dn / m)
 
 
-class RunningLevel:
-    """The grey level one camera's images are scaled to with ``frontend.gain_time_constant_s``: a running mean of
-    its images' mean levels (time constant ``tau_s``), so that a sudden exposure or gain change is undone in the
-    frames after it and fades in over ~tau_s, while a scene's own brightness is kept."""
-
-    def __init__(self, tau_s: float) -> None:
-        self.tau_s = float(tau_s)
-        self.level: float | None = None
-
-    def update(self, mean_dn: float, dt_s: float) -> float:
-        """The level for an image of mean ``mean_dn`` taken ``dt_s`` after the previous one."""
-        if mean_dn > 1.0:  # a black image says nothing of the gain
-            if self.level is None:
-                self.level = float(mean_dn)
-            else:
-                self.level += (float(mean_dn) - self.level) * (1.0 - np.exp(-max(dt_s, 0.0) / self.tau_s))
-        return float(mean_dn) if self.level is None else self.level
+def gain_matched(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pair (a, b) of uint8 images with the brighter one scaled to the darker one's mean grey level (a global
+    gain, scaled down so nothing saturates): KLT between them then sees one brightness."""
+    ma, mb = float(a.mean()), float(b.mean())
+    if ma <= 1.0 or mb <= 1.0 or ma == mb:
+        return a, b
+    if ma > mb:
+        return cv2.convertScaleAbs(a, alpha=mb / ma), b
+    return a, cv2.convertScaleAbs(b, alpha=ma / mb)
 
 
 class FrontendInputError(ValueError):
@@ -114,7 +105,6 @@ class MultiCameraTracker:
         # the tracker works on copies whose unprojection is a table lookup
         self.cameras = [dataclasses.replace(c, camera=LookupCamera(c.camera)) for c in cameras]
         self._cams = [_CameraState() for _ in cameras]
-        self._levels = [RunningLevel(cfg.gain_time_constant_s) for _ in cameras]
         self._pairs = overlapping_pairs(self.cameras, cfg.min_view_overlap_cos)
         self._R_SC = [np.asarray(c.T_SC, float)[:3, :3] for c in cameras]
         self._next_id = int(first_landmark_id)
@@ -186,9 +176,7 @@ class MultiCameraTracker:
         cfg = self.cfg
         dt_s = 0.0 if self._last_stamp is None else (int(stamp_ns) - self._last_stamp) * 1e-9
         if cfg.normalise_gain:
-            means = [float(im.mean()) for im in images]
-            levels = [lv.update(m, dt_s) if lv.tau_s > 0 else cfg.normalised_mean_dn for m, lv in zip(means, self._levels)]
-            images = [normalised_gain(im, lv, m) for im, lv, m in zip(images, levels, means)]
+            images = [normalised_gain(im, cfg.normalised_mean_dn) for im in images]
         counts: collections.Counter = collections.Counter()
         use_prior = cfg.use_gyro_prior and R_S_prev_cur is not None
         R_rel = np.asarray(R_S_prev_cur, float) if R_S_prev_cur is not None else np.eye(3)
@@ -254,8 +242,8 @@ class MultiCameraTracker:
         cfg = self.cfg
         model = cam.camera
         guess = None if R_rel is None else klt.predict_rotated(model, st.uv, self._R_C1C0(i, R_rel))
-        uv1, ok = klt.track(st.image, image, st.uv, guess, cfg.klt_window_px, cfg.klt_levels, cfg.klt_iterations,
-                            cfg.fb_max_error_px, model.size, cfg.fb_levels)
+        uv1, ok = klt.track(*self._klt_pair(st.image, image), st.uv, guess, cfg.klt_window_px, cfg.klt_levels,
+                            cfg.klt_iterations, cfg.fb_max_error_px, model.size, cfg.fb_levels)
         counts["lost_klt"] += int((~ok).sum())
         uv0 = st.uv[ok]
         uv1 = uv1[ok]
@@ -276,6 +264,9 @@ class MultiCameraTracker:
         st.vel = ((uv1 - uv0[keep]) / dt_s if dt_s > 0 else np.zeros_like(uv1)).astype(np.float32)
         st.uv = uv1.astype(np.float32)
         counts["tracked"] += len(st.ids)
+
+    def _klt_pair(self, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return gain_matched(a, b) if self.cfg.match_gain else (a, b)
 
     def _ransac(self, model, uv0: np.ndarray, uv1: np.ndarray, uv0_rotated: np.ndarray) -> np.ndarray:
         cfg = self.cfg
@@ -313,9 +304,9 @@ class MultiCameraTracker:
             if not vis.any():
                 continue
             sel = np.flatnonzero(vis)
-            uv_j, ok = klt.track(self._cams[i].image, st_j.image, uv_i[sel], guess[sel], cfg.klt_window_px,
-                                 cfg.klt_levels, cfg.klt_iterations, cfg.fb_max_error_px, cam_j.camera.size,
-                                 cfg.fb_levels)
+            uv_j, ok = klt.track(*self._klt_pair(self._cams[i].image, st_j.image), uv_i[sel], guess[sel],
+                                 cfg.klt_window_px, cfg.klt_levels, cfg.klt_iterations, cfg.fb_max_error_px,
+                                 cam_j.camera.size, cfg.fb_levels)
             ok &= cross_camera_check(cam_i, cam_j, uv_i[sel], uv_j, cfg.epipolar_max_px, cfg.stereo_min_depth_m)
             if len(st_j.uv) and ok.any():  # not on top of a feature camera j already tracks
                 d2 = np.min(((uv_j[:, None, :] - st_j.uv[None, :, :]) ** 2).sum(-1), axis=1)
