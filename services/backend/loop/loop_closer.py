@@ -6,8 +6,10 @@ estimator's marginalisation hook) and the tracking status (:meth:`LoopCloser.not
 
 * A new keyframe's bag is scored against the *marginalised* keyframes (they carry 3D landmarks) older than
   ``min_age_s``; the best candidates are verified by PnP against the landmarks of the old keyframe and of its
-  ``verify_neighbours`` stored neighbours on each side (:meth:`LoopCloser.verification_set`). Counts:
-  proposed (candidates), verified (PnP accepted), accepted (loop factor added).
+  ``verify_neighbours`` stored neighbours on each side (:meth:`LoopCloser.verification_set`); a PnP pose with at
+  least ``guided_seed_inliers`` inliers is expanded by guided matching against ``guided_neighbours`` on each side
+  (services/backend/loop/verification.py). Counts: proposed (candidates), guided (poses expanded), verified (PnP
+  accepted), accepted (loop factor added).
 * A verified loop waits until the query keyframe leaves the window itself, then enters the pose graph as a
   relative-pose factor between the two nodes; the graph is solved and the correction ``T_W'W`` (window
   frame to corrected frame at the newest node) is updated.
