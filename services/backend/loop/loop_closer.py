@@ -177,9 +177,9 @@ class LoopCloser:
             self.counts["proposed"] += 1
             old_fs, old_p = self.verification_set(c.key)
             guide = None
-            if cfg.guided_seed_inliers > 0:
-                guide = Guide(*self.verification_set(c.key, cfg.guided_neighbours), cfg.guided_seed_inliers,
-                              cfg.guided_radius_px)
+            if cfg.guided_seed_inliers > 0:  # the wider set is gathered only if RANSAC gives a seed
+                guide = Guide(seed_inliers=cfg.guided_seed_inliers, radius_px=cfg.guided_radius_px,
+                              load=lambda key=c.key: self.verification_set(key, cfg.guided_neighbours))
             res = verify_pnp(fs, old_fs, old_p, self._undistort, self._T_SC, self._focal, cfg.sigma_px,
                              cfg.max_hamming, cfg.ransac_px, cfg.min_inliers, cfg.min_inlier_ratio, cfg.cov_inflation,
                              guide)
@@ -191,7 +191,7 @@ class LoopCloser:
                 continue
             self.counts["verified"] += 1
             cams = np.asarray(fs.camera_index, np.int64)[res.query_index]
-            xy = self._normalised(fs)[res.query_index]
+            xy = normalised_xy(fs, self._undistort, res.query_index)
             # a saved map's landmark ids are another session's: its matches give no observations of this one's
             obs = () if self._is_prior(c.key) else (cams, xy, np.asarray(old_fs.landmark_ids, np.int64)[res.old_index],
                                                     np.asarray(fs.landmark_ids, np.int64)[res.query_index])
@@ -354,7 +354,8 @@ class LoopCloser:
                 T_corr = g.estimate[k] @ inv_T(g.odom[k])  # window frame -> map frame at this node
                 fs, p_W = (self._old[k][0], self._old[k][1]) if k in self._old else (None, None)
                 p = None if p_W is None else p_W @ T_corr[:3, :3].T + T_corr[:3, 3]
-                kfs.append((k, self.node_stamps[k], g.estimate[k], fs, p, None if fs is None else self._normalised(fs)))
+                xy = None if fs is None else normalised_xy(fs, self._undistort)
+                kfs.append((k, self.node_stamps[k], g.estimate[k], fs, p, xy))
             edges = [(a, b, T, c, ODOMETRY) for a, b, T, c in g.edges]
             edges += [(lp.old_key, lp.new_key, lp.T_old_new, lp.covariance, LOOP) for lp in g.loops
                       if not self._is_prior(lp.old_key)]
@@ -364,10 +365,6 @@ class LoopCloser:
         links = [(int(self.prior.keys[lp.old_key - PRIOR_KEY_BASE]), lp.new_key, lp.T_old_new, lp.covariance, LOOP)
                  for lp in g.loops if self._is_prior(lp.old_key) and lp.new_key in g.odom] if self.aligned else []
         return concatenate(self.prior, session_map, np.eye(4), links)
-
-    def _normalised(self, fs: FeatureSet) -> np.ndarray:
-        """Normalised coordinates (n,2) of a keyframe's distorted pixels."""
-        return normalised_xy(fs, self._undistort)
 
     def _solve_if_due(self, stamp_ns: int) -> bool:
         """Solve the pose graph when loops were added and the last solve is ``min_solve_interval_s`` old (gtsam

@@ -51,14 +51,31 @@ class PnpResult:
     expanded: bool = False  # the pose was expanded by guided matching
 
 
-@dataclass(frozen=True)
 class Guide:
-    """Guided matching of :func:`verify_pnp`: the wider set whose landmarks are projected at a seed pose."""
+    """Guided matching of :func:`verify_pnp`: the wider set whose landmarks are projected at a seed pose.
 
-    features: FeatureSet
-    p_W: np.ndarray  # (K,3) positions of the set's landmarks, NaN where unknown
-    seed_inliers: int  # a RANSAC pose with at least this many inliers is expanded
-    radius_px: float  # a query feature matches landmarks projecting within this distance
+    ``features`` and ``p_W`` ((K,3) positions of the set's landmarks, NaN where unknown) are given, or ``load()``
+    returns them the first time they are needed: most candidates never give a seed. A RANSAC pose with at least
+    ``seed_inliers`` inliers is expanded; a query feature matches landmarks projecting within ``radius_px``."""
+
+    def __init__(self, features: FeatureSet | None = None, p_W: np.ndarray | None = None, seed_inliers: int = 12,
+                 radius_px: float = 12.0, load=None) -> None:
+        self._set = None if features is None else (features, p_W)
+        self._load = load
+        self.seed_inliers, self.radius_px = int(seed_inliers), float(radius_px)
+
+    def wide_set(self) -> tuple[FeatureSet, np.ndarray]:
+        if self._set is None:
+            self._set = self._load()
+        return self._set
+
+    @property
+    def features(self) -> FeatureSet:
+        return self.wide_set()[0]
+
+    @property
+    def p_W(self) -> np.ndarray:
+        return self.wide_set()[1]
 
 
 def mutual_matches(a: np.ndarray, b: np.ndarray, max_distance: int) -> tuple[np.ndarray, np.ndarray]:
@@ -185,15 +202,16 @@ def verify_pnp(query: FeatureSet, old: FeatureSet, old_p_W: np.ndarray, undistor
     n_in = int(inliers.sum())
     expanded = guide is not None and guide.seed_inliers <= n_in
     if expanded:  # guided matching over the wider set at the seed pose
-        wide_known = np.flatnonzero(np.all(np.isfinite(guide.p_W), axis=1))
-        q_cams = np.asarray(query.camera_index, np.int64)
-        iq, il = match_by_projection(T_WS, q_cams, normalised_xy(query, undistort), query.descriptors,
-                                     np.asarray(guide.p_W, float)[wide_known], guide.features.descriptors[wide_known],
-                                     T_SC, focal_px, guide.radius_px, max_hamming)
+        wide_fs, wide_p = guide.wide_set()
+        wide_p = np.asarray(wide_p, float)
+        wide_known = np.flatnonzero(np.all(np.isfinite(wide_p), axis=1))
+        q_cams, q_xy = np.asarray(query.camera_index, np.int64), normalised_xy(query, undistort)
+        iq, il = match_by_projection(T_WS, q_cams, q_xy, query.descriptors, wide_p[wide_known],
+                                     wide_fs.descriptors[wide_known], T_SC, focal_px, guide.radius_px, max_hamming)
         io, m, cams = wide_known[il], len(iq), q_cams[iq]
         if m < 6:
             return PnpResult(False, "guided matching found too few matches", m, 0, T_WS)
-        xy, p_W = normalised_xy(query, undistort, iq), np.asarray(guide.p_W, float)[io]
+        xy, p_W = q_xy[iq], wide_p[io]
         T_WS, inliers = _refine(T_WS, p_W, xy, T_SC[cams], focal_px[cams], ransac_px, sigma_px)
         n_in = int(inliers.sum())
     if n_in < min_inliers or n_in < min_inlier_ratio * m:
