@@ -24,7 +24,8 @@ SIGMA_LOG_MIN = 0.005
 
 def coarse_rays(K: torch.Tensor, h: int, w: int) -> torch.Tensor:
     """(B,3,3) full-resolution K -> (B,h*w,3) rays (z = 1) through the centres of the 1/SCALE-resolution pixels."""
-    v, u = torch.meshgrid(torch.arange(h, dtype=K.dtype), torch.arange(w, dtype=K.dtype), indexing="ij")
+    v, u = torch.meshgrid(torch.arange(h, dtype=K.dtype, device=K.device),
+                          torch.arange(w, dtype=K.dtype, device=K.device), indexing="ij")
     u_full = u.reshape(-1) * SCALE + (SCALE - 1) / 2.0
     v_full = v.reshape(-1) * SCALE + (SCALE - 1) / 2.0
     x = (u_full[None] - K[:, 0, 2, None]) / K[:, 0, 0, None]

@@ -180,13 +180,14 @@ def _highlight(rng, h, w, x_shift):
     return spot(0.0), spot(x_shift)
 
 
-def camera_effects(rng, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Radiance pair -> uint8 grey pair through blur, exposure, gain difference, gamma, vignetting, noise, JPEG."""
+def camera_effects(rng, left: np.ndarray, right: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None, dict]:
+    """Radiance pair -> uint8 grey pair through blur, exposure, gain difference, gamma, vignetting, noise, JPEG
+    (right None: the left view alone, through the same draws)."""
     h, w = left.shape
     fx = {}
     if rng.random() < 0.2:
         hl, hr = _highlight(rng, h, w, rng.uniform(-15, 15))
-        left, right = left + hl, right + hr
+        left, right = left + hl, (None if right is None else right + hr)
     blur = float(rng.uniform(0.0, 1.4)) if rng.random() < 0.7 else 0.0
     exposure = float(np.exp(rng.uniform(np.log(0.45), np.log(1.25))))
     gain_lr = float(np.exp(rng.uniform(-0.15, 0.15)))
@@ -197,6 +198,9 @@ def camera_effects(rng, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray
     noise = float(rng.uniform(0.0, 0.03))
     out = []
     for img, gain in ((left, 1.0), (right, gain_lr)):
+        if img is None:
+            out.append(None)
+            continue
         b = blur * rng.uniform(0.85, 1.15)
         if b > 0.25:
             img = cv2.GaussianBlur(img, (0, 0), b)
@@ -206,7 +210,8 @@ def camera_effects(rng, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray
         out.append(np.clip(img * 255 + 0.5, 0, 255).astype(np.uint8))
     quality = int(rng.integers(35, 95)) if rng.random() < 0.3 else 0
     if quality:
-        out = [cv2.imdecode(cv2.imencode(".jpg", im, [cv2.IMWRITE_JPEG_QUALITY, quality])[1], cv2.IMREAD_GRAYSCALE)
+        out = [None if im is None else
+               cv2.imdecode(cv2.imencode(".jpg", im, [cv2.IMWRITE_JPEG_QUALITY, quality])[1], cv2.IMREAD_GRAYSCALE)
                for im in out]
     fx.update(blur=blur, exposure=exposure, gain_lr=gain_lr, gamma=gamma, noise=noise, jpeg=quality)
     return out[0], out[1], fx

@@ -32,12 +32,14 @@ from services.depth.uncertainty import (calibration_gain, depth_metrics, dispari
 from services.depth.views import select_sources
 
 
-def load_split(root: Path, split: str) -> list[dict]:
+def load_split(root: Path, split: str, loaded: list[dict] | None = None) -> list[dict]:
+    """The readable scenes of a split; ``loaded``: scenes read before, kept as they are (only new files are read)."""
     files = sorted(f for f in (root / split).glob("scene_*.npz") if not f.name.endswith(".tmp.npz"))
     if not files:
         raise SystemExit(f"{root / split}: no scene_*.npz (render them: python -m tools.depth.make_dataset)")
-    scenes = []
-    for f in files:
+    scenes = list(loaded or [])
+    known = {s["name"] for s in scenes}
+    for f in (f for f in files if f.stem not in known):
         try:
             scenes.append(dict(np.load(f)) | {"name": f.stem})
         except (OSError, ValueError, zipfile.BadZipFile) as e:  # half-written by a render still running, or corrupt
@@ -223,6 +225,9 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit("--real-pairs is for --net stereo_refine")
     else:
         train = load_split(root, "train")
+        if a.net == "stereo" and any("right" not in s for s in train):
+            raise SystemExit(f"--net stereo: {root}/train has scenes without right views (rendered --left-only, "
+                             "for the MVS network)")
     arch_args = {"n_planes": 32, "min_depth": 0.3, "max_depth": 15.0} if a.net == "mvs" else {"max_disparity": 96}
     net = weights.build(a.net, arch_args).to(a.device).train()
     if a.init:
@@ -272,7 +277,7 @@ def main(argv: list[str] | None = None) -> int:
         if step % 200 == 0 and a.net == "stereo_refine" and not a.loader_workers and len(list((root / "train").glob("shard_????"))) > len(train):
             train = load_shards(root, "train")  # shards still rendering when training started join in
         elif step % 200 == 0 and a.net != "stereo_refine" and len(list((root / "train").glob("scene_?????.npz"))) > len(train):
-            train = load_split(root, "train")  # scenes still rendering when training started join in
+            train = load_split(root, "train", train)  # scenes still rendering when training started join in
         smooth = loss.item() if smooth is None else 0.95 * smooth + 0.05 * loss.item()
         curve.write(f"{step},{elapsed:.1f},{lr:.3g},{loss.item():.5f}\n")
         if step % 25 == 0:
