@@ -51,3 +51,15 @@ def test_make_dataset_keeps_rendered_scenes(tiny_set):
                               "--workers", "1"]) == 0
     assert f.stat().st_mtime_ns == before
     assert not list(tiny_set.rglob("*.tmp.npz"))
+
+
+def test_fit_fusion_reports_a_correlation(tiny_set, tmp_path):
+    from tools.depth import fit_fusion
+
+    out = tmp_path / "fit.json"
+    assert fit_fusion.main(["--data", str(tiny_set), "--frames", "2", "--out", str(out)]) == 0
+    r = json.loads(out.read_text())
+    assert r["pixels"] > 10_000 and 0.0 <= r["rho"] <= 0.9
+    sig = [row["mean_err_over_sigma"] for row in r["rows"]]
+    assert sig[5] < sig[0]  # a correlation widens the fused sigma (rho 0.25 against 0)
+    assert abs(r["rows"][0]["rho"]) < 1e-9 and len(r["rows"]) == 19

@@ -116,3 +116,26 @@ def test_median_gain_rule_resists_a_tail_of_gross_errors():
         gain_from_ratios(np.ones(3), "mode")
     with pytest.raises(ValueError, match="no valid pixels"):
         gain_from_ratios(np.array([np.nan]))
+
+
+def test_fusion_with_correlated_errors_predicts_its_error():
+    """Errors with correlation rho: fusing with that rho gives a sigma that matches the error and no larger error
+    than either source; assuming independence (eq. 14) makes the sigma too small."""
+    rng = np.random.default_rng(1)
+    n, rho = 200_000, 0.6
+    truth = rng.uniform(1, 5, n)
+    s1, s2 = rng.uniform(0.05, 0.5, n), rng.uniform(0.05, 0.5, n)
+    g1 = rng.standard_normal(n)
+    g2 = rho * g1 + np.sqrt(1 - rho ** 2) * rng.standard_normal(n)
+    d1, d2 = truth + s1 * g1, truth + s2 * g2
+    d, s = fuse(d1, s1, d2, s2, rho)
+    assert abs(((d - truth) / s).std() - 1.0) < 0.01
+    mse = np.mean((d - truth) ** 2)
+    assert mse <= min(np.mean((d1 - truth) ** 2), np.mean((d2 - truth) ** 2))
+    _, s_indep = fuse(d1, s1, d2, s2)
+    assert ((d - truth) / s_indep).std() > 1.1
+    # a much worse, strongly correlated source gets weight 0, not a negative one: the better source is kept
+    d, s = fuse(np.array([2.0]), np.array([0.1]), np.array([3.0]), np.array([1.0]), 0.5)
+    assert d[0] == pytest.approx(2.0) and s[0] == pytest.approx(0.1)
+    with pytest.raises(ValueError):
+        fuse(d1, s1, d2, s2, 1.0)

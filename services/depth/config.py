@@ -35,6 +35,9 @@ class DepthConfig:
                        "no right image; the MVS depth goes out on depth/fused and depth/stereo (source 'mvs'), frames "
                        "before MVS has source views publish nothing (counted)")
     use_mvs: bool = param(True, "run the MVS network on posed keyframes and fuse it with stereo (method 'network')")
+    fusion_correlation: float = param(0.23, "correlation of the stereo and MVS networks' normalised errors that the "
+                                      "fusion assumes (0: eq. 14, independent errors; fitted on the validation split "
+                                      "by python -m tools.depth.fit_fusion, docs/depth.md)")
     mvs_sources: int = param(4, "source views of the MVS network (1-7; 4 keeps the CPU time bounded)")
     mvs_min_baseline_m: float = param(0.03, "least distance between any two MVS views", "m")
     mvs_max_baseline_m: float = param(1.0, "largest distance of a source view from the reference", "m")

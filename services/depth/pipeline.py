@@ -274,7 +274,7 @@ class DepthPipeline:
         left, right = self.rect.rectify(raw_left, raw_right)
         stereo = self._mask(self.stereo(left, right))
         T_WC, mvs, n_src, n_prior = self._posed_mvs(stamp_ns, left, T_WS)
-        fused = stereo if mvs is None else fuse(*stereo, *mvs)
+        fused = stereo if mvs is None else fuse(*stereo, *mvs, self.cfg.fusion_correlation)
         return DepthResult(self._confident(stereo), self._confident(mvs), self._confident(fused, count=True), T_WC,
                            self.method, n_src, n_prior)
 

@@ -42,18 +42,27 @@ def heuristic_sigma(depth: np.ndarray, model: str, coeff: float) -> np.ndarray:
     raise ValueError(f"unknown heuristic sigma model {model!r} (linear, quadratic)")
 
 
-def fuse(d1: np.ndarray, s1: np.ndarray, d2: np.ndarray, s2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Eq. 14 per pixel. A pixel valid in one source only (finite depth, finite sigma > 0) keeps that
-    source; invalid in both gives NaN."""
+def fuse(d1: np.ndarray, s1: np.ndarray, d2: np.ndarray, s2: np.ndarray,
+         rho: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 14 per pixel, generalised to errors with correlation ``rho`` (0: eq. 14, independent errors): the
+    best linear combination of the two depths, its weights clipped to [0, 1] (a strongly correlated, much worse
+    source is left out rather than subtracted), and the sigma of that combination. A pixel valid in one source only
+    (finite depth, finite sigma > 0) keeps that source; invalid in both gives NaN."""
+    if not 0.0 <= rho < 1.0:
+        raise ValueError(f"fusion correlation {rho} outside [0, 1)")
     d1, s1, d2, s2 = (np.asarray(a, np.float64) for a in (d1, s1, d2, s2))
     ok1 = np.isfinite(d1) & np.isfinite(s1) & (s1 > 0)
     ok2 = np.isfinite(d2) & np.isfinite(s2) & (s2 > 0)
-    w1 = np.where(ok1, 1.0 / np.where(ok1, s1, 1.0) ** 2, 0.0)
-    w2 = np.where(ok2, 1.0 / np.where(ok2, s2, 1.0) ** 2, 0.0)
-    wsum = w1 + w2
-    any_ok = wsum > 0
-    var = np.where(any_ok, 1.0 / np.where(any_ok, wsum, 1.0), np.nan)
-    depth = var * (w1 * np.where(ok1, d1, 0.0) + w2 * np.where(ok2, d2, 0.0))
+    both = ok1 & ok2
+    a = np.where(ok1, s1, 1.0)
+    b = np.where(ok2, s2, 1.0)
+    cov = rho * a * b
+    w1 = np.clip((b * b - cov) / (a * a + b * b - 2 * cov), 0.0, 1.0)
+    w1 = np.where(both, w1, np.where(ok1, 1.0, 0.0))
+    w2 = np.where(ok1 | ok2, 1.0 - w1, 0.0)
+    var = w1 * w1 * a * a + w2 * w2 * b * b + 2 * w1 * w2 * cov
+    var = np.where(ok1 | ok2, var, np.nan)
+    depth = np.where(ok1 | ok2, w1 * np.where(ok1, d1, 0.0) + w2 * np.where(ok2, d2, 0.0), np.nan)
     return depth.astype(np.float32), np.sqrt(var).astype(np.float32)
 
 

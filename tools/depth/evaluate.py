@@ -39,6 +39,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the stereo network's arithmetic (depth.stereo_precision; MVS stays float32)")
     p.add_argument("--stereo-weights", default="", help="default: services/depth/weights/stereo.pt")
     p.add_argument("--mvs-weights", default="", help="default: services/depth/weights/mvs.pt")
+    p.add_argument("--fusion-correlation", type=float, default=None,
+                   help="rho of the fusion (default: depth.fusion_correlation of the depth config)")
     p.add_argument("--out", default="out/depth/eval", help="output folder")
 
 
@@ -143,6 +145,7 @@ def main(args: argparse.Namespace) -> int:
     import torch
 
     from services.depth import weights
+    from services.depth.config import DepthConfig
     from services.depth.sgbm import sgbm_depth
     from services.depth.uncertainty import (EXPECTED_WITHIN, depth_metrics, disparity_to_depth, fuse,
                                             heuristic_sigma, logdepth_to_depth)
@@ -150,6 +153,7 @@ def main(args: argparse.Namespace) -> int:
     from tools.depth.make_dataset import BASELINE_M, K_RECT
 
     torch.set_num_threads(args.threads)
+    rho = DepthConfig().fusion_correlation if args.fusion_correlation is None else args.fusion_correlation
     rng = np.random.default_rng(0)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -204,7 +208,7 @@ def main(args: argparse.Namespace) -> int:
             times["mvs_net"].append(time.process_time() - t)
         acc["mvs_net"].append((d_mv, s_mv, gt))
         t = time.process_time()
-        acc["fused"].append((*fuse(d_st, s_st, d_mv, s_mv), gt))
+        acc["fused"].append((*fuse(d_st, s_st, d_mv, s_mv, rho), gt))
         times["fusion"].append(time.process_time() - t)
     rows = {}
     for m, v in acc.items():
@@ -219,12 +223,12 @@ def main(args: argparse.Namespace) -> int:
     timing = {k: float(np.median(v) * 1000) for k, v in times.items() if v}
     result = {"source": source, "frames": len(acc["stereo_net"]), "mvs_frames": len(acc["mvs_net"]),
               "mean_sources": float(np.mean(n_src)) if n_src else 0.0, "heuristic_gains": hg,
-              "network_gains": {"stereo": st_meta["gain"], "mvs": mv_meta["gain"]}, "metrics": rows,
+              "network_gains": {"stereo": st_meta["gain"], "mvs": mv_meta["gain"]}, "fusion_correlation": rho, "metrics": rows,
               "median_ms": timing, "threads": args.threads, "expected_within_laplace": EXPECTED_WITHIN["laplace"],
               "expected_within_gauss": EXPECTED_WITHIN["gauss"]}
     (out / "metrics.json").write_text(json.dumps(result, indent=1))
     lines = [f"Depth evaluation on {source}: {result['frames']} frames ({result['mvs_frames']} with MVS, "
-             f"{result['mean_sources']:.1f} sources on average)", "",
+             f"{result['mean_sources']:.1f} sources on average; fusion correlation {rho:g})", "",
              "| method | AbsRel | RMSE [m] | d<1.25 | mean Mahalanobis | NLL (Laplace) | NLL (Gauss) | <1s | <2s | <3s "
              "| coverage |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
