@@ -118,6 +118,12 @@ def _variant(name: str, z) -> tuple[np.ndarray, np.ndarray]:
             base, m = name.split("-maxsigma-")
             d, s = _variant(base, z)
             return _swap(s > float(m), (d, s), (np.nan, np.nan))
+        if name.startswith("fused-minsrc-"):  # frames with fewer MVS source views than n keep stereo alone
+            n = int(name.rsplit("-", 1)[1])
+            few = (z["n_src"] < n)[:, None, None]
+            return _swap(np.broadcast_to(few, st_d.shape), (fu_d, fu_s), (st_d, st_s))
+        if name.startswith("fused-rho-"):  # refused with this correlation of the two networks' errors
+            return fuse(st_d, st_s, mv_d, mv_s, float(name.rsplit("-", 1)[1]))
         if name.startswith("fused-border"):  # MVS ignored within n px of the image border
             n = int(name.rsplit("-", 1)[1])
             m = np.ones(st_d.shape[1:], bool)
