@@ -234,6 +234,31 @@ def test_match_gain_tracks_through_an_exposure_jump(stereo_seq):
     assert lost[True] <= 2 < lost[False]
 
 
+def test_match_gain_cross_matches_cameras_of_different_gain(stereo_seq):
+    """frontend.match_gain_cross: camera 1 is 0.7x as bright as camera 0 (independent auto exposure). Without gain
+    matching the camera-to-camera KLT of new features loses matches and places the rest worse; with it, the matches
+    are as many and as close to the true geometry as with equal gains."""
+    room, cams, poses, images = stereo_seq
+    dim = [[ims[0], (ims[1].astype(float) * 0.7).astype(np.uint8)] for ims in images[:4]]
+
+    def stereo(imgs, on):
+        _, outs = run_sequence(cams, poses[:4], imgs, dataclasses.replace(FrontendConfig(), match_gain_cross=on))
+        o, T = outs[0], poses[0]
+        ids0 = o.landmark_ids[o.camera_index == 0]
+        m1 = (o.camera_index == 1) & np.isin(o.landmark_ids, ids0)
+        uv0 = np.array([o.uv[(o.camera_index == 0) & (o.landmark_ids == i)][0] for i in o.landmark_ids[m1]])
+        proj, ok = fs.project(cams[1], T, fs.raycast(room, cams[0], T, uv0))
+        return int(m1.sum()), float(np.median(np.where(ok, np.linalg.norm(proj - o.uv[m1], axis=1), np.inf)))
+
+    n_eq, e_eq = stereo(images[:4], False)
+    n_off, e_off = stereo(dim, False)
+    n_on, e_on = stereo(dim, True)
+    assert n_on >= 0.95 * n_eq and e_on <= 1.2 * e_eq + 0.02
+    assert n_on > n_off or e_on < e_off
+    n_same, e_same = stereo(images[:4], True)  # equal gains: only the views' own small brightness difference is scaled
+    assert abs(n_same - n_eq) <= 0.02 * n_eq and e_same == pytest.approx(e_eq, abs=0.005)
+
+
 def test_deferred_detection_leaves_keyframes_and_tracks_unchanged(stereo_seq):
     """With may_defer, a frame that is not a keyframe comes out with its tracked features only; its new features
     (detected by finish_frame, after the output is sent) are carried from the next frame on. Keyframes, ids and

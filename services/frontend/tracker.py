@@ -304,7 +304,9 @@ class MultiCameraTracker:
             if not vis.any():
                 continue
             sel = np.flatnonzero(vis)
-            uv_j, ok = klt.track(*self._klt_pair(self._cams[i].image, st_j.image), uv_i[sel], guess[sel],
+            pair = (gain_matched(self._cams[i].image, st_j.image) if cfg.match_gain_cross
+                    else self._klt_pair(self._cams[i].image, st_j.image))
+            uv_j, ok = klt.track(*pair, uv_i[sel], guess[sel],
                                  cfg.klt_window_px, cfg.klt_levels, cfg.klt_iterations, cfg.fb_max_error_px,
                                  cam_j.camera.size, cfg.fb_levels)
             ok &= cross_camera_check(cam_i, cam_j, uv_i[sel], uv_j, cfg.epipolar_max_px, cfg.stereo_min_depth_m)
