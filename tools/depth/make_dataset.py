@@ -71,14 +71,14 @@ def near_objects(scene, rng, T_WC: np.ndarray, n: int) -> tuple[np.ndarray, np.n
 
 def _dressed_scene(rng, frames: int, real_dir: str | None):
     """A room with bars, a camera walk, objects near the walk, material images; (scene, T_WC, K)."""
-    from tools.depth.make_stereo_data import _photos
+    from tools.depth.materials import cached_photos
 
     scene = random_scene(rng, n_boxes=int(rng.integers(3, 12)), n_spheres=int(rng.integers(1, 6)))
     scene = add_objects(scene, rng, *random_bars(scene, rng, int(rng.integers(0, 8))))
     T_WC = camera_walk(scene, rng, frames)
     centres, radii = near_objects(scene, rng, T_WC, int(rng.integers(0, 4)))
     scene = add_objects(scene, rng, sph_c=centres, sph_r=radii)
-    scene = dress(scene, rng, _photos(real_dir))
+    scene = dress(scene, rng, cached_photos(real_dir))
     f = float(np.exp(rng.uniform(np.log(230.0), np.log(420.0))))
     K = np.array([[f, 0.0, 255.5 + rng.uniform(-8, 8)], [0.0, f, 191.5 + rng.uniform(-8, 8)], [0.0, 0.0, 1.0]])
     return scene, T_WC, K

@@ -29,29 +29,19 @@ HEIGHTS = (256, 288, 320, 352)
 WIDTHS = (320, 384, 448, 512)
 SERVICE_RANGE = 96
 
-_PHOTOS: list | None = None
-
-
-def _photos(real_dir: str | None):
-    global _PHOTOS
-    if _PHOTOS is None:
-        from tools.depth.materials import load_photos
-
-        _PHOTOS = load_photos(Path(real_dir) if real_dir else None)[0]
-    return _PHOTOS
-
 
 def render_shard(job: tuple[str, str, int, int, int, str | None]) -> str:
     out, split, seed, index, n, real_dir = job
     from services.depth.sgbm import SgbmParams, sgbm_disparity
     from tools.depth.layered_stereo import random_frame
+    from tools.depth.materials import cached_photos
 
     final = Path(out) / split / f"shard_{index:04d}"
     if (final / "u_max.npy").is_file():
         return f"{final} kept"
     rng = np.random.default_rng([seed, SPLIT_SEED[split], index])
     h, w = int(rng.choice(HEIGHTS)), int(rng.choice(WIDTHS))
-    photos = _photos(real_dir)
+    photos = cached_photos(real_dir)
     arrays = {k: [] for k in ("left", "right", "disparity", "nonocc", "sgbm", "u_max", "sgbm_range")}
     for _ in range(n):
         f = random_frame(rng, photos, h, w)

@@ -15,6 +15,7 @@ The Middlebury test scenes are never read here.
 """
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import cv2
@@ -54,6 +55,12 @@ def load_photos(real_dir: Path | None = None, max_real: int = 80) -> tuple[list[
                 photos.append(_to_grey01(img))
                 real.append(str(f.relative_to(real_dir)))
     return photos, {"skimage": names, "real": real}
+
+
+@functools.lru_cache(maxsize=4)
+def cached_photos(real_dir: str | None) -> list[np.ndarray]:
+    """``load_photos`` once per process and folder (each render worker reads them once)."""
+    return load_photos(Path(real_dir) if real_dir else None)[0]
 
 
 def _smooth_noise(rng, h: int, w: int, cell: float) -> np.ndarray:
