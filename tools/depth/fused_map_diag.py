@@ -122,6 +122,10 @@ def _variant(name: str, z) -> tuple[np.ndarray, np.ndarray]:
             n = int(name.rsplit("-", 1)[1])
             few = (z["n_src"] < n)[:, None, None]
             return _swap(np.broadcast_to(few, st_d.shape), (fu_d, fu_s), (st_d, st_s))
+        if name.startswith("fused-gate-"):  # stereo alone where the two disagree by more than k combined sigmas
+            k = float(name.rsplit("-", 1)[1])
+            bad = np.abs(mv_d - st_d) > k * np.sqrt(st_s ** 2 + mv_s ** 2)
+            return _swap(bad, (fu_d, fu_s), (st_d, st_s))
         if name.startswith("fused-rho-"):  # refused with this correlation of the two networks' errors
             return fuse(st_d, st_s, mv_d, mv_s, float(name.rsplit("-", 1)[1]))
         if name.startswith("fused-border"):  # MVS ignored within n px of the image border
