@@ -53,16 +53,15 @@ def fuse(d1: np.ndarray, s1: np.ndarray, d2: np.ndarray, s2: np.ndarray,
     d1, s1, d2, s2 = (np.asarray(a, np.float64) for a in (d1, s1, d2, s2))
     ok1 = np.isfinite(d1) & np.isfinite(s1) & (s1 > 0)
     ok2 = np.isfinite(d2) & np.isfinite(s2) & (s2 > 0)
-    both = ok1 & ok2
     a = np.where(ok1, s1, 1.0)
     b = np.where(ok2, s2, 1.0)
     cov = rho * a * b
     w1 = np.clip((b * b - cov) / (a * a + b * b - 2 * cov), 0.0, 1.0)
-    w1 = np.where(both, w1, np.where(ok1, 1.0, 0.0))
-    w2 = np.where(ok1 | ok2, 1.0 - w1, 0.0)
-    var = w1 * w1 * a * a + w2 * w2 * b * b + 2 * w1 * w2 * cov
-    var = np.where(ok1 | ok2, var, np.nan)
-    depth = np.where(ok1 | ok2, w1 * np.where(ok1, d1, 0.0) + w2 * np.where(ok2, d2, 0.0), np.nan)
+    w1 = np.where(ok1 & ok2, w1, ok1.astype(np.float64))  # one valid source: it alone
+    w2 = 1.0 - w1
+    any_ok = ok1 | ok2
+    var = np.where(any_ok, w1 * w1 * a * a + w2 * w2 * b * b + 2 * w1 * w2 * cov, np.nan)
+    depth = np.where(any_ok, w1 * np.where(ok1, d1, 0.0) + w2 * np.where(ok2, d2, 0.0), np.nan)
     return depth.astype(np.float32), np.sqrt(var).astype(np.float32)
 
 

@@ -123,10 +123,8 @@ def _valid_pixels(rect, cams, margin_px: int | None) -> np.ndarray | None:
 
 def heuristic_gains(root: Path, f_px: float, baseline_m: float, stereo_net, n_frames: int = 12) -> dict[str, float]:
     """Gains of the heuristic sigma models on the validation split (same calibration as the networks)."""
-    import torch
-
     from services.depth.sgbm import sgbm_depth
-    from services.depth.uncertainty import calibration_gain, disparity_to_depth, heuristic_sigma
+    from services.depth.uncertainty import calibration_gain, heuristic_sigma
 
     acc: dict[str, list] = {"sgbm_quadratic": [], "sgbm_linear": [], "stereo_net_quadratic": []}
     for left, right, gt, *_ in _split_frames(root, "val", n_frames, 1):
@@ -134,11 +132,39 @@ def heuristic_gains(root: Path, f_px: float, baseline_m: float, stereo_net, n_fr
             d, s = sgbm_depth(left, right, f_px, baseline_m, model, coeff)
             acc[name].append((d, s, gt))
         if stereo_net is not None:
-            with torch.inference_mode():
-                u, su = stereo_net(torch.from_numpy(left).float()[None, None], torch.from_numpy(right).float()[None, None])
-            d, _ = disparity_to_depth(u[0].numpy(), su[0].numpy(), f_px, baseline_m)
+            d, _ = stereo_net_depth(stereo_net, 1.0, left, right, f_px, baseline_m)
             acc["stereo_net_quadratic"].append((d, heuristic_sigma(d, "quadratic", 1.0 / (f_px * baseline_m)), gt))
     return {k: calibration_gain(*(np.stack(x) for x in zip(*v))) for k, v in acc.items() if v}
+
+
+def stereo_net_depth(net, gain: float, left: np.ndarray, right: np.ndarray, f_px: float, baseline_m: float,
+                     precision: str = "float32") -> tuple[np.ndarray, np.ndarray]:
+    """Depth and sigma [m] of a stereo network on one rectified pair (eq. 11), sigma times ``gain`` (the weights')."""
+    import torch
+
+    from services.depth import weights
+    from services.depth.uncertainty import disparity_to_depth
+
+    tt = lambda a: torch.from_numpy(np.asarray(a)).float()[None, None]
+    with weights.inference("cpu", precision):
+        u, su = (x.float() for x in net(tt(left), tt(right)))
+    return disparity_to_depth(u[0].numpy(), su[0].numpy() * gain, f_px, baseline_m)
+
+
+def mvs_net_depth(net, gain: float, ref: np.ndarray, srcs: list, K: np.ndarray, T_WC: np.ndarray,
+                  prior: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Depth and sigma [m] of the MVS network (eq. 13), sigma times ``gain``: reference image, its T_WC, sources
+    [(image, T_WC)], the intrinsics and a sparse prior depth (0 where none)."""
+    import torch
+
+    from services.depth import weights
+    from services.depth.uncertainty import logdepth_to_depth
+
+    tt = lambda a: torch.from_numpy(np.asarray(a)).float()[None]
+    with weights.inference("cpu"):
+        ld, sl = net(tt(ref)[:, None], tt(np.stack([x[0] for x in srcs]))[:, :, None], tt(K),
+                     tt(np.stack([np.linalg.inv(x[1]) @ T_WC for x in srcs])), tt(prior))
+    return logdepth_to_depth(ld[0].numpy(), sl[0].numpy() * gain)
 
 
 def main(args: argparse.Namespace) -> int:
@@ -147,8 +173,7 @@ def main(args: argparse.Namespace) -> int:
     from services.depth import weights
     from services.depth.config import DepthConfig
     from services.depth.sgbm import sgbm_depth
-    from services.depth.uncertainty import (EXPECTED_WITHIN, depth_metrics, disparity_to_depth, fuse,
-                                            heuristic_sigma, logdepth_to_depth)
+    from services.depth.uncertainty import EXPECTED_WITHIN, depth_metrics, fuse, heuristic_sigma
     from shared.camera import camera_from_sensor_yaml, read_sensor_yaml_file, stereo_rectification
     from tools.depth.make_dataset import BASELINE_M, K_RECT
 
@@ -188,24 +213,18 @@ def main(args: argparse.Namespace) -> int:
         times["sgbm"].append(time.process_time() - t)
         acc["sgbm_quadratic"].append((d, s * hg["sgbm_quadratic"], gt))
         acc["sgbm_linear"].append((d, heuristic_sigma(d, "linear", 0.01 * hg["sgbm_linear"]), gt))
-        tt = lambda a: torch.from_numpy(np.asarray(a)).float()
-        with torch.inference_mode():
-            t = time.process_time()
-            with weights.inference("cpu", args.precision):
-                u, su = (x.float() for x in st_net(tt(left)[None, None], tt(right)[None, None]))
-            d_st, s_st = disparity_to_depth(u[0].numpy(), su[0].numpy() * st_meta["gain"], f_px, baseline)
-            times["stereo_net"].append(time.process_time() - t)
-            acc["stereo_net"].append((d_st, s_st, gt))
-            acc["stereo_net_quadratic"].append((d_st, heuristic_sigma(d_st, "quadratic", q_coeff * hg["stereo_net_quadratic"]), gt))
-            if not srcs:
-                continue
-            n_src.append(len(srcs))
-            prior = _prior(rng, gt, args.prior_points)
-            t = time.process_time()
-            ld, sl = mv_net(tt(left)[None, None], tt(np.stack([x[0] for x in srcs]))[None, :, None], tt(K)[None],
-                            tt(np.stack([np.linalg.inv(x[1]) @ T_WC for x in srcs]))[None], tt(prior)[None])
-            d_mv, s_mv = logdepth_to_depth(ld[0].numpy(), sl[0].numpy() * mv_meta["gain"])
-            times["mvs_net"].append(time.process_time() - t)
+        t = time.process_time()
+        d_st, s_st = stereo_net_depth(st_net, st_meta["gain"], left, right, f_px, baseline, args.precision)
+        times["stereo_net"].append(time.process_time() - t)
+        acc["stereo_net"].append((d_st, s_st, gt))
+        acc["stereo_net_quadratic"].append((d_st, heuristic_sigma(d_st, "quadratic", q_coeff * hg["stereo_net_quadratic"]), gt))
+        if not srcs:
+            continue
+        n_src.append(len(srcs))
+        prior = _prior(rng, gt, args.prior_points)
+        t = time.process_time()
+        d_mv, s_mv = mvs_net_depth(mv_net, mv_meta["gain"], left, srcs, K, T_WC, prior)
+        times["mvs_net"].append(time.process_time() - t)
         acc["mvs_net"].append((d_mv, s_mv, gt))
         t = time.process_time()
         acc["fused"].append((*fuse(d_st, s_st, d_mv, s_mv, rho), gt))

@@ -25,30 +25,21 @@ import numpy as np
 
 def collect(root: Path, frames: int, sources: int, prior_points: int, stereo_w: str, mvs_w: str, seed: int = 0):
     """Per valid pixel of the validation frames: (d_stereo, s_stereo, d_mvs, s_mvs, gt), calibrated sigmas."""
-    import torch
-
     from services.depth import weights
-    from services.depth.uncertainty import disparity_to_depth, logdepth_to_depth
-    from tools.depth.evaluate import _prior, _split_frames
+    from tools.depth.evaluate import _prior, _split_frames, mvs_net_depth, stereo_net_depth
     from tools.depth.make_dataset import BASELINE_M, K_RECT
 
     rng = np.random.default_rng(seed)
     st_net, st_meta = weights.load(stereo_w or weights.WEIGHTS_DIR / "stereo.pt")
     mv_net, mv_meta = weights.load(mvs_w or weights.WEIGHTS_DIR / "mvs.pt")
-    tt = lambda a: torch.from_numpy(np.asarray(a)).float()
     cols = []
-    with torch.inference_mode():
-        for left, right, gt, T_WC, srcs, _ in _split_frames(root, "val", frames, sources):
-            if not srcs:
-                continue
-            u, su = st_net(tt(left)[None, None], tt(right)[None, None])
-            d1, s1 = disparity_to_depth(u[0].numpy(), su[0].numpy() * st_meta["gain"], float(K_RECT[0, 0]), BASELINE_M)
-            ld, sl = mv_net(tt(left)[None, None], tt(np.stack([x[0] for x in srcs]))[None, :, None], tt(K_RECT)[None],
-                            tt(np.stack([np.linalg.inv(x[1]) @ T_WC for x in srcs]))[None],
-                            tt(_prior(rng, gt, prior_points))[None])
-            d2, s2 = logdepth_to_depth(ld[0].numpy(), sl[0].numpy() * mv_meta["gain"])
-            a = np.stack([np.ravel(x).astype(np.float64) for x in (d1, s1, d2, s2, gt)])
-            cols.append(a[:, np.isfinite(a).all(axis=0) & (a[1] > 0) & (a[3] > 0) & (a[4] > 0)])
+    for left, right, gt, T_WC, srcs, _ in _split_frames(root, "val", frames, sources):
+        if not srcs:
+            continue
+        d1, s1 = stereo_net_depth(st_net, st_meta["gain"], left, right, float(K_RECT[0, 0]), BASELINE_M)
+        d2, s2 = mvs_net_depth(mv_net, mv_meta["gain"], left, srcs, K_RECT, T_WC, _prior(rng, gt, prior_points))
+        a = np.stack([np.ravel(x).astype(np.float64) for x in (d1, s1, d2, s2, gt)])
+        cols.append(a[:, np.isfinite(a).all(axis=0) & (a[1] > 0) & (a[3] > 0) & (a[4] > 0)])
     if not cols:
         raise SystemExit(f"{root}/val: no frame with source views")
     return np.concatenate(cols, axis=1)

@@ -111,8 +111,7 @@ def random_bars(scene: Scene, rng, n: int) -> tuple[np.ndarray, np.ndarray]:
     room_lo, room_hi = scene.box_lo[0], scene.box_hi[0]
     lo, hi = [], []
     for _ in range(n):
-        ext = np.full(3, 0.0)
-        ext[:] = rng.uniform(0.01, 0.06, 3)
+        ext = rng.uniform(0.01, 0.06, 3)
         ext[int(rng.integers(3))] = rng.uniform(0.3, 2.5)
         c = rng.uniform(room_lo + ext / 2, room_hi - ext / 2)
         lo.append(c - ext / 2)
@@ -264,9 +263,10 @@ def render_radiance(scene: Scene, T_WC: np.ndarray, K: np.ndarray, size: tuple[i
     rays = np.stack([uu.ravel(), vv.ravel(), np.ones(uu.size)], 1) @ Ki.T
     img, depth = render_rays(scene, T_WC, rays, 1.0 / (float(K[0, 0]) * s))
     img = img.reshape(h, s, w, s).mean(axis=(1, 3))
-    if s > 1:
+    if s > 1:  # depth at the pixel centres: the ray cast alone (rays with z = 1 in C: t is the z-depth)
         v, u = np.mgrid[0:h, 0:w]
-        _, depth = render_rays(scene, T_WC, np.stack([u.ravel(), v.ravel(), np.ones(u.size)], 1).astype(float) @ Ki.T)
+        centres = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], 1).astype(float) @ Ki.T
+        depth = raycast(scene, T_WC[:3, 3], centres @ T_WC[:3, :3].T)[0]
     return img, depth.reshape(h, w).astype(np.float32)
 
 
