@@ -274,6 +274,32 @@ def test_compiled_texturing_matches_numpy_reference(small_scene, rig):
     assert np.percentile(err, 99) < 2 / 255  # OpenCV's uint8 remap interpolates in fixed point
 
 
+def test_every_mip_level_samples_a_texture_where_level_0_has_it():
+    """A surface point must show the same texture at every level of detail, or texture features slide along the
+    surface as the camera's distance changes (a track drifts, a landmark is not a point). cv2.pyrDown centres texel
+    j of level k on texel 2^k j of level 0, and keeps a linear ramp: each level sampled at a point gives the ramp's
+    value there. (Sampled at (t + 0.5) / 2^k - 0.5, as a box filter's pyramid would be, the texture moved by
+    0.5 / 1.5 / 3.5 texels at levels 1 / 2 / 3.)"""
+    import cv2
+
+    from services.app.synth.kernels import flatten_mips, shade_rays
+
+    atlas = np.tile(np.arange(256, dtype=np.uint8), (256, 1))  # value = column
+    mips = [atlas]
+    for _ in range(3):
+        mips.append(cv2.pyrDown(mips[-1]))
+    tri_uv = np.array([[[0.0, 0.0], [256.0, 0.0], [0.0, 256.0]]])  # tx = 256 u, ty = 256 v
+    tx = np.array([60.3, 100.0, 131.7])
+    for level in (0.0, 1.0, 2.0, 3.0, 1.5):
+        n = len(tx)
+        bary = np.stack([tx / 256.0, np.full(n, 0.4)], 1).astype(np.float32)
+        dirs = np.tile([0.0, 0.0, 0.0, 0.0, 0.0, 1.0], (n, 1)).astype(np.float32)  # head-on: cos 1
+        out = np.zeros(n, np.float32)
+        shade_rays(np.zeros(n, np.uint32), bary, np.full(n, 2.0 ** level, np.float32), dirs, tri_uv.astype(np.float32),
+                   np.array([255], np.uint8), np.array([[0.0, 0.0, 1.0]], np.float32), *flatten_mips(mips), 1.0, out)
+        np.testing.assert_allclose(out, tx, atol=0.05, err_msg=f"level {level}")
+
+
 def test_flow_motion_blur_matches_rendered_blur(small_scene, rig):
     """The cheap 'flow' blur (one render resampled along each pixel's motion) against the exact one (every sub-frame
     pose ray cast): close where the image moves, and both far from the sharp image."""

@@ -61,11 +61,11 @@ def shade_rays(ids, bary, t_hit, dirs_W, tri_uv, tri_shade, normals, mip_flat, m
         l0 = int(level)
         l1 = min(l0 + 1, n_levels - 1)
         f = level - l0
-        s0, s1 = 0.5 ** l0, 0.5 ** l1
-        a = _bilinear(mip_flat, mip_off[l0], mip_w[l0], mip_h[l0], (tx + 0.5) * s0 - 0.5, (ty + 0.5) * s0 - 0.5)
+        s0, s1 = 0.5 ** l0, 0.5 ** l1  # cv2.pyrDown: texel j of level k is centred on texel 2^k j of level 0
+        a = _bilinear(mip_flat, mip_off[l0], mip_w[l0], mip_h[l0], tx * s0, ty * s0)
         val = a
         if f > 0.0:
-            b = _bilinear(mip_flat, mip_off[l1], mip_w[l1], mip_h[l1], (tx + 0.5) * s1 - 0.5, (ty + 0.5) * s1 - 0.5)
+            b = _bilinear(mip_flat, mip_off[l1], mip_w[l1], mip_h[l1], tx * s1, ty * s1)
             val = (1.0 - f) * a + f * b
         out[i] = val * tri_shade[pid] / 255.0
 

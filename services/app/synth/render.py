@@ -203,7 +203,7 @@ class Renderer:
             if not len(sel):
                 continue
             scale = 0.5 ** k
-            uv = (tex[sel] + 0.5) * scale - 0.5
+            uv = tex[sel] * scale  # cv2.pyrDown: texel j of level k is centred on texel 2^k j of level 0
             out[sel] += w[sel] * sample_bilinear(mip, uv)
         return out
 

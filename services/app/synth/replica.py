@@ -36,7 +36,9 @@ from services.app.synth.scene import build_scene
 # Bumped whenever a replica of the same spec would come out different; a cached replica of an older version is
 # made again (services/app/synth/api.py). 2: the trajectory fitted to the recorded IMU (shared/imu_consistency.py).
 # 3: the IMU's fine motion on top of that fit (imu_consistency.follow_imu): images that agree with the recorded IMU.
-GENERATOR_VERSION = 3
+# 4: coarser texture levels sampled where cv2.pyrDown put them (they were 0.5 / 1.5 / 3.5 texels off at levels
+# 1 / 2 / 3, so texture slid along surfaces as the camera's distance changed).
+GENERATOR_VERSION = 4
 
 
 @dataclasses.dataclass(frozen=True)
