@@ -244,12 +244,13 @@ class LoopClosingBackend:
             res = bundle_adjust(records, est.cameras_in_use(), est.cfg.sigma_px, est.cfg.cauchy_k, loops,
                                 self.cfg.final_ba_iterations, loop_observations=closer.loop_observations + late_obs,
                                 map_to_map=closer.map_to_map_for_final(), anchors=anchors, T_init=T_init,
-                                merge_loop_landmarks=self.cfg.final_ba_merge_landmarks)
+                                merge_loop_landmarks=self.cfg.final_ba_merge_landmarks,
+                                prune_ratio=self.cfg.final_ba_prune_ratio)
             T_final = self._follow(stamps, T_pub, res.stamps_ns, res.T_WS)
             n_kf = len(res.stamps_ns)
-            log.info("final BA: %d keyframes, %d landmarks (%d merged through loops), %d observations, %d map-to-map, "
-                     "error %.1f -> %.1f", n_kf, res.landmarks, res.merged, res.observations, res.map_to_map,
-                     res.initial_error, res.final_error)
+            log.info("final BA: %d keyframes, %d landmarks (%d merged through loops, %d badly fitting dropped), %d "
+                     "observations, %d map-to-map, error %.1f -> %.1f", n_kf, res.landmarks, res.merged, res.pruned,
+                     res.observations, res.map_to_map, res.initial_error, res.final_error)
         else:  # the pose graph alone
             g_ids, g_stamps, g_T = closer.corrected_keyframes()
             T_final = self._follow(stamps, T_pub, g_stamps, g_T) if len(g_ids) else T_pub

@@ -82,3 +82,6 @@ class LoopConfig:
     final_ba_merge_landmarks: bool = param(True, "the final BA merges each loop inlier's own landmark (a new track) into "
                                            "the old landmark it matched (false: the query keyframe only observes it)")
     final_ba_iterations: int = param(30, "Levenberg-Marquardt iterations of the final bundle adjustment")
+    final_ba_prune_ratio: float = param(2.5, "the final BA solves twice: the second time without the landmarks whose RMS "
+                                        "reprojection error after the first exceeds this many times the median "
+                                        "landmark's (tracks that slid along a silhouette or drifted; 0 = one solve)")

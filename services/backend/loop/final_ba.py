@@ -35,13 +35,15 @@ class FinalBaResult:
     final_error: float
     map_to_map: int = 0  # map-to-map terms in the graph
     merged: int = 0  # landmarks merged into an older one through loop observations
+    pruned: int = 0  # landmarks dropped before the second solve (their reprojection error too large)
 
 
 def bundle_adjust(records: list[KeyframeRecord], cameras, sigma_px: float = 1.0, cauchy_k: float = 2.0,
                   loops: list[tuple[int, int, np.ndarray, np.ndarray]] = (), max_iterations: int = 30,
                   prior_sigma_rot: float = 1e-3, prior_sigma_pos: float = 1e-3,
                   loop_observations: list[tuple[int, int, np.ndarray, int, int]] = (), map_to_map=(), anchors=(),
-                  T_init: np.ndarray | None = None, merge_loop_landmarks: bool = True) -> FinalBaResult:
+                  T_init: np.ndarray | None = None, merge_loop_landmarks: bool = True,
+                  prune_ratio: float = 0.0) -> FinalBaResult:
     """``records`` of all keyframes (time order, no duplicates); ``cameras``: the estimator's BackendCamera
     list; ``loops``: (old state, new state, T_old_new, covariance 6x6); ``loop_observations``: (state, camera,
     normalised xy, old landmark id, the feature's own landmark id) observations of old landmarks by loop keyframes
@@ -50,7 +52,9 @@ def bundle_adjust(records: list[KeyframeRecord], cameras, sigma_px: float = 1.0,
     (state, T_WS, covariance 6x6) poses of keyframes in a saved map's frame (their matches to the map's fixed
     keyframes): robust pose priors that place the whole run in the map's frame, the first keyframe's gauge prior
     then only weak; ``T_init``: moves the records' poses, velocities and landmarks (window frame) to where the
-    optimisation starts (the map's frame as the pose graph has it)."""
+    optimisation starts (the map's frame as the pose graph has it); ``prune_ratio`` > 0: a second solve, from the
+    first one's result, without the landmarks whose RMS reprojection error there exceeds ``prune_ratio`` times the
+    median landmark's (tracks that slid along a silhouette or drifted: they pull the poses; 0 = one solve)."""
     recs = sorted({r.state: r for r in records}.values(), key=lambda r: r.state)
     if len(recs) < 2:
         raise ValueError("the final bundle adjustment needs at least two keyframes")
@@ -85,6 +89,7 @@ def bundle_adjust(records: list[KeyframeRecord], cameras, sigma_px: float = 1.0,
         p_init.update(r.landmarks)
     projection = ProjectionModel(cameras, sigma_px, cauchy_k)  # the window's reprojection factors
     n_lm = n_obs = 0
+    lm_factors: dict[int, list[tuple[int, float]]] = {}  # landmark -> (factor index, focal length [px])
     root = _merge_landmarks(obs, p_init, [(lm, own) for _, _, _, lm, own in loop_observations]) \
         if merge_loop_landmarks else {}
     for s, c, xy, lm, _ in loop_observations:
@@ -97,6 +102,7 @@ def bundle_adjust(records: list[KeyframeRecord], cameras, sigma_px: float = 1.0,
         vals.insert(L(lm), T0[:3, :3] @ np.asarray(p_init[lm], float) + T0[:3, 3])
         n_lm += 1
         for s, c, xy in lst:
+            lm_factors.setdefault(lm, []).append((g.size(), cameras[c].focal_px))
             g.add(projection.factor(np.asarray(xy, float), c, X(s), L(lm)))
             n_obs += 1
     for old, new, T_rel, cov in loops:
@@ -117,9 +123,33 @@ def bundle_adjust(records: list[KeyframeRecord], cameras, sigma_px: float = 1.0,
     params.setRelativeErrorTol(1e-5)
     e0 = g.error(vals)
     out = gtsam.LevenbergMarquardtOptimizer(g, vals, params).optimize()
+    bad = _badly_fitting(g, out, lm_factors, prune_ratio) if prune_ratio > 0 else set()
+    if bad:
+        drop = {i for lm in bad for i, _ in lm_factors[lm]}
+        g2 = gtsam.NonlinearFactorGraph()
+        for i in range(g.size()):
+            if i not in drop:
+                g2.add(g.at(i))
+        for lm in bad:
+            out.erase(L(lm))
+        g = g2
+        out = gtsam.LevenbergMarquardtOptimizer(g, out, params).optimize()
+        n_lm -= len(bad)
+        n_obs -= len(drop)
     return FinalBaResult(np.array([r.stamp_ns for r in recs], np.int64),
                          np.array([out.atPose3(X(r.state)).matrix() for r in recs]), n_lm, n_obs, e0, g.error(out),
-                         n_m2m, len(root))
+                         n_m2m, len(root), len(bad))
+
+
+def _badly_fitting(g: gtsam.NonlinearFactorGraph, values: gtsam.Values, lm_factors: dict[int, list[tuple[int, float]]],
+                   ratio: float) -> set[int]:
+    """Landmarks whose RMS reprojection error [px] at ``values`` exceeds ``ratio`` times the median landmark's."""
+    if not lm_factors:
+        return set()
+    rms = {lm: np.sqrt(np.mean([float(np.sum(np.square(g.at(i).unwhitenedError(values)))) * f ** 2 for i, f in fs]))
+           for lm, fs in lm_factors.items()}
+    limit = ratio * float(np.median(list(rms.values())))
+    return {lm for lm, r in rms.items() if r > limit}
 
 
 def _merge_landmarks(obs: dict[int, list], p_init: dict[int, np.ndarray], pairs: list[tuple[int, int]]) -> dict[int, int]:
