@@ -7,8 +7,9 @@ and the loop keyframe's PnP inliers as observations of the old landmarks), and a
 keyframe, and the map-to-map occupancy-to-point terms (eq. 5-7) between keyframes anchoring submaps. A loop's PnP
 inlier says that the query feature's own landmark (a new track of the point) is the old landmark it matched: the
 two are merged into one, so every keyframe that saw the new track observes the old landmark (not merged when a
-keyframe observes both: they are not one point then). Frames
-between keyframes follow their keyframe:
+keyframe observes both: they are not one point then). With ``prune_ratio`` the graph is solved twice, the second
+time without the landmarks that fit badly after the first (a track sliding along a silhouette or drifting is not
+a point, and the whole-run solve bends the poses to fit it). Frames between keyframes follow their keyframe:
 ``T_final(t) = T_final(kf) T_causal(kf)^-1 T_causal(t)`` with kf the latest keyframe at or before t.
 """
 
@@ -32,7 +33,7 @@ class FinalBaResult:
     landmarks: int
     observations: int
     initial_error: float
-    final_error: float
+    final_error: float  # of the graph solved last (without the pruned landmarks)
     map_to_map: int = 0  # map-to-map terms in the graph
     merged: int = 0  # landmarks merged into an older one through loop observations
     pruned: int = 0  # landmarks dropped before the second solve (their reprojection error too large)
