@@ -265,8 +265,10 @@ class MultiCameraTracker:
         st.uv = uv1.astype(np.float32)
         counts["tracked"] += len(st.ids)
 
-    def _klt_pair(self, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return gain_matched(a, b) if self.cfg.match_gain else (a, b)
+    def _klt_pair(self, a: np.ndarray, b: np.ndarray, cross: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """The images KLT tracks between: gain-matched under ``match_gain``, or ``match_gain_cross`` between cameras."""
+        cfg = self.cfg
+        return gain_matched(a, b) if cfg.match_gain or (cross and cfg.match_gain_cross) else (a, b)
 
     def _ransac(self, model, uv0: np.ndarray, uv1: np.ndarray, uv0_rotated: np.ndarray) -> np.ndarray:
         cfg = self.cfg
@@ -304,9 +306,7 @@ class MultiCameraTracker:
             if not vis.any():
                 continue
             sel = np.flatnonzero(vis)
-            pair = (gain_matched(self._cams[i].image, st_j.image) if cfg.match_gain_cross
-                    else self._klt_pair(self._cams[i].image, st_j.image))
-            uv_j, ok = klt.track(*pair, uv_i[sel], guess[sel],
+            uv_j, ok = klt.track(*self._klt_pair(self._cams[i].image, st_j.image, cross=True), uv_i[sel], guess[sel],
                                  cfg.klt_window_px, cfg.klt_levels, cfg.klt_iterations, cfg.fb_max_error_px,
                                  cam_j.camera.size, cfg.fb_levels)
             ok &= cross_camera_check(cam_i, cam_j, uv_i[sel], uv_j, cfg.epipolar_max_px, cfg.stereo_min_depth_m)
