@@ -40,4 +40,9 @@ def test_analyse_recovers_known_errors(tmp_path):
     seg = res["segments"]
     assert len(seg) == 4 and abs(seg[0]["keyframes_per_s"] - 2.0) < 1e-9
     md = segments_markdown(res)
-    assert md.count("\n| ") == 5 and "| 5 | 0.0000 | 0.050 | 3.00 | 0.000 | 80 | 2.0 | 11 | 0 |" in md
+    assert md.count("\n| ") == 5 and "| 5 | 0.0000 | 0.050 | 3.00 | 0.000 | 1.000 | 80 | 2.0 | 11 | 0 |" in md
+    # an estimate that travels 3 % short from 10 s on: the travel ratio says so there and only there
+    late = t[every] >= t[0] + 10 * 10**9
+    T[late, :3, 3] = T[late][0, :3, 3] + 0.97 * (T[late, :3, 3] - T[late][0, :3, 3])
+    ratios = [s_["travel_ratio"] for s_ in analyse(d, segment_s=5.0)["segments"]]
+    np.testing.assert_allclose(ratios, [1.0, 1.0, 0.97, 0.97], atol=1e-6)

@@ -73,7 +73,7 @@ def test_shift_right_image_matches_an_integer_shift():
 def test_refine_net_starts_at_sgbm_and_learns():
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
-    f = random_frame(rng, [], 64, 96, u_max=12.0)
+    f = random_frame(rng, [], 48, 64, u_max=12.0)  # small: the unit tier's budget
     net = RefineStereoNet(max_disparity=16, width=16)
     t = lambda a: torch.from_numpy(np.ascontiguousarray(a)).float()[None]
     left, right, gt = t(f["left"])[:, None], t(f["right"])[:, None], t(f["disparity"])
@@ -89,7 +89,7 @@ def test_refine_net_starts_at_sgbm_and_learns():
     d0t, matched = t(d0), torch.from_numpy(np.isfinite(d0))[None]
     valid = torch.ones_like(gt, dtype=torch.bool)
     losses = []
-    for _ in range(100):
+    for _ in range(60):
         u, s = net.refine(left, right, d0t, matched)
         loss = stereo_loss(u, s, gt, valid)
         opt.zero_grad()

@@ -8,6 +8,7 @@ velocity, biases):
 
 - the position error of the causal trajectory after the whole run's SE(3) alignment (shared/metrics/ate.py);
 - the velocity error (the estimate rotated by that alignment) and the gyro / accelerometer bias errors;
+- per segment, the travel ratio (how far the estimate moved against the ground truth: a scale drift);
 - the frontend's features per frame, the keyframes, the ground truth's angular speed; the state's status.
 
 Writes DIR/diagnose.csv (one row per state), DIR/segments.md (per ``--segment-s`` stretch: RMSE, features,
@@ -74,6 +75,7 @@ def analyse(d: dict, segment_s: float = 10.0) -> dict:
             "features_cam0": d["features_cam0"][ie], "features_all": d["features_all"][ie],
             "gt_deg_s": np.degrees(np.interp(d["stamps_ns"][ie], t_mid, w)),
             "imu_only": np.array([d["status"][i] == "imu_only" for i in ie], float)}
+    p_est, p_gt = d["T_WS"][ie][:, :3, 3], gt.p_WS[ig]
     t0 = int(d["stamps_ns"][ie[0]])
     kf_t = (d["keyframes_ns"] - t0) * 1e-9
     segs = []
@@ -88,21 +90,32 @@ def analyse(d: dict, segment_s: float = 10.0) -> dict:
                      "ba_err_m_s2": float(np.median(rows["ba_err_m_s2"][sel])),
                      "features_cam0": float(np.median(rows["features_cam0"][sel])),
                      "keyframes_per_s": float(((kf_t >= a) & (kf_t < a + segment_s)).sum() / span),
+                     "travel_ratio": travel_ratio(p_est[sel], p_gt[sel]),
                      "gt_deg_s": float(np.mean(rows["gt_deg_s"][sel])),
                      "imu_only": int(rows["imu_only"][sel].sum())})
     return {"rows": rows, "segments": segs, "ate_m": ate.rmse_m, "states": len(ie), "frames": d["frames"],
             "keyframes": int(len(d["keyframes_ns"]))}
 
 
+def travel_ratio(p_est: np.ndarray, p_gt: np.ndarray, min_travel_m: float = 0.2) -> float:
+    """How far the estimate moved over a stretch against the ground truth, ``|p_est[-1] - p_est[0]| /
+    |p_gt[-1] - p_gt[0]|`` (independent of the frames' alignment): below 1 the estimator under-reports travel (a
+    scale drift). NaN when the ground truth moved less than ``min_travel_m`` [m]."""
+    if len(p_gt) < 2:
+        return float("nan")
+    true = float(np.linalg.norm(p_gt[-1] - p_gt[0]))
+    return float(np.linalg.norm(p_est[-1] - p_est[0])) / true if true >= min_travel_m else float("nan")
+
+
 def segments_markdown(res: dict) -> str:
     out = [f"causal ATE {res['ate_m']:.4f} m over {res['states']} states of {res['frames']} frames, "
            f"{res['keyframes']} keyframe windows", "",
            "| from [s] | RMSE [m] | velocity err [m/s] | gyro bias err [mrad/s] | acc bias err [m/s^2] | "
-           "cam0 features | keyframes/s | GT rotation [deg/s] | imu_only |",
-           "|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+           "travel ratio | cam0 features | keyframes/s | GT rotation [deg/s] | imu_only |",
+           "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for s in res["segments"]:
         out.append(f"| {s['start_s']:.0f} | {s['rmse_m']:.4f} | {s['vel_err_m_s']:.3f} | {s['bg_err_mrad_s']:.2f} | "
-                   f"{s['ba_err_m_s2']:.3f} | {s['features_cam0']:.0f} | {s['keyframes_per_s']:.1f} | "
+                   f"{s['ba_err_m_s2']:.3f} | {s['travel_ratio']:.3f} | {s['features_cam0']:.0f} | {s['keyframes_per_s']:.1f} | "
                    f"{s['gt_deg_s']:.0f} | {s['imu_only']} |")
     return "\n".join(out)
 
