@@ -115,8 +115,8 @@ def segments_markdown(res: dict) -> str:
            "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for s in res["segments"]:
         out.append(f"| {s['start_s']:.0f} | {s['rmse_m']:.4f} | {s['vel_err_m_s']:.3f} | {s['bg_err_mrad_s']:.2f} | "
-                   f"{s['ba_err_m_s2']:.3f} | {s['travel_ratio']:.3f} | {s['features_cam0']:.0f} | {s['keyframes_per_s']:.1f} | "
-                   f"{s['gt_deg_s']:.0f} | {s['imu_only']} |")
+                   f"{s['ba_err_m_s2']:.3f} | {s['travel_ratio']:.3f} | {s['features_cam0']:.0f} | "
+                   f"{s['keyframes_per_s']:.1f} | {s['gt_deg_s']:.0f} | {s['imu_only']} |")
     return "\n".join(out)
 
 
