@@ -275,7 +275,8 @@ def main(args: argparse.Namespace) -> int:
     rows, stage_dirs, rc = {}, [], 0
     for seq in seqs:
         imu = "real" if has_real_imu(seq) else "sim"
-        replica = ensure_replica(seq, scenes[seq], imu=imu, duration_s=args.duration, progress=False,
+        # a bar on a terminal: rendering a whole sequence takes minutes (logs get the 'generating replica' line)
+        replica = ensure_replica(seq, scenes[seq], imu=imu, duration_s=args.duration, progress=sys.stderr.isatty(),
                                  profile=args.profile)
         print(f"[eval suite] {seq}: replica {replica} ({imu} IMU)", flush=True)
         for rate in rates:
