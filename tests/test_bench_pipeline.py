@@ -16,7 +16,8 @@ from tools.bench_budgets import Budgets, check_budgets, format_table, load_budge
 from tools.bench_pipeline import frames_within, next_rate, stage_summary
 from services.app.metrics.latency import ArrivalLog, map_latencies, matched_latencies, summary
 from tools.pipeline_probe import service_name
-from tools.eval.suite_report import PAPER_MEAN, ate_table, mean_std, mesh_table, segment_table, timing_table
+from tools.eval.suite_report import (PAPER_MEAN, ate_table, mean_std, mesh_table, segment_table, spread_table,
+                                     timing_table)
 from transport.stats import STAGE_LOG_DTYPE, STAGE_LOG_ENV, StageTimer, StatsCollector, read_stage_log
 
 FULL = os.environ.get("SIGMASLAM_E2E", "") == "full"
@@ -158,6 +159,28 @@ def test_suite_sequences_and_scenes():
     assert parse_rates(argparse.Namespace(rate=2.0, rates="0")) == [2.0]
 
 
+def test_suite_median_over_start_offsets():
+    from tools.eval.suite import median_row, parse_starts
+
+    assert parse_starts("0, 0.5,1,0.5") == [0.0, 0.5, 1.0]  # distinct, in the order given
+    for bad in ("", "-1", "0,nan", "x"):
+        with pytest.raises(ValueError):
+            parse_starts(bad)
+    runs = {0.0: {"ate_causal_m": 0.05, "ate_noncausal_m": 0.010, "poses": 100, "replica": "r", "first10_causal_m": 0.2},
+            0.5: {"ate_causal_m": 0.02, "ate_noncausal_m": 0.030, "poses": 90, "replica": "r"},
+            1.0: {"ate_causal_m": 0.03, "ate_noncausal_m": 0.020, "poses": 80, "replica": "r"},
+            1.5: {"error_run": "no trajectory", "replica": "r"}}
+    row = median_row(runs)
+    # each field's median over the runs that have it (not one run's figures), other fields from the first run
+    assert row["ate_causal_m"] == pytest.approx(0.03) and row["ate_noncausal_m"] == pytest.approx(0.02)
+    assert row["poses"] == 90 and row["first10_causal_m"] == pytest.approx(0.2) and row["replica"] == "r"
+    assert row["runs_failed"] == 1 and row["error_run"] == "no trajectory"
+    assert row["runs"]["0.5"]["ate_causal_m"] == 0.02 and row["runs"]["1.5"]["ate_causal_m"] is None
+    t = spread_table({"MH_03": row, "V1_02": {"ate_causal_m": 0.01}})
+    assert "| MH_03 | 4 | 0.020 / 0.030 / 0.050 | 0.010 / 0.020 / 0.030 |" in t
+    assert "| V1_02 | 0 | - | - |" in t
+
+
 def test_suite_deletes_a_scored_runs_dense_map_and_nothing_else(tmp_path):
     from tools.eval.suite import drop_dense_map
 
@@ -237,6 +260,22 @@ def test_eval_suite_in_process_end_to_end(tmp_path):
                            "V1_02", "--duration", "3", "--out", str(out)], cwd=REPO, env=env, capture_output=True,
                           text=True, timeout=900)
     assert proc.returncode == 0, (proc.stdout + proc.stderr)[-3000:]
+    # two start offsets: a run each from the cached replica, the row their median, the report their spread
+    out2 = tmp_path / "suite_starts"
+    proc2 = subprocess.run([sys.executable, "-m", "services.app.cli", "eval", "suite", "--in-process", "--sequences",
+                            "V1_02", "--duration", "3", "--starts", "0,0.5", "--out", str(out2)], cwd=REPO, env=env,
+                           capture_output=True, text=True, timeout=900)
+    assert proc2.returncode == 0, (proc2.stdout + proc2.stderr)[-3000:]
+    r2 = json.loads((out2 / "suite.json").read_text())["rows"]["V1_02"]
+    per_run = [v["ate_causal_m"] for v in r2["runs"].values()]
+    assert sorted(r2["runs"]) == ["0", "0.5"] and r2["runs_failed"] == 0
+    assert r2["ate_causal_m"] == pytest.approx(float(np.median(per_run)))
+    from shared.euroc import read_trajectory
+
+    first, later = (read_trajectory(out2 / "V1_02" / f"start_{s}s" / "run" / "trajectory_causal.txt").stamps_ns[0]
+                    for s in ("0", "0.5"))
+    assert later - first >= 0.4e9  # the second run's sensors began half a second later
+    assert "## Spread over the start offsets" in (out2 / "report.md").read_text()
     rows = json.loads((out / "suite.json").read_text())["rows"]
     r = rows["V1_02"]
     assert 0 < r["ate_causal_m"] < 0.1 and 0 < r["ate_noncausal_m"] < 0.1 and r["imu"] == "real"

@@ -19,6 +19,11 @@ both), and the outputs are evaluated:
 Writes ``--out``/report.md (tables with the paper's numbers beside ours), summary.png, suite.json and per
 sequence ``<seq>/trajectory.png``, ``<seq>/mesh/error_top.png`` and the run folder. ``--skip-run`` rebuilds the
 report from existing run folders.
+
+One run per sequence is a noisy measure: small perturbations (another machine, another start frame) move a
+sequence's causal ATE by tens of percent. ``--starts 0,0.5,1`` runs each sequence once per start offset (the
+player's ``start_s``: the sensors switched on that long after the first frame) into ``<seq>/start_<S>s/`` and
+reports, per sequence, the median over the runs (Table I and the means) and their spread.
 """
 
 from __future__ import annotations
@@ -32,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from tools.eval.suite_report import (NOTE, PAPER_ATE, PAPER_MESH, ate_table, hilti_table, mean_std, mesh_table,
-                                     segment_table, timing_table)
+                                     segment_table, spread_table, timing_table)
 
 SITE_OF_PREFIX = {"V": "vicon", "MH": "machinehall"}
 
@@ -72,6 +77,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the estimator alone in one process (frontend, back end, loop closure, final BA; no depth, "
                         "mapping, transport), reproducible: Table I in minutes (--rates is ignored)")
     p.add_argument("--timeout-s", type=float, default=1800.0, help="give up a run after this long [s]")
+    p.add_argument("--starts", default="0",
+                   help="comma-separated start offsets, one run each per sequence and rate (player.start_s); with "
+                        "more than one, a sequence's figures are the median over its runs and the report shows "
+                        "their spread (default 0: one run from the first frame) [s]")
 
 
 def scene_for(sequence: str, variant: str = "a") -> str:
@@ -184,19 +193,25 @@ def pooled_timing(stage_dirs: list[Path]) -> dict:
             "depth service: stereo + MVS + fusion": mean_std(get("depth.depth"))}
 
 
-def write_report(out: Path, rows: dict[str, dict], timing: dict, args, rates: list[float]) -> Path:
+def write_report(out: Path, rows: dict[str, dict], timing: dict, args, rates: list[float],
+                 starts: list[float] = (0.0,)) -> Path:
     from tools.eval.suite_plots import summary_figure
 
     summary_figure(out / "summary.png", rows, PAPER_ATE, PAPER_MESH)
     dur = "whole sequences" if args.duration <= 0 else f"first {args.duration:g} s of each sequence"
     if args.seconds > 0:
         dur += f", the first {args.seconds:g} s played"
+    if len(starts) > 1:
+        dur += f"; one run per start offset ({', '.join(f'{s:g}' for s in starts)} s), figures: the median over them"
     modes = ", ".join(("lockstep playback" if r <= 0 else f"playback at {r:g}x sensor rate (live)") for r in rates)
     imus = ", ".join(sorted({f"{r.get('sequence', k)}: {r['imu']}" for k, r in rows.items() if "imu" in r}))
     lines = ["# sigmaslam evaluation suite", "",
              f"Replicas ({dur}; scene variant {args.variant}; profile {args.profile or 'default'}; IMU {imus}), "
              f"{modes}{' (the estimator alone, in one process)' if args.in_process else ''}. {NOTE}", "",
              "## Table I: ATE RMSE [m], SE(3) alignment", "", ate_table(rows), "",
+             *(["## Spread over the start offsets", "",
+                "Causal and non-causal ATE [m] of each run: min / median / max (one run alone can be tens of percent "
+                "off its sequence's median).", "", spread_table(rows), ""] if len(starts) > 1 else []),
              "## Where the error is: first 10 s and the fastest-turning 10 s", "",
              "RMSE [m] of the stretch within the whole run's alignment, and its ratio to the run's RMSE "
              "(issue 23's targets: first 10 s at most 2x).", "", segment_table(rows), "",
@@ -215,10 +230,11 @@ def write_report(out: Path, rows: dict[str, dict], timing: dict, args, rates: li
         for key in ("error_causal", "error_noncausal", "error_mesh", "error_run", "mesh_source"):
             if key in r:
                 lines.append(f"- {key}: {r[key]}")
-        if (out / seq / "trajectory.png").is_file():
-            lines.append(f"![{seq} trajectory]({seq}/trajectory.png)")
-        if (out / seq / "mesh" / "error_top.png").is_file():
-            lines.append(f"![{seq} mesh error]({seq}/mesh/error_top.png)")
+        where = r.get("dir", seq)  # the (first) run's folder under out
+        if (out / where / "trajectory.png").is_file():
+            lines.append(f"![{seq} trajectory]({where}/trajectory.png)")
+        if (out / where / "mesh" / "error_top.png").is_file():
+            lines.append(f"![{seq} mesh error]({where}/mesh/error_top.png)")
         lines.append("")
     path = out / "report.md"
     path.write_text("\n".join(lines))
@@ -254,8 +270,61 @@ def parse_rates(args: argparse.Namespace) -> list[float]:
     return rates
 
 
-def main(args: argparse.Namespace) -> int:
+def parse_starts(text: str) -> list[float]:
+    """The distinct start offsets of ``--starts`` [s], in the order given."""
+    starts = list(dict.fromkeys(float(x) for x in text.split(",") if x.strip()))
+    if not starts or any(not (s >= 0) for s in starts):
+        raise ValueError(f"--starts: give one or more offsets >= 0 s, got {text!r}")
+    return starts
+
+
+# the figures whose per-run values a row of several runs keeps beside their median
+SPREAD_KEYS = ("ate_causal_m", "ate_noncausal_m", "first10_causal_m", "fastest10_causal_m")
+
+
+def median_row(runs: dict[float, dict]) -> dict:
+    """One row for several runs of a sequence (start offset -> its row): every numeric field is the median over
+    the runs that have it (each field on its own: the median ATE and the median first 10 s may come from different
+    runs), other fields are the first run's; 'runs' keeps the :data:`SPREAD_KEYS` of each run, keyed by its start
+    [s], and 'runs_failed' counts the runs without a causal ATE."""
+    number = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool)  # noqa: E731
+    row: dict = {}
+    for key in dict.fromkeys(k for r in runs.values() for k in r):
+        values = [r[key] for r in runs.values() if key in r]
+        row[key] = float(np.median(values)) if all(number(v) for v in values) else values[0]
+    row["runs"] = {f"{s:g}": {k: r.get(k) for k in SPREAD_KEYS} for s, r in runs.items()}
+    row["runs_failed"] = sum("ate_causal_m" not in r for r in runs.values())
+    return row
+
+
+def run_and_score(args: argparse.Namespace, label: str, replica: Path, run_out: Path, rate: float,
+                  sets: list[str]) -> tuple[dict, bool]:
+    """One run of the pipeline (or of the estimator in process) on ``replica`` into ``run_out``/run, scored:
+    (its row, whether it ran and scored without an error)."""
     from tools.bench_pipeline import run_once
+
+    ok = True
+    if args.skip_run:
+        pass
+    elif args.in_process:
+        run_estimator_in_process(replica, run_out / "run", args.config, sets, args.seconds)
+    else:
+        raw = run_once(replica, run_out, rate, args.seconds, args.services, args.config,
+                       ["loop.final_ba=true", *sets], args.timeout_s)
+        ok = raw["rc"] == 0
+    try:
+        row = evaluate_sequence(label, replica, run_out / "run", run_out, args.hilti_points)
+    except (ValueError, OSError) as exc:
+        row, ok = {"error_run": str(exc)}, False
+    if not (args.in_process or args.skip_run or args.keep_maps):
+        freed = drop_dense_map(run_out / "run")
+        print(f"[eval suite] {label}: dense map deleted after scoring ({freed / 1e6:.0f} MB; --keep-maps keeps it)",
+              flush=True)
+    print(f"[eval suite] {label}: {json.dumps({k: v for k, v in row.items() if k != 'replica'})}", flush=True)
+    return row, ok
+
+
+def main(args: argparse.Namespace) -> int:
     from services.app.synth.api import ensure_replica
     from shared.paths import has_real_imu
 
@@ -266,6 +335,7 @@ def main(args: argparse.Namespace) -> int:
             [s.strip() for s in args.sequences.split(",") if s.strip()]
         scenes = {s: scene_for(s, args.variant) for s in seqs}
         rates = [0.0] if args.in_process else parse_rates(args)
+        starts = parse_starts(args.starts)
     except ValueError as exc:
         print(f"eval suite: {exc}", file=sys.stderr)
         return 2
@@ -282,32 +352,25 @@ def main(args: argparse.Namespace) -> int:
         for rate in rates:
             key = seq if len(rates) == 1 else f"{seq} {mode_name(rate)}"
             seq_out = out / seq if len(rates) == 1 else out / seq / mode_name(rate).replace(" ", "_")
-            if args.skip_run:
-                pass
-            elif args.in_process:
-                run_estimator_in_process(replica, seq_out / "run", args.config, args.set, args.seconds)
-            else:
-                raw = run_once(replica, seq_out, rate, args.seconds, args.services, args.config,
-                               ["loop.final_ba=true", *args.set], args.timeout_s)
-                if raw["rc"] != 0:
-                    rc = 1
-            stage_dirs.append(seq_out / "stage_log")
-            try:
-                rows[key] = evaluate_sequence(key, replica, seq_out / "run", seq_out, args.hilti_points)
-            except (ValueError, OSError) as exc:
-                rows[key] = {"error_run": str(exc)}
-                rc = 1
+            runs = {}
+            for start in starts:
+                run_out = seq_out if len(starts) == 1 else seq_out / f"start_{start:g}s"
+                label = key if len(starts) == 1 else f"{key} (start {start:g} s)"
+                sets = [*args.set, f"player.start_s={start:g}"] if start > 0 else list(args.set)
+                runs[start], ok = run_and_score(args, label, replica, run_out, rate, sets)
+                rc = rc if ok else 1
+                runs[start]["dir"] = str(run_out.relative_to(out))
+                stage_dirs.append(run_out / "stage_log")
+            rows[key] = runs[starts[0]] if len(starts) == 1 else median_row(runs)
             rows[key].update(sequence=seq, imu=imu, mode=mode_name(rate), scene=scenes[seq])
-            if not (args.in_process or args.skip_run or args.keep_maps):
-                freed = drop_dense_map(seq_out / "run")
-                print(f"[eval suite] {key}: dense map deleted after scoring ({freed / 1e6:.0f} MB; --keep-maps keeps it)",
-                      flush=True)
-            print(f"[eval suite] {key}: {json.dumps({k: v for k, v in rows[key].items() if k != 'replica'})}",
-                  flush=True)
+            if len(starts) > 1:
+                spread = {s: r["ate_causal_m"] for s, r in rows[key]["runs"].items()}
+                print(f"[eval suite] {key}: median over starts {json.dumps(spread)}: causal "
+                      f"{rows[key].get('ate_causal_m')}, non-causal {rows[key].get('ate_noncausal_m')}", flush=True)
     timing = pooled_timing([d for d in stage_dirs if d.is_dir()])
     (out / "suite.json").write_text(json.dumps({"rows": rows, "timing": timing, "duration_s": args.duration,
                                                 "rates": rates, "variant": args.variant}, indent=2))
-    path = write_report(out, rows, timing, args, rates)
+    path = write_report(out, rows, timing, args, rates, starts)
     print(path.read_text().split("![summary]")[0], flush=True)
     print(f"[eval suite] wrote {path}", flush=True)
     return rc

@@ -8,6 +8,7 @@ real trajectories with the real IMU), so they show the same protocol, not the sa
 from __future__ import annotations
 
 import math
+import statistics
 
 # Table I, ATE RMSE [m] after SE(3) alignment: sequence -> (ours causal, ours non-causal, OKVIS2 causal, OKVIS2 nc)
 PAPER_ATE = {"MH_01": (0.034, 0.019, 0.034, 0.021), "MH_02": (0.031, 0.019, 0.029, 0.020),
@@ -88,6 +89,20 @@ def segment_table(rows: dict[str, dict]) -> str:
             f"{r['fastest10_start_s']:.0f}, {r['fastest10_deg_s']:.0f}"
         out.append(f"| {key} | {cell(r, 'first10', 'causal')} | {cell(r, 'first10', 'noncausal')} | {where} | "
                    f"{cell(r, 'fastest10', 'causal')} | {cell(r, 'fastest10', 'noncausal')} |")
+    return "\n".join(out)
+
+
+def spread_table(rows: dict[str, dict]) -> str:
+    """Per row of several runs ('runs': start offset -> its 'ate_causal_m', 'ate_noncausal_m', as written by
+    tools/eval/suite.median_row): min / median / max of each over the runs that have it, and the run count."""
+    def cell(runs, key):
+        v = [r[key] for r in runs.values() if r.get(key) is not None]
+        return "-" if not v else f"{min(v):.3f} / {statistics.median(v):.3f} / {max(v):.3f}"
+
+    out = ["| sequence | runs | causal min / median / max | non-causal min / median / max |", "|---|---:|---:|---:|"]
+    for key, r in rows.items():
+        runs = r.get("runs", {})
+        out.append(f"| {key} | {len(runs)} | {cell(runs, 'ate_causal_m')} | {cell(runs, 'ate_noncausal_m')} |")
     return "\n".join(out)
 
 
