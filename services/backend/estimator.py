@@ -44,7 +44,7 @@ from services.backend.frame_result import FrameResult, to_message_covariance
 from services.backend.gravity_align import GravityAlignment, MovingStartAligner
 from services.backend.imu_factors import ImuBuffer, imu_factor, make_bias, make_params, predict
 from services.backend.motion_only import optimise_latest
-from services.backend.priors import marginal_prior, state_priors, window_marginals
+from services.backend.priors import WindowPrior, window_marginals
 from services.backend.protocols import ExtraFactorSource, MarginalisationListener
 from services.backend.landmarks import WindowLandmarks, gather_landmarks
 from services.backend.mono_init import bootstrap as mono_bootstrap
@@ -54,7 +54,7 @@ from services.backend.time_offset import TimeOffsetEstimator, interval_residual
 from services.backend.triangulation import new_landmarks
 from services.backend.vision_factors import ProjectionModel
 from services.backend.window_rules import (BackendInputError, keyframe_due,  # noqa: F401 (re-exported)
-                                           observation_arrays, reprojection_outliers)
+                                           observation_arrays, reprojection_outliers, schur_ordering)
 
 
 def _state_keys(n: int) -> list[int]:
@@ -90,7 +90,7 @@ class WindowedVioEstimator:
         self.keyframes: list[int] = []        # state indices of the window's keyframes, oldest first
         self.stamps: dict[int, int] = {}
         self._imu_factors: dict[int, gtsam.NonlinearFactor] = {}  # keyed by the later state
-        self._priors: list[gtsam.NonlinearFactor] = []
+        self._prior = WindowPrior()  # the oldest state's prior: factors, covariance (set by initialise), carries
         self._book = ObservationBook()  # observations, landmarks in the graph, their factors (observations.py)
         self._still: dict[int, list[gtsam.NonlinearFactor]] = {}  # one camera: factors of a still state (still.py)
         self.still_frames = 0
@@ -105,8 +105,6 @@ class WindowedVioEstimator:
         self.dropped_observations = 0
         self.failed_optimisations = 0
         self.held_marginals = 0  # window marginals computed with the landmarks held (priors.window_marginals)
-        self.prior_carried = 0  # marginalisations that kept the previous prior's covariance (no marginals)
-        self._prior_cov = np.eye(15)  # the oldest state's prior covariance (set by initialise)
         self.last_error = ""
         self._marginals: gtsam.Marginals | None = None
         self._first_frame_pending = False
@@ -202,8 +200,7 @@ class WindowedVioEstimator:
         try:
             graph = self._optimise(n, params)
         except RuntimeError as exc:  # e.g. an indeterminant system: fall back to the IMU chain alone
-            self.failed_optimisations += 1
-            self.last_error = str(exc)
+            self._note_failure(exc)
             self.forget_triangulations()
             graph = self._optimise(n, params)
         if self._extrinsics is not None:
@@ -217,8 +214,7 @@ class WindowedVioEstimator:
             try:
                 graph = self._optimise(n, params)
             except RuntimeError as exc:
-                self.failed_optimisations += 1
-                self.last_error = str(exc)
+                self._note_failure(exc)
                 graph = self._build_graph(n)
         if keyframe and self.time_offset is not None and n != self.keyframes[-1]:  # time_offset.py
             e, g = interval_residual(self.values, self.imu, self.stamps, self.keyframes[-1], n)
@@ -250,10 +246,15 @@ class WindowedVioEstimator:
         self.imu.prune_before(self.stamps[self.keyframes[-1]])
         return result
 
+    def _note_failure(self, exc: Exception) -> None:
+        self.failed_optimisations += 1
+        self.last_error = str(exc)
+
     def _optimise(self, n: int, params: gtsam.LevenbergMarquardtParams) -> gtsam.NonlinearFactorGraph:
         """The window's graph (newest state ``n``) built and optimised into ``values``; returns the graph."""
         graph = self._build_graph(n)
-        params.setOrdering(self._schur_ordering())  # landmarks first: cheaper than COLAMD at this size
+        params.setOrdering(schur_ordering(self._book.in_graph, self.stamps,
+                                          () if self._extrinsics is None else self._extrinsics.keys))
         self.values = gtsam.LevenbergMarquardtOptimizer(graph, self.values, params).optimize()
         return graph
 
@@ -268,8 +269,7 @@ class WindowedVioEstimator:
                                   self.cfg.lm_max_iterations, relative_tol=self.cfg.lm_relative_error_tol)
             self.values.update(upd)
         except RuntimeError as exc:  # keep the IMU prediction
-            self.failed_optimisations += 1
-            self.last_error = str(exc)
+            self._note_failure(exc)
         status = "tracking" if len(lms) >= self.cfg.min_landmarks_tracking else "imu_only"
         result = self._result(n, np.full((15, 15), np.nan), status)
         self._remove_state(n)
@@ -329,20 +329,9 @@ class WindowedVioEstimator:
         return self._book.factor(lm, n, j, lambda: self._vision.factor_with_extrinsic(
             xy, c, X(n), self._extrinsics.keys[c], L(lm)))
 
-    def _schur_ordering(self) -> gtsam.Ordering:
-        order = gtsam.Ordering()
-        for lm in self._book.in_graph:
-            order.push_back(L(lm))
-        for n in self.stamps:
-            for key in _state_keys(n):
-                order.push_back(key)
-        for key in () if self._extrinsics is None else self._extrinsics.keys:  # they touch every observation: last
-            order.push_back(key)
-        return order
-
     def _build_graph(self, n: int) -> gtsam.NonlinearFactorGraph:
         g = gtsam.NonlinearFactorGraph()
-        for f in self._priors:
+        for f in self._prior.factors:
             g.add(f)
         for f in () if self._extrinsics is None else self._extrinsics.priors:
             g.add(f)
@@ -397,22 +386,7 @@ class WindowedVioEstimator:
         old, new = self.keyframes[0], self.keyframes[1]
         for listener in self._on_marginalise:
             listener.on_marginalise(self, old, new)
-        ext = self._extrinsics  # refinement on: one prior on the new oldest state and the extrinsics together, from
-        joint = None if ext is None else self.joint_marginal([*_state_keys(new), *ext.keys])  # their joint marginal
-        if joint is not None and np.all(np.isfinite(joint)):
-            joint = ext.carry_joint(joint)  # each extrinsic's block widened by the walk
-            self._prior_cov, self._priors = joint[:15, :15], [marginal_prior(self.values, new, joint, ext.keys)]
-        else:
-            cov = self.joint_marginal(_state_keys(new))
-            if cov is None or not np.all(np.isfinite(cov)):
-                # no marginals this time: the new oldest state keeps the anchoring the old one had (a loose default
-                # here would free the window's tilt and position for the rest of the run)
-                cov = self._prior_cov
-                self.prior_carried += 1
-            self._prior_cov = cov
-            self._priors = [marginal_prior(self.values, new, cov)]
-            if ext is not None:  # the extrinsics keep their prior, widened by the walk
-                ext.carry_apart(self._T_SC)
+        self._prior.carry(self.values, new, self.joint_marginal, self._extrinsics, self._T_SC)
         self.keyframes.pop(0)
         self._imu_factors.pop(new, None)
         self._still.pop(new, None)  # refers to the old state; the marginal prior holds its information
@@ -467,7 +441,12 @@ class WindowedVioEstimator:
     def prior_covariance(self) -> np.ndarray:
         """(15,15) covariance of the prior on the window's oldest state, order (rotation, position, velocity,
         accelerometer bias, gyro bias) (a copy)."""
-        return self._prior_cov.copy()
+        return self._prior.cov.copy()
+
+    @property
+    def prior_carried(self) -> int:
+        """Marginalisations that kept the previous prior's covariance (the window had no marginals)."""
+        return self._prior.carried
 
     @property
     def gravity_alignment(self) -> GravityAlignment | None:
@@ -521,9 +500,7 @@ class WindowedVioEstimator:
         c = self.cfg
         pose_sig = np.array([tilt_sigma, tilt_sigma, c.prior_sigma_rot_rad] + [c.prior_sigma_pos_m] * 3)
         bias_sig = np.array([c.prior_sigma_acc_bias] * 3 + [gyro_bias_sigma] * 3)
-        self._priors = state_priors(state, self.values.atPose3(X(state)), self.values.atVector(V(state)),
-                                    self.values.atConstantBias(B(state)), pose_sig, vel_sigma, bias_sig)
-        self._prior_cov = np.diag(np.r_[pose_sig, [vel_sigma] * 3, bias_sig] ** 2)  # marginal_prior's order
+        self._prior.reset(self.values, state, pose_sig, vel_sigma, bias_sig)
 
     def forget_triangulations(self) -> None:
         """Every landmark leaves the graph (its observations stay; it is triangulated again from the poses)."""

@@ -1,11 +1,13 @@
 """Prior factors on the oldest state of the estimator's window: at initialisation, after the monocular rebuild
-(services/backend/mono_init.py) and, as a Gaussian on (pose, velocity, bias), after each marginalisation; and the
-window's marginals those Gaussians come from."""
+(services/backend/mono_init.py) and, as a Gaussian on (pose, velocity, bias), after each marginalisation
+(:class:`WindowPrior` keeps them and their covariance); and the window's marginals those Gaussians come from."""
 
 from __future__ import annotations
 
 import gtsam
 import numpy as np
+from typing import Callable
+
 from gtsam.symbol_shorthand import B, L, V, X
 
 
@@ -72,3 +74,43 @@ def window_marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, la
         return gtsam.Marginals(held, values), True
     except RuntimeError:
         return None, True
+
+
+class WindowPrior:
+    """The prior on the window's oldest state: its factors (``factors``) and their covariance (``cov``, (15,15),
+    :func:`marginal_prior`'s order), set from sigmas by :meth:`reset` or carried to the next state when the oldest
+    leaves the window (:meth:`carry`); ``carried`` counts the carries without marginals."""
+
+    def __init__(self) -> None:
+        self.factors: list[gtsam.NonlinearFactor] = []
+        self.cov = np.eye(15)
+        self.carried = 0
+
+    def reset(self, values: gtsam.Values, state: int, pose_sigmas: np.ndarray, vel_sigma: float,
+              bias_sigmas: np.ndarray) -> None:
+        """Independent priors on ``state`` at its estimate in ``values`` (sigmas as :func:`state_priors`)."""
+        self.factors = state_priors(state, values.atPose3(X(state)), values.atVector(V(state)),
+                                    values.atConstantBias(B(state)), pose_sigmas, vel_sigma, bias_sigmas)
+        self.cov = np.diag(np.r_[pose_sigmas, [vel_sigma] * 3, bias_sigmas] ** 2)
+
+    def carry(self, values: gtsam.Values, new: int, joint_marginal: Callable[[list[int]], np.ndarray | None],
+              extrinsics=None, T_SC: np.ndarray | None = None) -> None:
+        """The window's marginal of state ``new`` (the next oldest; ``joint_marginal(keys)`` gives the window's
+        joint marginal covariance or None) becomes its prior. With online extrinsic refinement (``extrinsics``,
+        services/backend/extrinsics.ExtrinsicRefinement, their current estimate ``T_SC`` (C,4,4)) one prior on the
+        state and the extrinsics together, each extrinsic's block widened by its walk; without marginals the prior
+        keeps the covariance it had (a loose default here would free the window's tilt and position for the rest of
+        the run) and the extrinsics keep theirs at ``T_SC``, widened."""
+        keys = [X(new), V(new), B(new)]
+        joint = None if extrinsics is None else joint_marginal([*keys, *extrinsics.keys])
+        if joint is not None and np.all(np.isfinite(joint)):
+            joint = extrinsics.carry_joint(joint)
+            self.cov, self.factors = joint[:15, :15], [marginal_prior(values, new, joint, extrinsics.keys)]
+            return
+        cov = joint_marginal(keys)
+        if cov is None or not np.all(np.isfinite(cov)):
+            cov = self.cov
+            self.carried += 1
+        self.cov, self.factors = cov, [marginal_prior(values, new, cov)]
+        if extrinsics is not None:
+            extrinsics.carry_apart(T_SC)

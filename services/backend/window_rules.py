@@ -1,12 +1,13 @@
 """Rules of the keyframe window that the estimator and the per-frame fast path share, kept apart from the
 estimator's bookkeeping: which observations of a feature frame are usable, when a frame becomes a keyframe (also
-what the fast path expects of the back end), and which observations reproject too badly to stay."""
+what the fast path expects of the back end), which observations reproject too badly to stay, and the order in
+which the window's variables are eliminated."""
 
 from __future__ import annotations
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import L, X
+from gtsam.symbol_shorthand import B, L, V, X
 
 
 class BackendInputError(ValueError):
@@ -61,3 +62,18 @@ def reprojection_outliers(values: gtsam.Values, obs: dict, landmarks, states, T_
         lm, s, j = rows[k]
         out.setdefault((lm, s), set()).add(j)
     return out
+
+
+def schur_ordering(landmarks, states, extrinsic_keys=()) -> gtsam.Ordering:
+    """Elimination order of a window: the landmarks L (ids) first (their Schur complement: cheaper than COLAMD at
+    the window's size), then each state's X, V, B (``states``: indices), then the extrinsic keys, which touch every
+    observation."""
+    order = gtsam.Ordering()
+    for lm in landmarks:
+        order.push_back(L(lm))
+    for n in states:
+        for key in (X(n), V(n), B(n)):
+            order.push_back(key)
+    for key in extrinsic_keys:
+        order.push_back(key)
+    return order
