@@ -7,7 +7,9 @@ tools/eval_loop.py) and lines up, per published state, against the replica's gro
 velocity, biases):
 
 - the position error of the causal trajectory after the whole run's SE(3) alignment (shared/metrics/ate.py);
-- the velocity error (the estimate rotated by that alignment) and the gyro / accelerometer bias errors;
+- the velocity error (the estimate rotated by that alignment) and the gyro / accelerometer bias errors (NaN, shown
+  '-', when the ground truth's bias columns are all zero: a real-IMU replica of a sequence whose ground truth has no
+  biases, MH_03 today, writes zeros there, while its IMU carries EuRoC's ~80 mrad/s gyro bias);
 - per segment, the travel ratio (how far the estimate moved against the ground truth: a scale drift);
 - the frontend's features per frame, the keyframes, the ground truth's angular speed; the state's status.
 
@@ -66,12 +68,14 @@ def analyse(d: dict, segment_s: float = 10.0) -> dict:
         raise ValueError(f"{d['groundtruth']}: expected 17 columns (pose, velocity, biases)")
     ate = compute_ate(gt.stamps_ns, gt.p_WS, d["stamps_ns"], d["T_WS"][:, :3, 3], mode="se3")
     ie, ig = associate(d["stamps_ns"], gt.stamps_ns, 10_000_000)
+    biases_known = bool(np.any(gt.gyro_bias) or np.any(gt.acc_bias))
+    unknown = np.full(len(ie), np.nan)
     R = ate.alignment.R
     t_mid, w = angular_speed(gt.stamps_ns, gt.q_WS_wxyz)
     rows = {"t_s": (d["stamps_ns"][ie] - d["stamps_ns"][ie[0]]) * 1e-9, "err_m": ate.errors_m,
             "vel_err_m_s": np.linalg.norm(d["v_W"][ie] @ R.T - gt.v_WS[ig], axis=1),
-            "bg_err_rad_s": np.linalg.norm(d["bg"][ie] - gt.gyro_bias[ig], axis=1),
-            "ba_err_m_s2": np.linalg.norm(d["ba"][ie] - gt.acc_bias[ig], axis=1),
+            "bg_err_rad_s": np.linalg.norm(d["bg"][ie] - gt.gyro_bias[ig], axis=1) if biases_known else unknown,
+            "ba_err_m_s2": np.linalg.norm(d["ba"][ie] - gt.acc_bias[ig], axis=1) if biases_known else unknown,
             "features_cam0": d["features_cam0"][ie], "features_all": d["features_all"][ie],
             "gt_deg_s": np.degrees(np.interp(d["stamps_ns"][ie], t_mid, w)),
             "imu_only": np.array([d["status"][i] == "imu_only" for i in ie], float)}
@@ -94,7 +98,7 @@ def analyse(d: dict, segment_s: float = 10.0) -> dict:
                      "gt_deg_s": float(np.mean(rows["gt_deg_s"][sel])),
                      "imu_only": int(rows["imu_only"][sel].sum())})
     return {"rows": rows, "segments": segs, "ate_m": ate.rmse_m, "states": len(ie), "frames": d["frames"],
-            "keyframes": int(len(d["keyframes_ns"]))}
+            "keyframes": int(len(d["keyframes_ns"])), "biases_known": biases_known}
 
 
 def travel_ratio(p_est: np.ndarray, p_gt: np.ndarray, min_travel_m: float = 0.2) -> float:
@@ -109,13 +113,17 @@ def travel_ratio(p_est: np.ndarray, p_gt: np.ndarray, min_travel_m: float = 0.2)
 
 def segments_markdown(res: dict) -> str:
     out = [f"causal ATE {res['ate_m']:.4f} m over {res['states']} states of {res['frames']} frames, "
-           f"{res['keyframes']} keyframe windows", "",
+           f"{res['keyframes']} keyframe windows"
+           + ("" if res.get("biases_known", True) else "; the ground truth has no biases (all zero): bias errors '-'"),
+           "",
            "| from [s] | RMSE [m] | velocity err [m/s] | gyro bias err [mrad/s] | acc bias err [m/s^2] | "
            "travel ratio | cam0 features | keyframes/s | GT rotation [deg/s] | imu_only |",
            "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for s in res["segments"]:
-        out.append(f"| {s['start_s']:.0f} | {s['rmse_m']:.4f} | {s['vel_err_m_s']:.3f} | {s['bg_err_mrad_s']:.2f} | "
-                   f"{s['ba_err_m_s2']:.3f} | {s['travel_ratio']:.3f} | {s['features_cam0']:.0f} | "
+        bg, ba = (("-" if np.isnan(v) else format(v, f)) for v, f in ((s["bg_err_mrad_s"], ".2f"),
+                                                                        (s["ba_err_m_s2"], ".3f")))
+        out.append(f"| {s['start_s']:.0f} | {s['rmse_m']:.4f} | {s['vel_err_m_s']:.3f} | {bg} | "
+                   f"{ba} | {s['travel_ratio']:.3f} | {s['features_cam0']:.0f} | "
                    f"{s['keyframes_per_s']:.1f} | {s['gt_deg_s']:.0f} | {s['imu_only']} |")
     return "\n".join(out)
 
