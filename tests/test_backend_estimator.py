@@ -280,3 +280,36 @@ def test_a_stereo_rig_standing_still_gets_stand_still_factors_and_a_moving_one_n
     found_off, dv_off = _standing_still_run(False, 0.0)
     assert found_off == 0 and dv_off > 10 * max(dv, 1e-3), (dv_off, dv)  # without: the biased IMU wanders (0.3 m/s)
     assert _standing_still_run(True, 1.0)[0] == 0
+
+
+def test_window_prior_resets_carries_and_keeps_its_covariance_without_marginals():
+    """priors.WindowPrior: the prior from sigmas, then carried at a marginalisation from the window's marginal
+    (its factor's Hessian is that covariance's inverse), and without marginals the previous covariance kept and
+    counted."""
+    import gtsam
+    from gtsam.symbol_shorthand import B, V, X
+    from services.backend.priors import WindowPrior
+
+    values = gtsam.Values()
+    for n in (0, 1):
+        values.insert(X(n), gtsam.Pose3(gtsam.Rot3.Yaw(0.3 * n), np.array([n, 2.0, 0.5])))
+        values.insert(V(n), np.array([0.1 * n, 0.0, 0.0]))
+        values.insert(B(n), gtsam.imuBias.ConstantBias())
+    prior = WindowPrior()
+    pose_sig, bias_sig = np.array([0.01, 0.01, 1e-3, 1e-3, 1e-3, 1e-3]), np.array([0.1] * 3 + [0.01] * 3)
+    prior.reset(values, 0, pose_sig, 0.05, bias_sig)
+    assert len(prior.factors) == 3 and prior.factors[0].keys() == [X(0)]
+    np.testing.assert_allclose(np.diag(prior.cov), np.r_[pose_sig, [0.05] * 3, bias_sig] ** 2)
+    A = np.random.default_rng(0).normal(size=(15, 15))
+    marginal = A @ A.T * 1e-4 + np.eye(15) * 1e-4
+    asked = []
+    prior.carry(values, 1, lambda keys: asked.append(keys) or marginal)
+    assert asked == [[X(1), V(1), B(1)]] and prior.carried == 0
+    np.testing.assert_allclose(prior.cov, marginal)
+    H = prior.factors[0].linearize(values).information()  # 15x15 over (X, V, B) at the linearisation point
+    np.testing.assert_allclose(H, np.linalg.inv(marginal), rtol=1e-6)
+    prior.carry(values, 1, lambda keys: None)  # no marginals: the old covariance stays, counted
+    assert prior.carried == 1
+    np.testing.assert_allclose(prior.cov, marginal)
+    prior.carry(values, 1, lambda keys: np.full((15, 15), np.nan))  # a non-finite marginal counts as none
+    assert prior.carried == 2

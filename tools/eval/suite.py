@@ -285,8 +285,8 @@ SPREAD_KEYS = ("ate_causal_m", "ate_noncausal_m", "first10_causal_m", "fastest10
 def median_row(runs: dict[float, dict]) -> dict:
     """One row for several runs of a sequence (start offset -> its row): every numeric field is the median over
     the runs that have it (each field on its own: the median ATE and the median first 10 s may come from different
-    runs; a count's median rounded to a whole number), other fields are the first run's; 'runs' keeps the :data:`SPREAD_KEYS` of each run, keyed by its start
-    [s], and 'runs_failed' counts the runs without a causal ATE."""
+    runs; a count's median rounded to a whole number), other fields are the first run's; 'runs' keeps the
+    :data:`SPREAD_KEYS` of each run, keyed by its start [s], and 'runs_failed' counts the runs without a causal ATE."""
     number = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool)  # noqa: E731
     row: dict = {}
     for key in dict.fromkeys(k for r in runs.values() for k in r):
