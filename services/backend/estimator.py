@@ -54,11 +54,8 @@ from services.backend.time_offset import TimeOffsetEstimator, interval_residual
 from services.backend.triangulation import new_landmarks
 from services.backend.vision_factors import ProjectionModel
 from services.backend.window_rules import (BackendInputError, keyframe_due,  # noqa: F401 (re-exported)
-                                           observation_arrays, reprojection_outliers, schur_ordering)
-
-
-def _state_keys(n: int) -> list[int]:
-    return [X(n), V(n), B(n)]
+                                           observation_arrays, reprojection_outliers, schur_ordering,
+                                           state_keys)
 
 
 class WindowedVioEstimator:
@@ -227,7 +224,7 @@ class WindowedVioEstimator:
             self._marginals, held = window_marginals(graph, self.values, self._book.in_graph,
                                                      self.cfg.marginals_landmark_sigma_m)
             self.held_marginals += held
-            joint = self.joint_marginal(_state_keys(n))
+            joint = self.joint_marginal(state_keys(n))
             if joint is None:
                 self._marginals = None
                 self.failed_optimisations += 1
@@ -378,7 +375,7 @@ class WindowedVioEstimator:
             self._drop_landmark(lm)
         self._imu_factors.pop(n, None)
         self._still.pop(n, None)
-        for key in _state_keys(n):
+        for key in state_keys(n):
             self.values.erase(key)
         del self.stamps[n]
 

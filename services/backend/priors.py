@@ -4,11 +4,13 @@
 
 from __future__ import annotations
 
-import gtsam
-import numpy as np
 from typing import Callable
 
+import gtsam
+import numpy as np
 from gtsam.symbol_shorthand import B, L, V, X
+
+from services.backend.window_rules import state_keys
 
 
 def state_priors(n: int, T_WS: gtsam.Pose3, v_W: np.ndarray, bias: gtsam.imuBias.ConstantBias,
@@ -101,7 +103,7 @@ class WindowPrior:
         state and the extrinsics together, each extrinsic's block widened by its walk; without marginals the prior
         keeps the covariance it had (a loose default here would free the window's tilt and position for the rest of
         the run) and the extrinsics keep theirs at ``T_SC``, widened."""
-        keys = [X(new), V(new), B(new)]
+        keys = state_keys(new)
         joint = None if extrinsics is None else joint_marginal([*keys, *extrinsics.keys])
         if joint is not None and np.all(np.isfinite(joint)):
             joint = extrinsics.carry_joint(joint)

@@ -64,6 +64,11 @@ def reprojection_outliers(values: gtsam.Values, obs: dict, landmarks, states, T_
     return out
 
 
+def state_keys(n: int) -> list[int]:
+    """gtsam keys of window state ``n``: pose X, velocity V, bias B (the order of its marginals and priors)."""
+    return [X(n), V(n), B(n)]
+
+
 def schur_ordering(landmarks, states, extrinsic_keys=()) -> gtsam.Ordering:
     """Elimination order of a window: the landmarks L (ids) first (their Schur complement: cheaper than COLAMD at
     the window's size), then each state's X, V, B (``states``: indices), then the extrinsic keys, which touch every
@@ -72,7 +77,7 @@ def schur_ordering(landmarks, states, extrinsic_keys=()) -> gtsam.Ordering:
     for lm in landmarks:
         order.push_back(L(lm))
     for n in states:
-        for key in (X(n), V(n), B(n)):
+        for key in state_keys(n):
             order.push_back(key)
     for key in extrinsic_keys:
         order.push_back(key)
