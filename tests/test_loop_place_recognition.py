@@ -135,3 +135,14 @@ def test_pnp_verifies_the_right_candidate_and_rejects_a_wrong_one(world):
     # wrong 3D points (shuffled) for the right keyframe are rejected too
     perm = np.random.default_rng(3).permutation(len(p0))
     assert not verify_pnp(world["revisit"], fs0, p0[perm], und, T_SC, f).accepted
+
+
+@pytest.mark.parametrize("n, k, width", [(40, 300, 32), (1, 7, 32), (0, 5, 32), (5, 0, 32), (9, 11, 5)])
+def test_hamming_equals_the_bit_count_of_the_xor(n, k, width):
+    """hamming's word-wise popcount (64-bit words for ORB's 32 bytes, bytes otherwise) against the definition."""
+    rng = np.random.default_rng(n + k + width)
+    a = rng.integers(0, 256, (n, width), dtype=np.uint8)
+    b = rng.integers(0, 256, (2 * k, width), dtype=np.uint8)[::2]  # a strided view works too
+    want = np.unpackbits(a[:, None, :] ^ b[None, :, :], axis=2).sum(axis=2)
+    got = hamming(a, b)
+    assert got.dtype == np.int32 and got.shape == (n, k) and np.array_equal(got, want)

