@@ -259,6 +259,31 @@ def test_match_gain_cross_matches_cameras_of_different_gain(stereo_seq):
     assert abs(n_same - n_eq) <= 0.02 * n_eq and e_same == pytest.approx(e_eq, abs=0.005)
 
 
+def test_stereo_recheck_drops_a_camera_track_that_slid_along_the_epipolar_line(stereo_seq):
+    """frontend.stereo_recheck_px: camera 1's tracks of ten landmarks are moved 1.5 px along the (horizontal)
+    epipolar line, as a track sliding on an edge does. The epipolar check cannot see it; with the re-check those
+    ten leave camera 1 at the next frame and the untouched tracks stay."""
+    room, cams, poses, images = stereo_seq
+
+    def after_slide(recheck_px):
+        cfg = dataclasses.replace(FrontendConfig(), stereo_recheck_px=recheck_px)
+        tr, _ = run_sequence(cams, poses[:3], images[:3], cfg)
+        st0, st1 = tr._cams[0], tr._cams[1]
+        both = np.intersect1d(st0.ids, st1.ids)
+        slid = both[:10]
+        st1.uv[np.isin(st1.ids, slid), 0] += 1.5
+        o = tr.process(int(round(3 * DT * 1e9)), images[3], fs.relative_rotation(poses[2], poses[3]))
+        ids1 = o.landmark_ids[o.camera_index == 1]
+        return np.isin(slid, ids1).sum(), np.isin(both[10:], ids1).mean(), o.counts
+
+    kept_off, rest_off, _ = after_slide(0.0)
+    kept_on, rest_on, counts = after_slide(0.5)
+    assert kept_off >= 7  # the epipolar check lets a slide along the line through
+    assert kept_on == 0
+    assert rest_on >= 0.9 and rest_on >= rest_off - 0.05
+    assert counts["rejected_stereo_recheck"] >= kept_off
+
+
 def test_deferred_detection_leaves_keyframes_and_tracks_unchanged(stereo_seq):
     """With may_defer, a frame that is not a keyframe comes out with its tracked features only; its new features
     (detected by finish_frame, after the output is sent) are carried from the next frame on. Keyframes, ids and

@@ -50,6 +50,12 @@ class FrontendConfig:
     # --- cross-camera matching ---
     stereo_init_depth_m: float = param(4.0, "depth assumed for the initial KLT guess in the other camera", "m")
     epipolar_max_px: float = param(1.5, "largest distance to the epipolar line of a cross-camera match", "px")
+    stereo_recheck_px: float = param(0.5, "every frame, each landmark seen by two cameras is matched from the first "
+                                     "into the second again with a small window, starting at the second camera's "
+                                     "pixel; that observation is dropped when the two differ by more than this "
+                                     "(0: off). Catches tracks that slid apart along the epipolar line and matches "
+                                     "on occlusion edges", "px")
+    stereo_recheck_window_px: int = param(7, "KLT window side of that re-check", "px")
     stereo_min_depth_m: float = param(0.2, "cross-camera matches triangulating closer than this are rejected", "m")
     min_view_overlap_cos: float = param(0.5, "cameras are matched only when their optical axes' cosine exceeds this")
     # --- keyframes ---

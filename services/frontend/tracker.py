@@ -285,13 +285,33 @@ class MultiCameraTracker:
             common, ia, ib = np.intersect1d(a.ids, b.ids, assume_unique=True, return_indices=True)
             if len(common) == 0:
                 continue
-            ok = cross_camera_check(self.cameras[i], self.cameras[j], a.uv[ia], b.uv[ib], self.cfg.epipolar_max_px,
-                                    self.cfg.stereo_min_depth_m)
+            rechecked = counts["rejected_stereo_recheck"]
+            ok = self._cross_ok(i, j, a.uv[ia], b.uv[ib], counts)
             if not ok.all():
                 keep = np.ones(len(b.ids), bool)
                 keep[ib[~ok]] = False
                 b.keep(keep)
-                counts["rejected_epipolar"] += int((~ok).sum())
+                counts["rejected_epipolar"] += int((~ok).sum()) - (counts["rejected_stereo_recheck"] - rechecked)
+
+    def _cross_ok(self, i: int, j: int, uv_i: np.ndarray, uv_j: np.ndarray, counts) -> np.ndarray:
+        """Mask of camera i / camera j observations of the same landmarks that agree with the rig geometry
+        (epipolar distance, depth) and, with ``stereo_recheck_px``, with a fresh small-window match of camera i's
+        pixel into camera j started at camera j's pixel. The two cameras' tracks of a landmark can drift apart
+        along the epipolar line, and a match on an occlusion edge depends on the window: neither shows in the
+        epipolar distance, and both bias the disparity towards the nearer surface."""
+        cfg = self.cfg
+        ok = cross_camera_check(self.cameras[i], self.cameras[j], uv_i, uv_j, cfg.epipolar_max_px,
+                                cfg.stereo_min_depth_m)
+        if cfg.stereo_recheck_px <= 0 or not ok.any():
+            return ok
+        sel = np.flatnonzero(ok)
+        fresh, agree = klt.track(*self._klt_pair(self._cams[i].image, self._cams[j].image, cross=True), uv_i[sel],
+                                 uv_j[sel], cfg.stereo_recheck_window_px, 0, cfg.klt_iterations, cfg.fb_max_error_px,
+                                 self.cameras[j].camera.size, 0)
+        agree &= np.linalg.norm(fresh - uv_j[sel], axis=1) <= cfg.stereo_recheck_px
+        ok[sel] = agree
+        counts["rejected_stereo_recheck"] += int((~agree).sum())
+        return ok
 
     def _match_into_others(self, i: int, ids: np.ndarray, uv_i: np.ndarray, counts) -> None:
         cfg = self.cfg
@@ -309,7 +329,7 @@ class MultiCameraTracker:
             uv_j, ok = klt.track(*self._klt_pair(self._cams[i].image, st_j.image, cross=True), uv_i[sel], guess[sel],
                                  cfg.klt_window_px, cfg.klt_levels, cfg.klt_iterations, cfg.fb_max_error_px,
                                  cam_j.camera.size, cfg.fb_levels)
-            ok &= cross_camera_check(cam_i, cam_j, uv_i[sel], uv_j, cfg.epipolar_max_px, cfg.stereo_min_depth_m)
+            ok[ok] = self._cross_ok(i, j, uv_i[sel][ok], uv_j[ok], counts)
             if len(st_j.uv) and ok.any():  # not on top of a feature camera j already tracks
                 d2 = np.min(((uv_j[:, None, :] - st_j.uv[None, :, :]) ** 2).sum(-1), axis=1)
                 ok &= d2 > (0.5 * cfg.min_distance_px) ** 2
