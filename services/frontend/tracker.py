@@ -285,33 +285,36 @@ class MultiCameraTracker:
             common, ia, ib = np.intersect1d(a.ids, b.ids, assume_unique=True, return_indices=True)
             if len(common) == 0:
                 continue
-            rechecked = counts["rejected_stereo_recheck"]
-            ok = self._cross_ok(i, j, a.uv[ia], b.uv[ib], counts)
+            geometric, ok = self._cross_ok(i, j, a.uv[ia], b.uv[ib], counts)
             if not ok.all():
                 keep = np.ones(len(b.ids), bool)
                 keep[ib[~ok]] = False
                 b.keep(keep)
-                counts["rejected_epipolar"] += int((~ok).sum()) - (counts["rejected_stereo_recheck"] - rechecked)
+                counts["rejected_epipolar"] += int((~geometric).sum())
 
-    def _cross_ok(self, i: int, j: int, uv_i: np.ndarray, uv_j: np.ndarray, counts) -> np.ndarray:
-        """Mask of camera i / camera j observations of the same landmarks that agree with the rig geometry
-        (epipolar distance, depth) and, with ``stereo_recheck_px``, with a fresh small-window match of camera i's
-        pixel into camera j started at camera j's pixel. The two cameras' tracks of a landmark can drift apart
-        along the epipolar line, and a match on an occlusion edge depends on the window: neither shows in the
-        epipolar distance, and both bias the disparity towards the nearer surface."""
+    def _cross_ok(self, i: int, j: int, uv_i: np.ndarray, uv_j: np.ndarray, counts,
+                  pair: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Masks of camera i / camera j observations of the same landmarks: those that agree with the rig geometry
+        (epipolar distance, depth), and those that also agree, with ``stereo_recheck_px``, with a fresh small-window
+        match of camera i's pixel into camera j started at camera j's pixel. The two cameras' tracks of a landmark
+        can drift apart along the epipolar line, and a match on an occlusion edge depends on the window: neither
+        shows in the epipolar distance, and both bias the disparity towards the nearer surface. ``pair``: the two
+        images as the cross-camera KLT sees them, when the caller has them already."""
         cfg = self.cfg
-        ok = cross_camera_check(self.cameras[i], self.cameras[j], uv_i, uv_j, cfg.epipolar_max_px,
-                                cfg.stereo_min_depth_m)
-        if cfg.stereo_recheck_px <= 0 or not ok.any():
-            return ok
-        sel = np.flatnonzero(ok)
-        fresh, agree = klt.track(*self._klt_pair(self._cams[i].image, self._cams[j].image, cross=True), uv_i[sel],
-                                 uv_j[sel], cfg.stereo_recheck_window_px, 0, cfg.klt_iterations, cfg.fb_max_error_px,
-                                 self.cameras[j].camera.size, 0)
+        geometric = cross_camera_check(self.cameras[i], self.cameras[j], uv_i, uv_j, cfg.epipolar_max_px,
+                                       cfg.stereo_min_depth_m)
+        if cfg.stereo_recheck_px <= 0 or not geometric.any():
+            return geometric, geometric
+        sel = np.flatnonzero(geometric)
+        if pair is None:
+            pair = self._klt_pair(self._cams[i].image, self._cams[j].image, cross=True)
+        fresh, agree = klt.track(*pair, uv_i[sel], uv_j[sel], cfg.stereo_recheck_window_px, 0, cfg.klt_iterations,
+                                 cfg.fb_max_error_px, self.cameras[j].camera.size, 0)
         agree &= np.linalg.norm(fresh - uv_j[sel], axis=1) <= cfg.stereo_recheck_px
+        ok = geometric.copy()
         ok[sel] = agree
         counts["rejected_stereo_recheck"] += int((~agree).sum())
-        return ok
+        return geometric, ok
 
     def _match_into_others(self, i: int, ids: np.ndarray, uv_i: np.ndarray, counts) -> None:
         cfg = self.cfg
@@ -326,10 +329,10 @@ class MultiCameraTracker:
             if not vis.any():
                 continue
             sel = np.flatnonzero(vis)
-            uv_j, ok = klt.track(*self._klt_pair(self._cams[i].image, st_j.image, cross=True), uv_i[sel], guess[sel],
-                                 cfg.klt_window_px, cfg.klt_levels, cfg.klt_iterations, cfg.fb_max_error_px,
-                                 cam_j.camera.size, cfg.fb_levels)
-            ok[ok] = self._cross_ok(i, j, uv_i[sel][ok], uv_j[ok], counts)
+            pair = self._klt_pair(self._cams[i].image, st_j.image, cross=True)
+            uv_j, ok = klt.track(*pair, uv_i[sel], guess[sel], cfg.klt_window_px, cfg.klt_levels, cfg.klt_iterations,
+                                 cfg.fb_max_error_px, cam_j.camera.size, cfg.fb_levels)
+            ok[ok] = self._cross_ok(i, j, uv_i[sel][ok], uv_j[ok], counts, pair)[1]
             if len(st_j.uv) and ok.any():  # not on top of a feature camera j already tracks
                 d2 = np.min(((uv_j[:, None, :] - st_j.uv[None, :, :]) ** 2).sum(-1), axis=1)
                 ok &= d2 > (0.5 * cfg.min_distance_px) ** 2
