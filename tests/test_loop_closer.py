@@ -64,6 +64,8 @@ def _run(t_end, blank=(np.inf, np.inf), seed=5, threaded=False, acc_bias=(0.05, 
             fs = FeatureSet(ids, c, uv, codes[ids] ^ flips)
             (runner.submit_features if threaded else closer.add_keyframe_features)(stamp, fs)
         r = est.process_frame(stamp, ids, c, uv, is_keyframe=kf)
+        if cfg.early_loops and len(r.keyframe_stamps_ns):  # as services/backend/loop/backend_loop.py submits them
+            (runner.submit_window if threaded else closer.note_window)(r.keyframe_stamps_ns, r.keyframe_T_WS)
         corr = runner.correction() if threaded else closer.correction()
         (runner.submit_status if threaded else closer.note_status)(stamp, r.status, corr @ r.T_WS)
         out.append((r.T_WS, corr @ r.T_WS, r.status))
@@ -95,6 +97,29 @@ def test_revisits_are_closed_and_every_loop_is_true():
     # covisibility of the pose-graph nodes is recorded
     k = closer.graph.keys[len(closer.graph.keys) // 2]
     assert closer.covisibility.covisible(k, 5)
+
+
+@pytest.mark.e2e  # the estimator and the loop closer over two 32 s simulated flights
+def test_early_loops_correct_the_published_poses_sooner():
+    """loop.early_loops: a verified loop joins the pose graph tied to the newest node by the window's relative pose,
+    not window_keyframes later when its query keyframe leaves the window. The same loops are accepted and still
+    true, the first correction reaches the published poses sooner, and the final BA's loops are the same pairs."""
+    late = _run(32.0)
+    early = _run(32.0, cfg=LoopConfig(min_age_s=8.0, early_loops=True))
+
+    times, gt, out, closer, _ = early
+    assert closer.counts["accepted_early"] >= 1
+    assert closer.counts["accepted"] == late[3].counts["accepted"]
+    assert [lp[:2] for lp in closer.loops] == [lp[:2] for lp in late[3].loops]
+    _loops_agree_with_ground_truth(closer, times, gt)
+    # one factor per loop: those whose query keyframe is still in the window at the end are in the graph already
+    assert len(closer._early) >= 1
+    assert len(closer.graph.loops) == len(late[3].graph.loops) + len(closer._early)
+    # sensor time from a loop's query keyframe to its factor: the window's span (8 keyframes, 2.4 s here) less
+    assert np.median(closer.loop_delays_s) <= np.median(late[3].loop_delays_s) - 1.0
+    raw = np.array([np.linalg.norm(o[0][:3, 3] - T[:3, 3]) for o, T in zip(out, gt)])
+    cor = np.array([np.linalg.norm(o[1][:3, 3] - T[:3, 3]) for o, T in zip(out, gt)])
+    assert np.sqrt(np.mean(cor ** 2)) <= np.sqrt(np.mean(raw ** 2)) + 0.01
 
 
 @pytest.mark.e2e  # the estimator and the loop closer over 24-32 s simulated flights

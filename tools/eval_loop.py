@@ -54,6 +54,8 @@ def run(dataset: str, overrides: list[str], max_frames: int = 0, loop: bool = Tr
         res["final_ba_s"] = float(sum(t for t, _ in run.runner.times.get(("backend", "on_stream_end"), [])))
         res["loops"] = lb.counts
         res["pose_graph_solve_ms"] = [round(x, 1) for x in lb.runner.closer.solve_ms]
+        delays = lb.runner.closer.loop_delays_s  # query keyframe -> its factor in the pose graph, sensor time
+        res["loop_delay_median_s"] = float(np.median(delays)) if delays else None
         trajs["raw"] = series_from_matrices([s for s, _ in raw], [T for _, T in raw])
         if run.final is not None:
             trajs["final"] = series_from_matrices(run.final.stamps_ns, run.final.T_WS)

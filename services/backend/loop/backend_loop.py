@@ -178,6 +178,8 @@ class LoopClosingBackend:
             return msgs
         state, kfs = msgs
         self._save_due(int(state.header.stamp_ns))
+        if kfs is not None and self.cfg.early_loops:
+            self.runner.submit_window(kfs.stamps_ns, kfs.T_WS)
         if (frame_id := self.frame_id) != state.header.frame_id:
             state = dataclasses.replace(state, header=dataclasses.replace(state.header, frame_id=frame_id))
             msgs = state, kfs

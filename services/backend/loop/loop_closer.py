@@ -87,6 +87,9 @@ class LoopCloser:
         self._prev_record: KeyframeRecord | None = None
         self._prev_bag: np.ndarray | None = None
         self._pending: list[VerifiedLoop] = []
+        self._early: set[int] = set()  # query stamps of pending loops already in the graph (loop.early_loops)
+        self._now_ns = -(1 << 62)  # the newest sensor time seen (states, windows)
+        self.loop_delays_s: list[float] = []  # per loop factor: sensor time from its query keyframe to the graph
         self.loops: list[tuple[int, int, np.ndarray, np.ndarray]] = []  # (old state, new state, T_old_new, cov)
         # (state, camera, xy, old landmark, the query feature's own landmark): the final BA's loop observations
         self.loop_observations: list[tuple[int, int, np.ndarray, int, int]] = []
@@ -140,6 +143,7 @@ class LoopCloser:
         reached, its pose ``T_pub`` (published frame: this closer's correction applied to the window's pose), with
         which a keyframe's match to the map aligns the session at once, without waiting for the keyframe to leave
         the window."""
+        self._now_ns = max(self._now_ns, int(stamp_ns))
         if self._localiser is not None:
             T_W = None if T_pub is None else inv_T(self.correction()) @ np.asarray(T_pub, float)  # window pose
             self._align(self._localiser.note_state(stamp_ns, status, T_W), stamp_ns)
@@ -270,8 +274,46 @@ class LoopCloser:
                 keep.append(lp)
             else:
                 self.counts["loops_without_keyframe"] += 1
+                self._early.discard(lp.query_stamp_ns)
         self._pending = keep
         return solved
+
+    def note_window(self, stamps_ns: np.ndarray, T_WS: np.ndarray) -> bool:
+        """The window's keyframe poses (W, uncorrected) after an optimisation (``loop.early_loops``). A pending loop
+        whose query keyframe is among them joins the graph now, between its old node and the newest node: the
+        window's relative pose from that node to the query keyframe carries the PnP pose over (a few keyframes of
+        odometry, mm). True when the graph was solved."""
+        if len(stamps_ns):
+            self._now_ns = max(self._now_ns, int(np.max(stamps_ns)))
+        if not self.cfg.early_loops or not self.graph.keys or not self.aligned:
+            return False
+        where = {int(t): np.asarray(T, float) for t, T in zip(stamps_ns, T_WS)}
+        newest = self.graph.keys[-1]
+        added = False
+        for lp in self._pending:
+            T_WQ = where.get(lp.query_stamp_ns)
+            if T_WQ is None or lp.query_stamp_ns in self._early or self._is_prior(lp.old_state):
+                continue
+            T_newest_query = inv_T(self.graph.odom[newest]) @ T_WQ
+            T_old_newest = inv_T(self._old[lp.old_state][2].T_WS) @ lp.T_WS_query @ inv_T(T_newest_query)
+            if self._add_loop_factor(lp.old_state, newest, T_old_newest, lp.covariance, lp.query_stamp_ns):
+                self._early.add(lp.query_stamp_ns)
+                self.counts["accepted_early"] += 1
+                added = True
+        return added and self._solve_if_due(self.node_stamps[newest])
+
+    def _add_loop_factor(self, old_state: int, key: int, T_old_key: np.ndarray, cov: np.ndarray,
+                         query_stamp_ns: int) -> bool:
+        """A loop factor old -> key, unless it moves ``key`` further than ``max_translation_jump_m``."""
+        if self.cfg.max_translation_jump_m > 0:
+            predicted = self.graph.estimate[old_state] @ T_old_key
+            if np.linalg.norm(predicted[:3, 3] - self.graph.estimate[key][:3, 3]) > self.cfg.max_translation_jump_m:
+                self.counts["rejected_jump"] += 1
+                return False
+        self.graph.add_loop(LoopConstraint(old_state, key, T_old_key, cov))
+        self.loop_delays_s.append(1e-9 * max(0, self._now_ns - int(query_stamp_ns)))
+        self._dirty = True
+        return True
 
     def add_map_to_map(self, term) -> bool:
         """A map-to-map term (services.backend.o2p_terms.MapToMap); joins the graph once both anchor keyframes
@@ -304,17 +346,14 @@ class LoopCloser:
         T_old_new = inv_T(old.T_WS) @ lp.T_WS_query
         if not self.aligned:
             return self._try_align(lp, rec, T_old_new) if self._is_prior(lp.old_state) else False
-        if self.cfg.max_translation_jump_m > 0:
-            predicted = self.graph.estimate[old.state] @ T_old_new
-            if np.linalg.norm(predicted[:3, 3] - self.graph.estimate[rec.state][:3, 3]) > self.cfg.max_translation_jump_m:
-                self.counts["rejected_jump"] += 1
-                return False
-        self.graph.add_loop(LoopConstraint(old.state, rec.state, T_old_new, lp.covariance))
+        early = lp.query_stamp_ns in self._early  # in the graph already (note_window): the final BA's loop only
+        self._early.discard(lp.query_stamp_ns)
+        if not early and not self._add_loop_factor(old.state, rec.state, T_old_new, lp.covariance, lp.query_stamp_ns):
+            return False
         self.loops.append((old.state, rec.state, T_old_new, lp.covariance))
         if lp.observations:  # the query keyframe observes the old landmarks: used by the final BA
             self.loop_observations += self._observations_of(rec.state, lp)
         self.counts["accepted"] += 1
-        self._dirty = True
         return self._solve_if_due(rec.stamp_ns)
 
     def _try_align(self, lp: VerifiedLoop, rec: KeyframeRecord, T_old_new: np.ndarray) -> bool:

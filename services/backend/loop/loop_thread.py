@@ -66,6 +66,10 @@ class ThreadedLoopCloser:
     def submit_map_to_map(self, term) -> None:
         self._put(("m2m", term))
 
+    def submit_window(self, stamps_ns: np.ndarray, T_WS: np.ndarray) -> None:
+        """The window's keyframe poses (frame W, uncorrected) after an optimisation: for loops applied early."""
+        self._put(("window", np.array(stamps_ns, np.int64), np.array(T_WS, float)))
+
     def submit_status(self, stamp_ns: int, status: str, T_pub: np.ndarray | None = None) -> None:
         self._put(("status", int(stamp_ns), status, T_pub))
 
@@ -140,6 +144,9 @@ class ThreadedLoopCloser:
                 aligned = c.aligned
                 c.note_status(item[1], item[2], item[3])
                 if c.aligned != aligned:  # the session moved into a saved map's frame: publish that
+                    self._publish(c)
+            elif kind == "window":
+                if c.note_window(item[1], item[2]):
                     self._publish(c)
             elif kind == "save":
                 m = c.sparse_map(item[2])
