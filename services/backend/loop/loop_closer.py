@@ -274,8 +274,8 @@ class LoopCloser:
                 keep.append(lp)
             else:
                 self.counts["loops_without_keyframe"] += 1
-                self._early.discard(lp.query_stamp_ns)
         self._pending = keep
+        self._early &= {lp.query_stamp_ns for lp in keep}  # only pending loops can be early ones
         return solved
 
     def note_window(self, stamps_ns: np.ndarray, T_WS: np.ndarray) -> bool:
@@ -285,7 +285,7 @@ class LoopCloser:
         odometry, mm). True when the graph was solved."""
         if len(stamps_ns):
             self._now_ns = max(self._now_ns, int(np.max(stamps_ns)))
-        if not self.cfg.early_loops or not self.graph.keys or not self.aligned:
+        if not self.cfg.early_loops or not self._pending or not self.graph.keys or not self.aligned:
             return False
         where = {int(t): np.asarray(T, float) for t, T in zip(stamps_ns, T_WS)}
         newest = self.graph.keys[-1]
@@ -347,7 +347,6 @@ class LoopCloser:
         if not self.aligned:
             return self._try_align(lp, rec, T_old_new) if self._is_prior(lp.old_state) else False
         early = lp.query_stamp_ns in self._early  # in the graph already (note_window): the final BA's loop only
-        self._early.discard(lp.query_stamp_ns)
         if not early and not self._add_loop_factor(old.state, rec.state, T_old_new, lp.covariance, lp.query_stamp_ns):
             return False
         self.loops.append((old.state, rec.state, T_old_new, lp.covariance))
