@@ -11,6 +11,7 @@ from services.backend.estimator import BackendCamera, WindowedVioEstimator
 from services.backend.loop.config import LoopConfig
 from services.backend.loop.final_ba import bundle_adjust, follow_keyframes
 from services.backend.loop.history import KeyframeHistory
+from shared.geometry import inv_T, make_T, so3_exp
 from shared.metrics.ate import compute_ate
 
 IMU_NOISE = dict(gyro_nd=1.7e-4, acc_nd=2e-3, gyro_rw=1.9e-5, acc_rw=3e-3)
@@ -64,15 +65,24 @@ def test_final_ba_improves_on_the_causal_trajectory():
     assert ate_final < 0.8 * ate_causal, (ate_causal, ate_final)
 
 
-def test_follow_keyframes_moves_frames_with_their_keyframe():
+def test_follow_keyframes_blends_the_correction_between_keyframes():
     rng = np.random.default_rng(0)
-    T = np.tile(np.eye(4), (6, 1, 1))
-    T[:, :3, 3] = rng.normal(size=(6, 3))
+    T = np.array([make_T(so3_exp(rng.normal(scale=0.5, size=3)), rng.normal(size=3)) for _ in range(6)])
     stamps = np.arange(6, dtype=np.int64) * 100
-    shift = np.eye(4)
-    shift[:3, 3] = [1.0, 0, 0]
-    out = follow_keyframes(stamps, T, np.array([0, 300]), np.array([T[0], shift @ T[3]]))
-    assert np.allclose(out[:3], T[:3]) and np.allclose(out[3:, :3, 3], T[3:, :3, 3] + [1.0, 0, 0])
+    C = make_T(so3_exp(np.array([0.0, 0.0, 0.3])), np.array([1.0, 0.0, 0.0]))  # the final BA's correction at 300
+    out = follow_keyframes(stamps, T, np.array([0, 300]), np.array([T[0], C @ T[3]]))
+    assert np.allclose(out[0], T[0]) and np.allclose(out[3], C @ T[3])
+    for i in (1, 2):  # a third and two thirds of the way from no correction to C
+        step = make_T(so3_exp(np.array([0.0, 0.0, 0.3 * i / 3])), np.array([i / 3, 0.0, 0.0]))
+        assert np.allclose(out[i], step @ T[i])
+    assert np.allclose(out[4:], C @ T[4:])  # after the last keyframe: rigidly with it
+    # the frames after a keyframe were solved against another pose of it than its own published one (the window's
+    # solve, not the fast path's prediction): they move with that anchor, the frames before it with its own pose
+    anchor = make_T(np.eye(3), T[3, :3, 3] + [0.0, 0.0, 0.05])
+    out = follow_keyframes(stamps, T, np.array([0, 300]), np.array([T[0], C @ T[3]]), np.array([T[0], anchor]))
+    assert np.allclose(out[3], C @ T[3]) and np.allclose(out[2], make_T(so3_exp(np.array([0.0, 0.0, 0.2])),
+                                                                        np.array([2 / 3, 0.0, 0.0])) @ T[2])
+    assert np.allclose(out[4:], C @ T[3] @ inv_T(anchor) @ T[4:])
 
 
 def test_loop_observations_merge_a_new_track_into_the_old_landmark():

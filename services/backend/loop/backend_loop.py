@@ -112,6 +112,9 @@ class LoopClosingBackend:
         self._stamps: list[int] = []
         self._T_pub: list[np.ndarray] = []
         self._frame_ids: list[str] = []  # the frame each published pose is in (header.frame_id)
+        # stamp -> the back end's solve of a frame it took (a keyframe), corrected as the published states are: the
+        # pose the fast path's next frames were solved against; the published state at that stamp is the fast path's
+        self._kf_anchor: dict[int, np.ndarray] = {}
         self._generation = 0
         self.dropped_features = 0
         self._end_ns: int | None = None
@@ -184,9 +187,11 @@ class LoopClosingBackend:
             state = dataclasses.replace(state, header=dataclasses.replace(state.header, frame_id=frame_id))
             msgs = state, kfs
         if not self.cfg.correct_state:
+            self._note_anchor(state, np.eye(4))
             return msgs
         T, gen, (g_ids, g_stamps, g_T) = self.runner.snapshot()  # correction and keyframes from the same solve
         self.published.T_last = T  # the fast path applies it to the states (estimator/window's T_corr)
+        self._note_anchor(state, T)
         if kfs is not None:
             ids, stamps, poses = kfs.ids, kfs.stamps_ns, np.einsum("ij,njk->nik", T, kfs.T_WS)
             if gen != self._generation:  # the correction moved the past keyframes: send them all once
@@ -199,6 +204,11 @@ class LoopClosingBackend:
                             T_WS=np.ascontiguousarray(poses, np.float64))
             self.published.note_published(kfs)
         return state, kfs
+
+    def _note_anchor(self, state: EstimatorState, T: np.ndarray) -> None:
+        """Keep the back end's pose of the frame of ``state`` (moved by the correction ``T`` the published states
+        get): the anchor the fast path's next frames are solved against (estimator/window), see :meth:`_follow`."""
+        self._kf_anchor[int(state.header.stamp_ns)] = T @ np.asarray(state.T_WS, float)
 
     def record_state(self, state: EstimatorState) -> None:
         """A published causal state (estimator/state, in W'): the frames the final trajectory is given for, and
@@ -266,15 +276,21 @@ class LoopClosingBackend:
         """:func:`follow_keyframes` per published frame: a frame follows a keyframe published in the same frame (a
         run that relocalised in a saved map published its first poses in another), so no pose is moved by a
         correction taken in the other frame."""
+        # the published state at a keyframe is the fast path's (solved before the window was); the frames after it
+        # were solved against the window's pose of it (a young window's fast path was 6 cm off at V2_01's second
+        # keyframe, which the window then solved right)
+        at = {int(s): i for i, s in enumerate(stamps)}
+        anchor = np.array([self._kf_anchor.get(int(s), T_pub[at[int(s)]] if int(s) in at else np.eye(4))
+                           for s in kf_stamps]).reshape(-1, 4, 4)
         ids = np.array(self._frame_ids[:len(stamps)])
         if len(set(ids.tolist())) <= 1:
-            return follow_keyframes(stamps, T_pub, kf_stamps, kf_T)
+            return follow_keyframes(stamps, T_pub, kf_stamps, kf_T, anchor)
         out = np.array(T_pub, float)
         for f in set(ids.tolist()):
             sel = ids == f
             kf = np.isin(kf_stamps, stamps[sel])
             if kf.any():
-                out[sel] = follow_keyframes(stamps[sel], T_pub[sel], kf_stamps[kf], kf_T[kf])
+                out[sel] = follow_keyframes(stamps[sel], T_pub[sel], kf_stamps[kf], kf_T[kf], anchor[kf])
         return out
 
     def poll_end(self, stream_ends, idle_s: float = 2.0) -> FinalTrajectory | None:

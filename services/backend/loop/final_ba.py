@@ -9,8 +9,8 @@ inlier says that the query feature's own landmark (a new track of the point) is 
 two are merged into one, so every keyframe that saw the new track observes the old landmark (not merged when a
 keyframe observes both: they are not one point then). With ``prune_ratio`` the graph is solved twice, the second
 time without the landmarks that fit badly after the first (a track sliding along a silhouette or drifting is not
-a point, and the whole-run solve bends the poses to fit it). Frames between keyframes follow their keyframe:
-``T_final(t) = T_final(kf) T_causal(kf)^-1 T_causal(t)`` with kf the latest keyframe at or before t.
+a point, and the whole-run solve bends the poses to fit it). Frames between keyframes keep their causal motion under
+a correction blended from the two keyframes around them (:func:`follow_keyframes`).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from gtsam.symbol_shorthand import B, L, V, X
 
 from services.backend.loop.history import KeyframeRecord
 from services.backend.vision_factors import ProjectionModel
-from shared.geometry import inv_T
+from shared.geometry import inv_T, so3_exp, so3_log
 
 
 @dataclass(frozen=True)
@@ -174,16 +174,38 @@ def _merge_landmarks(obs: dict[int, list], p_init: dict[int, np.ndarray], pairs:
 
 
 def follow_keyframes(stamps_ns: np.ndarray, T_causal: np.ndarray, kf_stamps_ns: np.ndarray,
-                     kf_T_final: np.ndarray) -> np.ndarray:
-    """Non-causal poses (N,4,4) of all frames: each frame moves rigidly with the latest keyframe at or before it
-    (frames before the first keyframe with the first). Keyframe stamps must be among the frame stamps."""
+                     kf_T_final: np.ndarray, kf_T_anchor: np.ndarray | None = None) -> np.ndarray:
+    """Non-causal poses (N,4,4) of all frames from their causal poses ``T_causal`` and the keyframes' final poses.
+    A keyframe's frame gets its final pose. A frame between two keyframes keeps its causal motion, corrected by
+    ``C = T_final T_causal^-1`` taken from the keyframe before it (against its anchor) and from the one after it
+    (against that keyframe's own causal pose, which the frames before it are consistent with), blended linearly
+    in time (rotation on the geodesic): the correction leaves no step at a keyframe. Frames before the first keyframe
+    move with it, frames after the last with its anchor. ``kf_T_anchor`` (K,4,4): the causal pose of each keyframe
+    that the frames after it were solved against (default its frame's causal pose; the window's solve where the
+    published state at a keyframe is the fast path's prediction). Keyframe stamps must be among the frame stamps."""
     stamps_ns = np.asarray(stamps_ns, np.int64)
+    T_causal = np.asarray(T_causal, float)
     idx = {int(s): i for i, s in enumerate(stamps_ns)}
     kf_stamps_ns = np.asarray(kf_stamps_ns, np.int64)
     have = np.array([int(s) in idx for s in kf_stamps_ns], bool)
     if not have.any():
         raise ValueError("no keyframe stamp is among the frame stamps")
-    kf_stamps_ns, kf_T_final = kf_stamps_ns[have], np.asarray(kf_T_final)[have]
-    corr = np.array([T @ inv_T(T_causal[idx[int(s)]]) for s, T in zip(kf_stamps_ns, kf_T_final)])
-    j = np.clip(np.searchsorted(kf_stamps_ns, stamps_ns, side="right") - 1, 0, len(kf_stamps_ns) - 1)
-    return np.einsum("nij,njk->nik", corr[j], T_causal)
+    kf_stamps_ns, kf_T_final = kf_stamps_ns[have], np.asarray(kf_T_final, float)[have]
+    i_kf = np.array([idx[int(s)] for s in kf_stamps_ns])
+    anchor = T_causal[i_kf] if kf_T_anchor is None else np.asarray(kf_T_anchor, float)[have]
+    c_after = np.einsum("nij,njk->nik", kf_T_final, np.array([inv_T(T) for T in anchor]))
+    c_before = np.einsum("nij,njk->nik", kf_T_final, np.array([inv_T(T) for T in T_causal[i_kf]]))
+    j = np.searchsorted(kf_stamps_ns, stamps_ns, side="right") - 1  # the keyframe at or before each frame
+    corr = np.where((j < 0)[:, None, None], c_before[0], c_after[np.clip(j, 0, None)])
+    mid = np.flatnonzero((j >= 0) & (j < len(kf_stamps_ns) - 1))
+    if len(mid):
+        jm = j[mid]
+        a = (stamps_ns[mid] - kf_stamps_ns[jm]) / (kf_stamps_ns[jm + 1] - kf_stamps_ns[jm])
+        D = np.einsum("nij,njk->nik", np.array([inv_T(T) for T in c_after[jm]]), c_before[jm + 1])
+        step = np.tile(np.eye(4), (len(mid), 1, 1))
+        step[:, :3, :3] = so3_exp(a[:, None] * so3_log(D[:, :3, :3]))
+        step[:, :3, 3] = a[:, None] * D[:, :3, 3]
+        corr[mid] = np.einsum("nij,njk->nik", c_after[jm], step)
+    out = np.einsum("nij,njk->nik", corr, T_causal)
+    out[i_kf] = kf_T_final
+    return out
