@@ -145,15 +145,33 @@ def from_dict(cls: type[T], data: dict[str, Any] | None, path: str = "") -> T:
         raise ConfigError(f"{path or cls.__name__}: {exc}") from exc
 
 
-def load_yaml(cls: type[T], path: str | Path, overrides: dict[str, Any] | None = None) -> T:
-    """Load ``cls`` from a YAML file; ``overrides`` (nested mapping) is merged on top."""
+def read_yaml(path: str | Path, _seen: tuple[Path, ...] = ()) -> dict[str, Any]:
+    """The mapping of a YAML config file. A top-level ``extends: OTHER.yaml`` (relative to the file) starts from
+    that file's mapping, and this file's keys are merged on top."""
     path = Path(path)
     if not path.is_file():
-        raise ConfigError(f"config file not found: {path}")
+        raise ConfigError(f"config file not found: {path}" + (f" (extended by {_seen[-1]})" if _seen else ""))
+    if path.resolve() in _seen:
+        raise ConfigError(f"{path}: 'extends' goes round in a circle ({' -> '.join(map(str, _seen))})")
     try:
         data = yaml.safe_load(path.read_text()) or {}
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: a config file is a mapping of sections, not {type(data).__name__}")
+    base = data.pop("extends", None)
+    if base is None:
+        return data
+    if not isinstance(base, str):
+        raise ConfigError(f"{path}: 'extends' names one YAML file, got {base!r}")
+    return merge(read_yaml(path.parent / base, (*_seen, path.resolve())), data)
+
+
+def load_yaml(cls: type[T], path: str | Path, overrides: dict[str, Any] | None = None) -> T:
+    """Load ``cls`` from a YAML file (:func:`read_yaml`: ``extends`` included); ``overrides`` (nested mapping) is
+    merged on top."""
+    path = Path(path)
+    data = read_yaml(path)
     if overrides:
         data = merge(data, overrides)
     try:

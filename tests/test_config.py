@@ -99,6 +99,30 @@ def test_yaml_file_round_trip_and_errors(tmp_path):
         load_yaml(Outer, path)
 
 
+def test_extends_merges_the_file_on_top_of_the_one_it_names(tmp_path):
+    (tmp_path / "base.yaml").write_text("count: 7\nmode: router\ninner:\n  rate_hz: 2.5\n  names: [b]\n")
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "c.yaml").write_text("extends: ../base.yaml\ninner:\n  rate_hz: 4.0\n")
+    cfg = load_yaml(Outer, tmp_path / "sub" / "c.yaml", {"count": 9})  # relative to the file, overrides on top
+    assert (cfg.count, cfg.mode, cfg.inner.rate_hz, cfg.inner.names) == (9, "router", 4.0, ("b",))
+    (tmp_path / "base.yaml").write_text("extends: sub/c.yaml\n")
+    with pytest.raises(ConfigError, match="circle"):
+        load_yaml(Outer, tmp_path / "sub" / "c.yaml")
+    (tmp_path / "c2.yaml").write_text("extends: nowhere.yaml\n")
+    with pytest.raises(ConfigError, match="not found.*extended by"):
+        load_yaml(Outer, tmp_path / "c2.yaml")
+
+
+def test_the_real_camera_config_is_the_demo_with_the_real_image_stereo_weights():
+    from services.depth.weights import WEIGHTS_DIR, weights_path
+
+    demo, real = load_system_config("configs/demo.yaml"), load_system_config("configs/real.yaml")
+    assert weights_path(real.depth.stereo_weights, "stereo.pt") == WEIGHTS_DIR / "stereo_refine.pt"
+    assert (WEIGHTS_DIR / "stereo_refine.pt").is_file()
+    assert weights_path(demo.depth.stereo_weights, "stereo.pt") == WEIGHTS_DIR / "stereo.pt"
+    assert dataclasses.replace(real, depth=demo.depth) == demo
+
+
 def test_overrides():
     assert parse_override("a.b=3") == {"a": {"b": 3}}
     cfg = load_system_config(None, ["transport.namespace=sigmaslam/r2", "transport.shared_memory=false"])

@@ -29,8 +29,10 @@ class DepthConfig:
                                       "(docs/depth.md, 'Uncertain pixels'); 0: keep all. Learned sigma only: "
                                       "SGBM's and the heuristic sigma grow with depth alone, and the cap would cut "
                                       "far depth")
-    stereo_weights: str = param("", "stereo network weights (.pt with .json beside); '' = services/depth/weights/stereo.pt")
-    mvs_weights: str = param("", "MVS network weights; '' = services/depth/weights/mvs.pt")
+    stereo_weights: str = param("", "stereo network weights (.pt with .json beside); '' = services/depth/weights/"
+                                "stereo.pt; a bare name = that file there (stereo_refine.pt: real cameras, "
+                                "configs/real.yaml)")
+    mvs_weights: str = param("", "MVS network weights; '' = services/depth/weights/mvs.pt, a bare name = that file there")
     mono: bool = param(False, "cam0 only (left_camera): MVS depth on posed keyframes alone, no stereo network and "
                        "no right image; the MVS depth goes out on depth/fused and depth/stereo (source 'mvs'), frames "
                        "before MVS has source views publish nothing (counted)")

@@ -24,7 +24,6 @@ from __future__ import annotations
 import logging
 from collections import OrderedDict
 from dataclasses import dataclass
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -108,10 +107,10 @@ class DepthPipeline:
         torch.set_num_threads(max(1, self.cfg.threads))
         self.stereo_precision = weights.resolve_precision(self.cfg.stereo_precision, self.device)
         if self.cfg.mono:  # MVS alone: without its weights there is no depth at all
-            self.mvs_net, meta = weights.load(Path(self.cfg.mvs_weights or weights.WEIGHTS_DIR / "mvs.pt"), self.device)
+            self.mvs_net, meta = weights.load(weights.weights_path(self.cfg.mvs_weights, "mvs.pt"), self.device)
             self.mvs_gain = float(meta["gain"])
             return
-        stereo_path = Path(self.cfg.stereo_weights or weights.WEIGHTS_DIR / "stereo.pt")
+        stereo_path = weights.weights_path(self.cfg.stereo_weights, "stereo.pt")
         try:
             self.stereo_net, meta = weights.load(stereo_path, self.device)
             self.stereo_gain = float(meta["gain"])
@@ -124,7 +123,7 @@ class DepthPipeline:
             return
         if self.cfg.use_mvs:
             try:
-                self.mvs_net, meta = weights.load(Path(self.cfg.mvs_weights or weights.WEIGHTS_DIR / "mvs.pt"), self.device)
+                self.mvs_net, meta = weights.load(weights.weights_path(self.cfg.mvs_weights, "mvs.pt"), self.device)
                 self.mvs_gain = float(meta["gain"])
             except weights.WeightsError as exc:
                 log.warning("depth: %s; running stereo only", exc)

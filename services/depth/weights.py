@@ -21,6 +21,18 @@ class WeightsError(RuntimeError):
     """Missing or unusable weights; the message names the file."""
 
 
+def weights_path(value: str, default_name: str) -> Path:
+    """The weights file a ``depth.*_weights`` setting names: '' -> the shipped ``default_name``; a bare file name
+    (no folder) -> that file among the shipped weights (``stereo_refine.pt``), unless it exists where the command
+    runs; any other value -> that path as given."""
+    if not value:
+        return WEIGHTS_DIR / default_name
+    path = Path(value)
+    if path.parent == Path(".") and not path.exists():
+        return WEIGHTS_DIR / path.name
+    return path
+
+
 def build(arch: str, arch_args: dict) -> torch.nn.Module:
     if arch == "stereo":
         from services.depth.stereo_net import StereoNet

@@ -182,8 +182,8 @@ def main(args: argparse.Namespace) -> int:
     rng = np.random.default_rng(0)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    st_net, st_meta = weights.load(args.stereo_weights or weights.WEIGHTS_DIR / "stereo.pt")
-    mv_net, mv_meta = weights.load(args.mvs_weights or weights.WEIGHTS_DIR / "mvs.pt")
+    st_net, st_meta = weights.load(weights.weights_path(args.stereo_weights or "", "stereo.pt"))
+    mv_net, mv_meta = weights.load(weights.weights_path(args.mvs_weights or "", "mvs.pt"))
     if args.replica:
         root = Path(args.replica) / "mav0" if (Path(args.replica) / "mav0").is_dir() else Path(args.replica)
         cams = [camera_from_sensor_yaml(read_sensor_yaml_file(root / c / "sensor.yaml"), c) for c in ("cam0", "cam1")]
