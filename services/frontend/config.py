@@ -12,7 +12,7 @@ class FrontendConfig:
     """Multi-camera KLT frontend."""
 
     # --- detection ---
-    max_features_per_camera: int = param(120, "features tracked per camera at most")
+    max_features_per_camera: int = param(160, "features tracked per camera at most")
     grid_cols: int = param(8, "detection grid columns (features are spread over the cells)")
     grid_rows: int = param(6, "detection grid rows")
     min_distance_px: float = param(15.0, "least distance between two features of one camera", "px")
