@@ -36,7 +36,8 @@ def test_run_with_o2p_builds_frame_to_map_factors_from_the_services_messages(tmp
     assert m, log[-3000:]
     counts = ast.literal_eval(m.group(1))
     assert counts.get("frame_to_map", 0) >= 1, counts
-    assert "mapping: pid" in log and "killed by SIGKILL" not in log, log[-3000:]
+    # the mapping wrote its map and stopped by itself (the viewer, at SCHED_IDLE, may be killed on a loaded machine)
+    assert "mapping: pid" in log and not re.search(r"mapping: pid \d+ stopped \(killed", log), log[-3000:]
     assert (out / "mesh.ply").is_file() and (out / "mapping.json").is_file()
     ate = json.loads((out / "ate.json").read_text())
     assert ate["ate_rmse_m"] < 0.05, ate
