@@ -11,7 +11,7 @@ from services.backend.estimator import BackendCamera, WindowedVioEstimator
 from services.backend.loop.config import LoopConfig
 from services.backend.loop.final_ba import bundle_adjust, follow_keyframes
 from services.backend.loop.history import KeyframeHistory
-from shared.geometry import inv_T, make_T, so3_exp
+from shared.geometry import inv_T, make_T, so3_exp, so3_log
 from shared.metrics.ate import compute_ate
 
 IMU_NOISE = dict(gyro_nd=1.7e-4, acc_nd=2e-3, gyro_rw=1.9e-5, acc_rw=3e-3)
@@ -83,6 +83,14 @@ def test_follow_keyframes_blends_the_correction_between_keyframes():
     assert np.allclose(out[3], C @ T[3]) and np.allclose(out[2], make_T(so3_exp(np.array([0.0, 0.0, 0.2])),
                                                                         np.array([2 / 3, 0.0, 0.0])) @ T[2])
     assert np.allclose(out[4:], C @ T[3] @ inv_T(anchor) @ T[4:])
+    # a keyframe with no frame of its own (the back end's first, published as 'initialising') but an anchor: the
+    # frames after it blend from its correction, not only the next keyframe's
+    shift = make_T(np.eye(3), np.array([0.0, 0.1, 0.0]))
+    out = follow_keyframes(stamps[1:], T[1:], np.array([0, 300]), np.array([shift @ T[0], C @ T[3]]),
+                           np.array([T[0], np.full((4, 4), np.nan)]))
+    D = inv_T(shift) @ C
+    step = make_T(so3_exp(so3_log(D[:3, :3]) / 3), D[:3, 3] / 3)
+    assert np.allclose(out[0], shift @ step @ T[1]) and np.allclose(out[2], C @ T[3])
 
 
 def test_loop_observations_merge_a_new_track_into_the_old_landmark():

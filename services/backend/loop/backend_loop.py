@@ -278,10 +278,9 @@ class LoopClosingBackend:
         correction taken in the other frame."""
         # the published state at a keyframe is the fast path's (solved before the window was); the frames after it
         # were solved against the window's pose of it (a young window's fast path was 6 cm off at V2_01's second
-        # keyframe, which the window then solved right)
-        at = {int(s): i for i, s in enumerate(stamps)}
-        anchor = np.array([self._kf_anchor.get(int(s), T_pub[at[int(s)]] if int(s) in at else np.eye(4))
-                           for s in kf_stamps]).reshape(-1, 4, 4)
+        # keyframe, which the window then solved right); the back end's first keyframe has no published state
+        # ('initialising') but its pose anchors the frames up to the second
+        anchor = np.array([self._kf_anchor.get(int(s), np.full((4, 4), np.nan)) for s in kf_stamps]).reshape(-1, 4, 4)
         ids = np.array(self._frame_ids[:len(stamps)])
         if len(set(ids.tolist())) <= 1:
             return follow_keyframes(stamps, T_pub, kf_stamps, kf_T, anchor)

@@ -181,20 +181,27 @@ def follow_keyframes(stamps_ns: np.ndarray, T_causal: np.ndarray, kf_stamps_ns: 
     (against that keyframe's own causal pose, which the frames before it are consistent with), blended linearly
     in time (rotation on the geodesic): the correction leaves no step at a keyframe. Frames before the first keyframe
     move with it, frames after the last with its anchor. ``kf_T_anchor`` (K,4,4): the causal pose of each keyframe
-    that the frames after it were solved against (default its frame's causal pose; the window's solve where the
-    published state at a keyframe is the fast path's prediction). Keyframe stamps must be among the frame stamps."""
+    that the frames after it were solved against (default, or NaN: its frame's causal pose; the window's solve where
+    the published state at a keyframe is the fast path's prediction). A keyframe is used when its stamp is among the
+    frame stamps or its anchor is given."""
     stamps_ns = np.asarray(stamps_ns, np.int64)
     T_causal = np.asarray(T_causal, float)
     idx = {int(s): i for i, s in enumerate(stamps_ns)}
-    kf_stamps_ns = np.asarray(kf_stamps_ns, np.int64)
-    have = np.array([int(s) in idx for s in kf_stamps_ns], bool)
+    kf_stamps_ns, kf_T_final = np.asarray(kf_stamps_ns, np.int64), np.asarray(kf_T_final, float)
+    anchor = (np.full((len(kf_stamps_ns), 4, 4), np.nan) if kf_T_anchor is None
+              else np.asarray(kf_T_anchor, float).reshape(-1, 4, 4))
+    known = np.isfinite(anchor).all(axis=(1, 2))
+    framed = np.array([int(s) in idx for s in kf_stamps_ns], bool)
+    have = framed | known
     if not have.any():
-        raise ValueError("no keyframe stamp is among the frame stamps")
-    kf_stamps_ns, kf_T_final = kf_stamps_ns[have], np.asarray(kf_T_final, float)[have]
-    i_kf = np.array([idx[int(s)] for s in kf_stamps_ns])
-    anchor = T_causal[i_kf] if kf_T_anchor is None else np.asarray(kf_T_anchor, float)[have]
+        raise ValueError("no keyframe stamp is among the frame stamps, and no keyframe has an anchor")
+    kf_stamps_ns, kf_T_final, anchor, known, framed = (a[have] for a in (kf_stamps_ns, kf_T_final, anchor, known, framed))
+    # a keyframe's causal pose: its frame's; a keyframe without a published frame (the back end's first, while the
+    # published state said 'initialising') has its anchor for both
+    T_kf = np.array([T_causal[idx[int(s)]] if f else A for s, f, A in zip(kf_stamps_ns, framed, anchor)])
+    anchor = np.where(known[:, None, None], anchor, T_kf)
     c_after = np.einsum("nij,njk->nik", kf_T_final, np.array([inv_T(T) for T in anchor]))
-    c_before = np.einsum("nij,njk->nik", kf_T_final, np.array([inv_T(T) for T in T_causal[i_kf]]))
+    c_before = np.einsum("nij,njk->nik", kf_T_final, np.array([inv_T(T) for T in T_kf]))
     j = np.searchsorted(kf_stamps_ns, stamps_ns, side="right") - 1  # the keyframe at or before each frame
     corr = np.where((j < 0)[:, None, None], c_before[0], c_after[np.clip(j, 0, None)])
     mid = np.flatnonzero((j >= 0) & (j < len(kf_stamps_ns) - 1))
@@ -207,5 +214,5 @@ def follow_keyframes(stamps_ns: np.ndarray, T_causal: np.ndarray, kf_stamps_ns: 
         step[:, :3, 3] = a[:, None] * D[:, :3, 3]
         corr[mid] = np.einsum("nij,njk->nik", c_after[jm], step)
     out = np.einsum("nij,njk->nik", corr, T_causal)
-    out[i_kf] = kf_T_final
+    out[[idx[int(s)] for s in kf_stamps_ns[framed]]] = kf_T_final[framed]
     return out
