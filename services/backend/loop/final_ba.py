@@ -200,19 +200,19 @@ def follow_keyframes(stamps_ns: np.ndarray, T_causal: np.ndarray, kf_stamps_ns: 
     # published state said 'initialising') has its anchor for both
     T_kf = np.array([T_causal[idx[int(s)]] if f else A for s, f, A in zip(kf_stamps_ns, framed, anchor)])
     anchor = np.where(known[:, None, None], anchor, T_kf)
-    c_after = np.einsum("nij,njk->nik", kf_T_final, np.array([inv_T(T) for T in anchor]))
-    c_before = np.einsum("nij,njk->nik", kf_T_final, np.array([inv_T(T) for T in T_kf]))
+    c_after = kf_T_final @ inv_T(anchor)
+    c_before = kf_T_final @ inv_T(T_kf)
     j = np.searchsorted(kf_stamps_ns, stamps_ns, side="right") - 1  # the keyframe at or before each frame
     corr = np.where((j < 0)[:, None, None], c_before[0], c_after[np.clip(j, 0, None)])
     mid = np.flatnonzero((j >= 0) & (j < len(kf_stamps_ns) - 1))
     if len(mid):
         jm = j[mid]
         a = (stamps_ns[mid] - kf_stamps_ns[jm]) / (kf_stamps_ns[jm + 1] - kf_stamps_ns[jm])
-        D = np.einsum("nij,njk->nik", np.array([inv_T(T) for T in c_after[jm]]), c_before[jm + 1])
+        D = inv_T(c_after[jm]) @ c_before[jm + 1]
         step = np.tile(np.eye(4), (len(mid), 1, 1))
         step[:, :3, :3] = so3_exp(a[:, None] * so3_log(D[:, :3, :3]))
         step[:, :3, 3] = a[:, None] * D[:, :3, 3]
-        corr[mid] = np.einsum("nij,njk->nik", c_after[jm], step)
-    out = np.einsum("nij,njk->nik", corr, T_causal)
+        corr[mid] = c_after[jm] @ step
+    out = corr @ T_causal
     out[[idx[int(s)] for s in kf_stamps_ns[framed]]] = kf_T_final[framed]
     return out
