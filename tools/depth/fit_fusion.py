@@ -30,8 +30,8 @@ def collect(root: Path, frames: int, sources: int, prior_points: int, stereo_w: 
     from tools.depth.make_dataset import BASELINE_M, K_RECT
 
     rng = np.random.default_rng(seed)
-    st_net, st_meta = weights.load(stereo_w or weights.WEIGHTS_DIR / "stereo.pt")
-    mv_net, mv_meta = weights.load(mvs_w or weights.WEIGHTS_DIR / "mvs.pt")
+    st_net, st_meta = weights.load(weights.weights_path(stereo_w or "", "stereo.pt"))
+    mv_net, mv_meta = weights.load(weights.weights_path(mvs_w or "", "mvs.pt"))
     cols = []
     for left, right, gt, T_WC, srcs, _ in _split_frames(root, "val", frames, sources):
         if not srcs:
