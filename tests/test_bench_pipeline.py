@@ -15,9 +15,9 @@ from shared.messages import Header, StreamEnd
 from tools.bench_budgets import Budgets, check_budgets, format_table, load_budgets
 from tools.bench_pipeline import frames_within, next_rate, stage_summary
 from services.app.metrics.latency import ArrivalLog, map_latencies, matched_latencies, summary
-from tools.pipeline_probe import service_name
-from tools.eval.suite_report import (PAPER_MEAN, ate_table, mean_std, mesh_table, segment_table, spread_table,
-                                     timing_table)
+from tools.pipeline_probe import main_thread_schedstat, main_thread_shares, service_name
+from tools.eval.suite_report import (PAPER_MEAN, ate_table, live_table, mean_std, mesh_table, segment_table,
+                                     spread_table, timing_table)
 from transport.stats import STAGE_LOG_DTYPE, STAGE_LOG_ENV, StageTimer, StatsCollector, read_stage_log
 
 FULL = os.environ.get("SIGMASLAM_E2E", "") == "full"
@@ -62,6 +62,42 @@ def test_map_latency_is_first_submap_after_the_depth_frame():
 def test_service_name_from_cmdline():
     assert service_name(["/x/python", "-m", "services.app.cli", "depth", "/run/config.yaml"]) == "depth"
     assert service_name(["/x/python", "foo.py"]) is None
+
+
+def test_main_thread_schedstat_counts_time_on_a_cpu():
+    import time
+
+    before = main_thread_schedstat(os.getpid())
+    if before is None:
+        pytest.skip("no /proc/<pid>/schedstat on this system (not Linux, or schedstats off)")
+    t_end = time.thread_time() + 0.2
+    while time.thread_time() < t_end:  # 0.2 s of this thread's CPU time
+        pass
+    after = main_thread_schedstat(os.getpid())
+    assert after[0] - before[0] >= 0.15e9 and after[1] >= before[1] >= 0
+    assert main_thread_schedstat(2**22 + 12345) is None  # no such process: None, not an error
+
+
+def test_main_thread_shares_of_the_wall_time():
+    s = main_thread_shares([(1.0, 0, 10_000_000), (3.0, 500_000_000, 310_000_000)])
+    assert s == pytest.approx({"main_thread_run_pct": 25.0, "main_thread_wait_pct": 15.0})
+    assert all(np.isnan(v) for v in main_thread_shares([(1.0, 0, 0)]).values())  # one sample: no interval
+
+
+def test_suite_live_figures_and_table():
+    from tools.eval.suite import live_figures
+
+    stats = {"state_latency_ms": {"median": 21.4, "p99": 127.1}, "frames_without_state": 2,
+             "services": {"backend": {"counters": {"keyframes_skipped": 47}}}}
+    procs = {"frontend": {"main_thread_run_pct": 38.2, "main_thread_wait_pct": float("nan")},
+             "backend": {"main_thread_run_pct": 41.0, "main_thread_wait_pct": 30.5}}
+    f = live_figures(stats, procs)
+    assert f == {"latency_p50_ms": 21.4, "latency_p99_ms": 127.1, "frames_without_state": 2, "keyframes_skipped": 47,
+                 "frontend_run_pct": 38.2, "backend_run_pct": 41.0, "backend_wait_pct": 30.5}  # NaN left out
+    assert live_figures({}, {}) == {}
+    t = live_table({"MH_03 live 1x": f, "MH_03 lockstep": {"ate_causal_m": 0.03}})
+    assert "| MH_03 live 1x | 21 / 127 | 2 | 47 | 38 / - | 41 / 30 |" in t  # 30.5 rounds half to even
+    assert "lockstep" not in t
 
 
 def test_budgets_file_and_table():
@@ -241,6 +277,8 @@ def test_bench_pipeline_end_to_end(tmp_path):
     for svc in ("frontend", "backend", "depth", "mapping", "player"):
         p = res["processes"][svc]
         assert 10 < p["rss_peak_mb"] < 16_000 and p["cpu_time_s"] > 0, (svc, p)
+        if main_thread_schedstat(os.getpid()) is not None:  # Linux with schedstats: shares of the wall time
+            assert 0 < p["main_thread_run_pct"] <= 101 and 0 <= p["main_thread_wait_pct"] <= 101, (svc, p)
     assert sum(p["cpu_mean_pct"] for p in res["processes"].values()) > 1
     assert {c["name"] for c in res["checks"]} >= {"frontend + fast path per frame, median", "depth per frame, median"}
     for png in ("latency_time.png", "latency_hist.png", "compute_hist.png", "processes.png"):

@@ -217,6 +217,10 @@ def _f(v, fmt: str = ".1f") -> str:
     return "-" if v is None else format(v, fmt)
 
 
+def _pct(v) -> str:
+    return "-" if v is None or v != v else f"{v:.0f}"  # NaN: no schedstat on this system
+
+
 def format_report(res: dict) -> str:
     lines = [f"pipeline bench: {res['dataset']} at {res['rate']:g}x sensor rate; {res['frames_published']} frames "
              f"published ({_f(res['sensor_rate_hz'])} Hz); {res['cpu_count']} CPUs, load average "
@@ -234,10 +238,11 @@ def format_report(res: dict) -> str:
     for k, s in res["latency_ms"].items():
         lines.append(f"| {names[k]} | {s['n']} | {_f(s.get('rate_hz'))} | {_f(s.get('median'))} | {_f(s.get('p90'))} | "
                      f"{_f(s.get('p99'))} | {_f(s.get('max'))} |")
-    lines += ["", "| process | CPU mean [% core] | CPU p90 | machine share | RSS median [MiB] | RSS peak [MiB] |",
-              "|---|---:|---:|---:|---:|---:|"]
+    lines += ["", "| process | CPU mean [% core] | CPU p90 | machine share | main thread ran / waited for a core "
+              "[% wall] | RSS median [MiB] | RSS peak [MiB] |", "|---|---:|---:|---:|---:|---:|---:|"]
     for k, p in res["processes"].items():
         lines.append(f"| {k} | {p['cpu_mean_pct']:.0f} | {p['cpu_p90_pct']:.0f} | {p['machine_share']:.2f} | "
+                     f"{_pct(p.get('main_thread_run_pct'))} / {_pct(p.get('main_thread_wait_pct'))} | "
                      f"{p['rss_median_mb']:.0f} | {p['rss_peak_mb']:.0f} |")
     drops = {k: v["dropped"] for k, v in res["drops"]["queues"].items() if v.get("dropped")}
     lines += ["", f"queue drops: {drops or 'none'}; estimator frames dropped: {res['drops']['estimator_frames']}; "

@@ -2,7 +2,9 @@
 and latencies: services/app/metrics/latency.py).
 
 - :class:`ProcessSampler`: CPU share and resident memory of each child process of this one (the services the
-  supervisor started), named by their ``services.app.cli <subcommand>`` argument.
+  supervisor started), named by their ``services.app.cli <subcommand>`` argument, and how long each one's main
+  thread ran and how long it was ready to run but waited for a core (Linux ``/proc/<pid>/schedstat``): on a
+  machine with fewer cores than busy services, the wait is where a stage's wall time goes beyond its CPU time.
 """
 
 from __future__ import annotations
@@ -21,6 +23,16 @@ def service_name(cmdline: list[str]) -> str | None:
     return None
 
 
+def main_thread_schedstat(pid: int) -> tuple[int, int] | None:
+    """(time on a CPU, time ready to run but waiting for a CPU) of process ``pid``'s main thread so far [ns], from
+    ``/proc/<pid>/schedstat``; None where the kernel does not provide it (not Linux, schedstats off, gone)."""
+    try:
+        fields = open(f"/proc/{pid}/schedstat").read().split()
+        return int(fields[0]), int(fields[1])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
 class ProcessSampler:
     """Samples CPU [% of one core] and RSS [MiB] of this process's descendants every ``period_s`` (a thread)."""
 
@@ -31,6 +43,8 @@ class ProcessSampler:
         self.period_s = period_s
         self.samples: dict[str, list[tuple[float, float, float]]] = {}  # name -> (t_s, cpu_pct, rss_mb)
         self.cpu_time_s: dict[str, float] = {}  # name -> user+system CPU seconds at the last sample
+        # name -> [(t_s, run_ns, wait_ns) of the first sample, the same of the last] of the main thread
+        self.schedstat: dict[str, list[tuple[float, int, int]]] = {}
         self._procs: dict[int, object] = {}
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="process-sampler", daemon=True)
@@ -69,11 +83,18 @@ class ProcessSampler:
                     ct = p.cpu_times()
                 except self._psutil.Error:
                     continue
-                self.samples.setdefault(name, []).append((time.monotonic() - self.t0, cpu, rss))
+                t = time.monotonic() - self.t0
+                self.samples.setdefault(name, []).append((t, cpu, rss))
                 self.cpu_time_s[name] = ct.user + ct.system
+                sched = main_thread_schedstat(p.pid)
+                if sched is not None:
+                    ends = self.schedstat.setdefault(name, [(t, *sched)])
+                    ends[1:] = [(t, *sched)]
 
     def summary(self) -> dict:
-        """Per service: mean and p90 CPU [% of one core], share of the machine, median and peak RSS [MiB]."""
+        """Per service: mean and p90 CPU [% of one core], share of the machine, median and peak RSS [MiB], and the
+        main thread's time on a CPU and waiting for one [% of the wall time between its first and last sample;
+        NaN without schedstat]."""
         ncpu = self._psutil.cpu_count() or 1
         out = {}
         for name, rows in sorted(self.samples.items()):
@@ -81,8 +102,19 @@ class ProcessSampler:
             out[name] = {"cpu_mean_pct": float(a[:, 1].mean()), "cpu_p90_pct": float(np.percentile(a[:, 1], 90)),
                          "machine_share": float(a[:, 1].mean() / (100.0 * ncpu)),
                          "rss_median_mb": float(np.median(a[:, 2])), "rss_peak_mb": float(a[:, 2].max()),
-                         "cpu_time_s": float(self.cpu_time_s.get(name, float("nan"))), "samples": len(rows)}
+                         "cpu_time_s": float(self.cpu_time_s.get(name, float("nan"))), "samples": len(rows),
+                         **main_thread_shares(self.schedstat.get(name, []))}
         return out
 
     def series(self) -> dict[str, np.ndarray]:
         return {k: np.array(v, float) for k, v in self.samples.items()}
+
+
+def main_thread_shares(ends: list[tuple[float, int, int]]) -> dict[str, float]:
+    """'main_thread_run_pct' and 'main_thread_wait_pct' from the first and last (t_s, run_ns, wait_ns) samples:
+    the share of the wall time between them that the main thread ran, and that it was ready but waited [%]."""
+    if len(ends) < 2 or ends[-1][0] <= ends[0][0]:
+        return {"main_thread_run_pct": float("nan"), "main_thread_wait_pct": float("nan")}
+    (t0, r0, w0), (t1, r1, w1) = ends[0], ends[-1]
+    wall_ns = (t1 - t0) * 1e9
+    return {"main_thread_run_pct": 100.0 * (r1 - r0) / wall_ns, "main_thread_wait_pct": 100.0 * (w1 - w0) / wall_ns}

@@ -14,7 +14,9 @@ both), and the outputs are evaluated:
   fastest (shared/metrics/segments.py), the means over the sequences against the paper's, Hilti score on control points from the ground truth (services/app/metrics/hilti.py);
 - mesh accuracy / completeness of DIR/mesh.ply against the replica's mav0/scene/mesh.ply (services/app/metrics/mesh.py),
   with its error image;
-- per-item compute times of every stage (mean +- sigma, pooled over the sequences).
+- per-item compute times of every stage (mean +- sigma, pooled over the sequences);
+- live runs: pose latency, frames without a state, keyframes skipped, and the share of the wall time the frontend's
+  and back end's main threads ran and waited for a core (:func:`live_figures`).
 
 Writes ``--out``/report.md (tables with the paper's numbers beside ours), summary.png, suite.json and per
 sequence ``<seq>/trajectory.png``, ``<seq>/mesh/error_top.png`` and the run folder. ``--skip-run`` rebuilds the
@@ -36,8 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
-from tools.eval.suite_report import (NOTE, PAPER_ATE, PAPER_MESH, ate_table, hilti_table, mean_std, mesh_table,
-                                     segment_table, spread_table, timing_table)
+from tools.eval.suite_report import (NOTE, PAPER_ATE, PAPER_MESH, ate_table, hilti_table, live_table, mean_std,
+                                     mesh_table, segment_table, spread_table, timing_table)
 
 SITE_OF_PREFIX = {"V": "vicon", "MH": "machinehall"}
 
@@ -222,6 +224,11 @@ def write_report(out: Path, rows: dict[str, dict], timing: dict, args, rates: li
              "Ours: per-item compute times of all runs pooled, CPU only, on a machine shared with other jobs. "
              "Our depth service runs stereo, MVS and fusion as one stage.", "",
              timing_table(timing), "",
+             *(["## Live: real-time figures", "",
+                "Pose latency from sensor time to estimator/state, frames without a state, keyframes the back end "
+                "skipped to catch up, and the share of the wall time the main threads of the frontend (tracking and "
+                "the per-frame fast path) and of the back end ran and were ready but waited for a core.", "",
+                live_table(rows), ""] if any(r > 0 for r in rates) else []),
              "## Hilti 2022 score (control points from the ground truth)", "", hilti_table(rows), "",
              "![summary](summary.png)", ""]
     for seq, r in rows.items():
@@ -301,6 +308,32 @@ def median_row(runs: dict[float, dict]) -> dict:
     return row
 
 
+# a live run's real-time figures in its row (median over starts like the others): key -> (source, field)
+LIVE_KEYS = {"latency_p50_ms": ("latency", "median"), "latency_p99_ms": ("latency", "p99"),
+             "frames_without_state": ("stats", "frames_without_state"),
+             "keyframes_skipped": ("backend", "keyframes_skipped"),
+             "frontend_run_pct": ("frontend", "main_thread_run_pct"),
+             "frontend_wait_pct": ("frontend", "main_thread_wait_pct"),
+             "backend_run_pct": ("backend_process", "main_thread_run_pct"),
+             "backend_wait_pct": ("backend_process", "main_thread_wait_pct")}
+
+
+def live_figures(run_stats: dict, processes: dict) -> dict:
+    """What a live run did in real time, from its stats.json (``run_stats``) and the process sampler's summary
+    (``processes``, tools/pipeline_probe.py): sensor -> pose latency p50 / p99 [ms], frames without a state,
+    keyframes the back end skipped to catch up, and the share of the wall time the frontend's and the back end's
+    main threads ran and waited for a core [%]. A figure the run did not report is left out."""
+    sources = {"latency": run_stats.get("state_latency_ms") or {}, "stats": run_stats,
+               "backend": run_stats.get("services", {}).get("backend", {}).get("counters", {}),
+               "frontend": processes.get("frontend", {}), "backend_process": processes.get("backend", {})}
+    out = {}
+    for key, (src, field) in LIVE_KEYS.items():
+        v = sources[src].get(field)
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and v == v:  # not None, not NaN
+            out[key] = v
+    return out
+
+
 def run_and_score(args: argparse.Namespace, label: str, replica: Path, run_out: Path, rate: float,
                   sets: list[str]) -> tuple[dict, bool]:
     """One run of the pipeline (or of the estimator in process) on ``replica`` into ``run_out``/run, scored:
@@ -320,6 +353,8 @@ def run_and_score(args: argparse.Namespace, label: str, replica: Path, run_out: 
         row = evaluate_sequence(label, replica, run_out / "run", run_out, args.hilti_points)
     except (ValueError, OSError) as exc:
         row, ok = {"error_run": str(exc)}, False
+    if not (args.in_process or args.skip_run):
+        row.update(live_figures(raw["run_stats"], raw["sampler"].summary()))
     if not (args.in_process or args.skip_run or args.keep_maps):
         freed = drop_dense_map(run_out / "run")
         print(f"[eval suite] {label}: dense map deleted after scoring ({freed / 1e6:.0f} MB; --keep-maps keeps it)",

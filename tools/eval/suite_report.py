@@ -144,3 +144,18 @@ def mean_std(values_ms) -> tuple[float, float, int] | None:
     v = np.asarray(values_ms, float)
     v = v[np.isfinite(v)]
     return None if len(v) == 0 else (float(v.mean()), float(v.std()), int(len(v)))
+
+
+def live_table(rows: dict[str, dict]) -> str:
+    """Real-time figures of the live rows (keys of tools/eval/suite.LIVE_KEYS; rows without them are skipped)."""
+    out = ["| sequence | pose latency p50 / p99 [ms] | frames without a state | keyframes skipped | "
+           "frontend main thread ran / waited [% wall] | back end main thread ran / waited [% wall] |",
+           "|---|---:|---:|---:|---:|---:|"]
+    for key, r in rows.items():
+        if "latency_p50_ms" not in r and "keyframes_skipped" not in r:
+            continue
+        out.append(f"| {key} | {_m(r.get('latency_p50_ms'), '.0f')} / {_m(r.get('latency_p99_ms'), '.0f')} | "
+                   f"{r.get('frames_without_state', '-')} | {r.get('keyframes_skipped', '-')} | "
+                   f"{_m(r.get('frontend_run_pct'), '.0f')} / {_m(r.get('frontend_wait_pct'), '.0f')} | "
+                   f"{_m(r.get('backend_run_pct'), '.0f')} / {_m(r.get('backend_wait_pct'), '.0f')} |")
+    return "\n".join(out)
