@@ -79,9 +79,14 @@ def test_main_thread_schedstat_counts_time_on_a_cpu():
 
 
 def test_main_thread_shares_of_the_wall_time():
-    s = main_thread_shares([(1.0, 0, 10_000_000), (3.0, 500_000_000, 310_000_000)])
+    s = main_thread_shares([[(1.0, 0, 10_000_000), (3.0, 500_000_000, 310_000_000)]])
     assert s == pytest.approx({"main_thread_run_pct": 25.0, "main_thread_wait_pct": 15.0})
-    assert all(np.isnan(v) for v in main_thread_shares([(1.0, 0, 0)]).values())  # one sample: no interval
+    # a restart: the second life's counters start again; both lives' deltas count over the whole span (1 .. 5 s)
+    s = main_thread_shares([[(1.0, 0, 0), (3.0, 500_000_000, 300_000_000)],
+                            [(3.5, 1_000_000, 0), (5.0, 501_000_000, 100_000_000)]])
+    assert s == pytest.approx({"main_thread_run_pct": 25.0, "main_thread_wait_pct": 10.0})
+    assert all(np.isnan(v) for v in main_thread_shares([[(1.0, 0, 0)]]).values())  # one sample: no interval
+    assert all(np.isnan(v) for v in main_thread_shares([]).values())
 
 
 def test_suite_live_figures_and_table():

@@ -27,7 +27,8 @@ def main_thread_schedstat(pid: int) -> tuple[int, int] | None:
     """(time on a CPU, time ready to run but waiting for a CPU) of process ``pid``'s main thread so far [ns], from
     ``/proc/<pid>/schedstat``; None where the kernel does not provide it (not Linux, schedstats off, gone)."""
     try:
-        fields = open(f"/proc/{pid}/schedstat").read().split()
+        with open(f"/proc/{pid}/schedstat") as f:
+            fields = f.read().split()
         return int(fields[0]), int(fields[1])
     except (OSError, ValueError, IndexError):
         return None
@@ -43,8 +44,9 @@ class ProcessSampler:
         self.period_s = period_s
         self.samples: dict[str, list[tuple[float, float, float]]] = {}  # name -> (t_s, cpu_pct, rss_mb)
         self.cpu_time_s: dict[str, float] = {}  # name -> user+system CPU seconds at the last sample
-        # name -> [(t_s, run_ns, wait_ns) of the first sample, the same of the last] of the main thread
-        self.schedstat: dict[str, list[tuple[float, int, int]]] = {}
+        # name -> pid -> [(t_s, run_ns, wait_ns) of its first sample, the same of its last] of the main thread (a
+        # restarted service is a new pid whose counters start again from 0)
+        self.schedstat: dict[str, dict[int, list[tuple[float, int, int]]]] = {}
         self._procs: dict[int, object] = {}
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="process-sampler", daemon=True)
@@ -88,7 +90,7 @@ class ProcessSampler:
                 self.cpu_time_s[name] = ct.user + ct.system
                 sched = main_thread_schedstat(p.pid)
                 if sched is not None:
-                    ends = self.schedstat.setdefault(name, [(t, *sched)])
+                    ends = self.schedstat.setdefault(name, {}).setdefault(p.pid, [(t, *sched)])
                     ends[1:] = [(t, *sched)]
 
     def summary(self) -> dict:
@@ -103,18 +105,23 @@ class ProcessSampler:
                          "machine_share": float(a[:, 1].mean() / (100.0 * ncpu)),
                          "rss_median_mb": float(np.median(a[:, 2])), "rss_peak_mb": float(a[:, 2].max()),
                          "cpu_time_s": float(self.cpu_time_s.get(name, float("nan"))), "samples": len(rows),
-                         **main_thread_shares(self.schedstat.get(name, []))}
+                         **main_thread_shares(list(self.schedstat.get(name, {}).values()))}
         return out
 
     def series(self) -> dict[str, np.ndarray]:
         return {k: np.array(v, float) for k, v in self.samples.items()}
 
 
-def main_thread_shares(ends: list[tuple[float, int, int]]) -> dict[str, float]:
-    """'main_thread_run_pct' and 'main_thread_wait_pct' from the first and last (t_s, run_ns, wait_ns) samples:
-    the share of the wall time between them that the main thread ran, and that it was ready but waited [%]."""
-    if len(ends) < 2 or ends[-1][0] <= ends[0][0]:
+def main_thread_shares(lives: list[list[tuple[float, int, int]]]) -> dict[str, float]:
+    """'main_thread_run_pct' and 'main_thread_wait_pct' from the first and last (t_s, run_ns, wait_ns) sample of
+    each life of a service (one per pid): the share of the wall time from its first sample to its last that the
+    main thread ran, and that it was ready but waited [%]; NaN without two samples."""
+    spans = [(e[0], e[-1]) for e in lives if len(e) >= 2]
+    t0 = min((a[0] for a, _ in spans), default=0.0)
+    t1 = max((b[0] for _, b in spans), default=0.0)
+    if t1 <= t0:
         return {"main_thread_run_pct": float("nan"), "main_thread_wait_pct": float("nan")}
-    (t0, r0, w0), (t1, r1, w1) = ends[0], ends[-1]
     wall_ns = (t1 - t0) * 1e9
-    return {"main_thread_run_pct": 100.0 * (r1 - r0) / wall_ns, "main_thread_wait_pct": 100.0 * (w1 - w0) / wall_ns}
+    run = sum(b[1] - a[1] for a, b in spans)
+    wait = sum(b[2] - a[2] for a, b in spans)
+    return {"main_thread_run_pct": 100.0 * run / wall_ns, "main_thread_wait_pct": 100.0 * wait / wall_ns}
