@@ -104,26 +104,3 @@ def test_an_unconstrained_state_is_an_error():
     model, values, _, p_W, xy, cams, _ = _problem(5)
     with pytest.raises(RuntimeError):
         optimise_latest(values, 1, [], model.fixed_points(p_W[:1], xy[:1], cams[:1]), iterations=3)
-
-
-def test_blur_scale_grows_with_the_turn_across_the_optical_axis():
-    """An 8 ms exposure while turning 0.5 rad/s about an axis across the optical axis: a streak of 0.5 x 0.008 x 460
-    = 1.84 px, spread 1.84 / sqrt(12) = 0.53 px, added in quadrature to 1 px; a turn about the optical axis blurs
-    nothing at the image centre; no exposure: no change. The factors and fixed points carry the scaled sigma."""
-    rig = _rig()
-    sharp = ProjectionModel(rig, 1.0, 2.0)
-    model = ProjectionModel(rig, 1.0, 2.0, exposure_time_s=0.008)
-    for c, cam in enumerate(rig):
-        R_SC = cam.T_SC[:3, :3]
-        across = model.blur_scale(R_SC @ np.array([0.5, 0.0, 0.0]))[c]  # about the camera's x axis
-        along = model.blur_scale(R_SC @ np.array([0.0, 0.0, 0.5]))[c]  # about its optical axis
-        assert across == pytest.approx(np.sqrt(1 + (0.5 * 0.008 * 460.0 / np.sqrt(12)) ** 2))
-        assert along == pytest.approx(1.0)
-    assert np.all(sharp.blur_scale(np.array([3.0, 1.0, 2.0])) == 1.0)
-    with pytest.raises(ValueError):
-        ProjectionModel(rig, 1.0, 2.0, exposure_time_s=-0.001)
-    f = model.factor(np.zeros(2), 0, X(0), L(0), scale=2.0)
-    sigma = f.noiseModel().noise().sigmas()  # the robust model wraps the Gaussian one
-    assert sigma == pytest.approx(np.full(2, 2.0 / 460.0))
-    pts = model.fixed_points(np.ones((2, 3)), np.zeros((2, 2)), np.array([0, 1]), scale=np.array([1.5, 3.0]))
-    assert pts.sigma == pytest.approx(np.array([1.5, 3.0]) / 460.0)

@@ -19,10 +19,6 @@ class BackendConfig:
     # --- vision ---
     sigma_px: float = param(1.0, "reprojection noise (1 sigma) of a feature observation", "px")
     cauchy_k: float = param(2.0, "Cauchy robust-loss scale, in units of sigma (whitened residual)")
-    exposure_time_s: float = param(0.0, "the cameras' exposure time: an observation made while the rig turns gets "
-                                   "the noise of its motion blur added to sigma_px (a streak of gyro rate across "
-                                   "the optical axis x exposure x focal length pixels, whose spread is its "
-                                   "length / sqrt(12)), in the window and the fast path; 0: off (sharp images)", "s")
     min_parallax_deg: float = param(1.0, "least ray angle between two observations to triangulate a landmark", "deg")
     max_reproj_error_px: float = param(4.0, "largest reprojection error of a triangulated or optimised landmark", "px")
     min_depth_m: float = param(0.1, "landmarks closer to a camera than this are rejected (cheirality)", "m")

@@ -76,8 +76,7 @@ class WindowedVioEstimator:
                                                      "gyro_random_walk", "accel_random_walk")}
         self.params = make_params(cfg, **kw)
         self.imu = ImuBuffer()
-        self._vision = ProjectionModel(self.cameras, cfg.sigma_px, cfg.cauchy_k, cfg.exposure_time_s)
-        self._blur: dict[int, np.ndarray] = {}  # state -> (C,) sigma scale of its observations (motion blur)
+        self._vision = ProjectionModel(self.cameras, cfg.sigma_px, cfg.cauchy_k)
         self._T_SC = np.array([c.T_SC for c in self.cameras])
         self._focal = np.array([c.focal_px for c in self.cameras])
         # online extrinsic refinement (extrinsics.py): None when off
@@ -173,9 +172,6 @@ class WindowedVioEstimator:
         else:
             n = self._add_state(stamp_ns)
         self._first_frame_pending = False
-        if self.cfg.exposure_time_s > 0:
-            self._blur[n] = self._vision.blur_scale(self.imu.omega_at(stamp_ns)
-                                                    - self.values.atConstantBias(B(n)).gyroscope())
         self._add_observations(n, ids, cams, uv)
         last_kf = self.keyframes[-1]
         self._add_still(n, last_kf)
@@ -264,8 +260,7 @@ class WindowedVioEstimator:
         lms = self._book.seen_at(n)
         seen = [(self.values.atPoint3(L(lm)), c, xy) for lm in lms for c, xy in self._book.by_landmark[lm][n]]
         pts = self._vision.fixed_points(np.array([p for p, _, _ in seen]).reshape(-1, 3),
-                                        np.array([xy for _, _, xy in seen]).reshape(-1, 2), [c for _, c, _ in seen],
-                                        self._blur.get(n))
+                                        np.array([xy for _, _, xy in seen]).reshape(-1, 2), [c for _, c, _ in seen])
         try:
             upd = optimise_latest(self.values, n, [self._imu_factors[n], *self._still.get(n, [])], pts,
                                   self.cfg.lm_max_iterations, relative_tol=self.cfg.lm_relative_error_tol)
@@ -326,11 +321,10 @@ class WindowedVioEstimator:
             self._book.in_graph.add(lm)
 
     def _projection(self, lm: int, n: int, j: int, c: int, xy: np.ndarray) -> gtsam.NonlinearFactor:
-        scale = float(self._blur[n][c]) if n in self._blur else 1.0
         if self._extrinsics is None:
-            return self._book.factor(lm, n, j, lambda: self._vision.factor(xy, c, X(n), L(lm), scale))
+            return self._book.factor(lm, n, j, lambda: self._vision.factor(xy, c, X(n), L(lm)))
         return self._book.factor(lm, n, j, lambda: self._vision.factor_with_extrinsic(
-            xy, c, X(n), self._extrinsics.keys[c], L(lm), scale))
+            xy, c, X(n), self._extrinsics.keys[c], L(lm)))
 
     def _build_graph(self, n: int) -> gtsam.NonlinearFactorGraph:
         g = gtsam.NonlinearFactorGraph()
@@ -381,7 +375,6 @@ class WindowedVioEstimator:
             self._drop_landmark(lm)
         self._imu_factors.pop(n, None)
         self._still.pop(n, None)
-        self._blur.pop(n, None)
         for key in state_keys(n):
             self.values.erase(key)
         del self.stamps[n]

@@ -60,7 +60,7 @@ class FrameTracker:
         self.cfg = cfg
         self.params = make_params(cfg)
         self.imu = ImuBuffer()
-        self.vision = ProjectionModel(cameras, cfg.sigma_px, cfg.cauchy_k, cfg.exposure_time_s)
+        self.vision = ProjectionModel(cameras, cfg.sigma_px, cfg.cauchy_k)
         self.window: EstimatorWindow | None = None
         self._lm_ids = np.zeros(0, np.int64)  # the window's landmark ids, sorted
         self._lm_p = np.zeros((0, 3))  # their positions in W, in that order
@@ -146,9 +146,7 @@ class FrameTracker:
         values.insert(V(FRAME), np.asarray(v, float))
         values.insert(B(FRAME), bias)
         xy = self.vision.undistort(cams[known], uv[known])
-        blur = (self.vision.blur_scale(self.imu.omega_at(stamp_ns) - np.asarray(w.gyro_bias, float))
-                if self.cfg.exposure_time_s > 0 else None)
-        pts = self.vision.fixed_points(self._lm_p[row[known]], xy, cams[known], blur)
+        pts = self.vision.fixed_points(self._lm_p[row[known]], xy, cams[known])
         factors = [imu_factor(pim, (X(KEYFRAME), V(KEYFRAME), B(KEYFRAME)), (X(FRAME), V(FRAME), B(FRAME)))]
         also = []
         if self._first_anchor_ns is not None and k_ns - self._first_anchor_ns < self.cfg.fast_path_settle_s * 1e9:
