@@ -214,11 +214,7 @@ def summarise(raw: dict, budgets) -> tuple[dict, dict]:
 # ----------------------------------------------------------------------------- printing
 
 def _f(v, fmt: str = ".1f") -> str:
-    return "-" if v is None else format(v, fmt)
-
-
-def _pct(v) -> str:
-    return "-" if v is None or v != v else f"{v:.0f}"  # NaN: no schedstat on this system
+    return "-" if v is None or v != v else format(v, fmt)  # None or NaN (e.g. no schedstat on this system): '-'
 
 
 def format_report(res: dict) -> str:
@@ -242,7 +238,7 @@ def format_report(res: dict) -> str:
               "[% wall] | RSS median [MiB] | RSS peak [MiB] |", "|---|---:|---:|---:|---:|---:|---:|"]
     for k, p in res["processes"].items():
         lines.append(f"| {k} | {p['cpu_mean_pct']:.0f} | {p['cpu_p90_pct']:.0f} | {p['machine_share']:.2f} | "
-                     f"{_pct(p.get('main_thread_run_pct'))} / {_pct(p.get('main_thread_wait_pct'))} | "
+                     f"{_f(p.get('main_thread_run_pct'), '.0f')} / {_f(p.get('main_thread_wait_pct'), '.0f')} | "
                      f"{p['rss_median_mb']:.0f} | {p['rss_peak_mb']:.0f} |")
     drops = {k: v["dropped"] for k, v in res["drops"]["queues"].items() if v.get("dropped")}
     lines += ["", f"queue drops: {drops or 'none'}; estimator frames dropped: {res['drops']['estimator_frames']}; "

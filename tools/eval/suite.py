@@ -285,6 +285,11 @@ def parse_starts(text: str) -> list[float]:
     return starts
 
 
+def _number(v) -> bool:
+    """An int or float figure (NaN included), not a bool."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
 # the figures whose per-run values a row of several runs keeps beside their median
 SPREAD_KEYS = ("ate_causal_m", "ate_noncausal_m", "first10_causal_m", "fastest10_causal_m")
 
@@ -294,11 +299,10 @@ def median_row(runs: dict[float, dict]) -> dict:
     the runs that have it (each field on its own: the median ATE and the median first 10 s may come from different
     runs; a count's median rounded to a whole number), other fields are the first run's; 'runs' keeps the
     :data:`SPREAD_KEYS` of each run, keyed by its start [s], and 'runs_failed' counts the runs without a causal ATE."""
-    number = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool)  # noqa: E731
     row: dict = {}
     for key in dict.fromkeys(k for r in runs.values() for k in r):
         values = [r[key] for r in runs.values() if key in r]
-        if not all(number(v) for v in values):
+        if not all(_number(v) for v in values):
             row[key] = values[0]
         else:  # counts stay whole numbers
             med = float(np.median(values))
@@ -329,7 +333,7 @@ def live_figures(run_stats: dict, processes: dict) -> dict:
     out = {}
     for key, (src, field) in LIVE_KEYS.items():
         v = sources[src].get(field)
-        if isinstance(v, (int, float)) and not isinstance(v, bool) and v == v:  # not None, not NaN
+        if _number(v) and v == v:  # not None, not NaN
             out[key] = v
     return out
 
