@@ -22,10 +22,11 @@ system-deps:
 $(STAMP): pyproject.toml
 	@echo "[setup] creating $(VENV) and installing sigmaslam with its dependencies (1-3 min on a fresh machine)"
 	$(PY) -m venv $(VENV)
-	$(BIN)/pip install -q --upgrade pip
+	$(BIN)/pip install -q --no-cache-dir --upgrade pip
+	@# --no-cache-dir: the venv is ~2.6 GB; a wheel cache beside it would double what a small CI disk must hold
 	@# pip says nothing while it unpacks (torch alone takes ~30 s): a line every 15 s shows it is alive
 	@( while sleep 15; do echo "[setup] still installing ($$SECONDS s)"; done ) & beat=$$!; \
-	PYTHONUNBUFFERED=1 $(BIN)/pip install --progress-bar off -e '.[dev]' \
+	PYTHONUNBUFFERED=1 $(BIN)/pip install --no-cache-dir --progress-bar off -e '.[dev]' \
 	  | awk '/^(Collecting|Installing|Successfully)/ { print substr($$0, 1, 160); fflush() }'; \
 	rc=$$?; kill $$beat; exit $$rc
 	touch $(STAMP)
