@@ -209,6 +209,8 @@ def test_missing_frames_imu_gaps_and_backwards_stamps_are_counted(tmp_path):
     ("player.mode=warp", "player.mode"),
     ("transport.stats_period_s=0", "stats_period_s"),
     ("transport.mode=server", "transport.mode"),
+    ("frontend.affine_window_px=3", "affine_window_px"),
+    ("frontend.affine_max_scale_change=0.9", "affine_max_scale_change"),
     ("backend=[1]", "expected a mapping"),
 ])
 def test_bad_config_values_are_clear_errors(override, fragment):

@@ -22,6 +22,17 @@ class FrontendConfig:
     klt_window_px: int = param(15, "KLT window side", "px")
     klt_levels: int = param(3, "KLT pyramid levels above the full image")
     klt_iterations: int = param(10, "KLT iterations per level")
+    klt_affine: bool = param(False, "refine the frame-to-frame tracks against the patch where each feature was first "
+                             "seen, through an affine warp with gain and offset (services/frontend/affine_klt.py): "
+                             "translation-only KLT drifts as a patch grows, shrinks, turns and changes brightness")
+    affine_keyframes_only: bool = param(True, "refine at keyframes only (what the estimator's window sees; the next "
+                                        "frames track on from the refined positions) instead of every frame: "
+                                        "about a fifth of the CPU")
+    affine_window_px: int = param(15, "side of that template (made odd)", "px")
+    affine_iterations: int = param(6, "Gauss-Newton iterations of one affine refinement")
+    affine_min_ncc: float = param(0.8, "least normalised cross-correlation of template and warped patch")
+    affine_max_move_px: float = param(2.0, "the refined position is taken only within this of the KLT one", "px")
+    affine_max_scale_change: float = param(1.5, "a template whose warp scales by more than this starts over")
     fb_max_error_px: float = param(0.7, "forward-backward tracking error above which a track is dropped", "px")
     fb_levels: int = param(0, "pyramid levels of the forward-backward check's return track (it starts where the "
                            "track began and must come back within fb_max_error_px: the full image suffices)")
@@ -70,3 +81,14 @@ class FrontendConfig:
     # --- service ---
     budget_ms: float = param(15.0, "per-frame budget of the tracking stage (stats topic)", "ms")
     imu_wait_s: float = param(0.05, "how long a frame waits for the gyro samples up to its time", "s")
+
+    def __post_init__(self) -> None:
+        if not 5 <= self.affine_window_px <= 41:
+            raise ValueError(f"frontend.affine_window_px must be 5..41, got {self.affine_window_px}")
+        if self.affine_iterations < 1:
+            raise ValueError(f"frontend.affine_iterations must be >= 1, got {self.affine_iterations}")
+        if not -1.0 <= self.affine_min_ncc <= 1.0:
+            raise ValueError(f"frontend.affine_min_ncc must be in [-1, 1], got {self.affine_min_ncc}")
+        if not self.affine_max_move_px > 0 or not self.affine_max_scale_change > 1.0:
+            raise ValueError("frontend.affine_max_move_px must be > 0 and affine_max_scale_change > 1, got "
+                             f"{self.affine_max_move_px}, {self.affine_max_scale_change}")

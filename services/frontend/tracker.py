@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from services.frontend import klt
+from services.frontend import affine_klt, klt
 from services.frontend.config import FrontendConfig
 from services.frontend.detection import detect_spread
 from shared.lookup_camera import LookupCamera
@@ -57,15 +57,20 @@ class _CameraState:
     uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.float32))
     vel: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.float32))  # [px/s] since the last frame
     image: np.ndarray | None = None
+    templates: affine_klt.AffineTemplates | None = None  # per track, with klt_affine
 
     def keep(self, mask: np.ndarray) -> None:
         self.ids, self.uv, self.vel = self.ids[mask], self.uv[mask], self.vel[mask]
+        if self.templates is not None:
+            self.templates.keep(mask)
 
     def append(self, ids: np.ndarray, uv: np.ndarray) -> None:
-        """New features (no velocity yet)."""
+        """New features (no velocity yet), first seen in ``image``."""
         self.ids = np.concatenate([self.ids, ids.astype(np.int64)])
         self.uv = np.concatenate([self.uv, uv.astype(np.float32)]).reshape(-1, 2)
         self.vel = np.concatenate([self.vel, np.zeros((len(ids), 2), np.float32)])
+        if self.templates is not None:
+            self.templates.append(affine_klt.make_templates(self.image, uv, self.templates.side))
 
 
 @dataclass(frozen=True)
@@ -105,6 +110,9 @@ class MultiCameraTracker:
         # the tracker works on copies whose unprojection is a table lookup
         self.cameras = [dataclasses.replace(c, camera=LookupCamera(c.camera)) for c in cameras]
         self._cams = [_CameraState() for _ in cameras]
+        if cfg.klt_affine:
+            for st in self._cams:
+                st.templates = affine_klt.AffineTemplates.empty(cfg.affine_window_px | 1)
         self._pairs = overlapping_pairs(self.cameras, cfg.min_view_overlap_cos)
         self._R_SC = [np.asarray(c.T_SC, float)[:3, :3] for c in cameras]
         self._next_id = int(first_landmark_id)
@@ -198,6 +206,10 @@ class MultiCameraTracker:
         if not decided:
             is_kf = self._keyframe_decision(stamp_ns, counts)
         if is_kf:
+            if cfg.klt_affine and cfg.affine_keyframes_only:
+                for st, image in zip(self._cams, images):
+                    if len(st.ids):
+                        st.uv = self._refine_affine(st, image, st.uv, counts)
             self._start_keyframe(stamp_ns, images)
         return self._output(stamp_ns, is_kf, counts)
 
@@ -247,7 +259,9 @@ class MultiCameraTracker:
         counts["lost_klt"] += int((~ok).sum())
         uv0 = st.uv[ok]
         uv1 = uv1[ok]
-        st.ids = st.ids[ok]
+        st.keep(ok)
+        if st.templates is not None and len(uv1) and not cfg.affine_keyframes_only:
+            uv1 = self._refine_affine(st, image, uv1, counts)
         # RANSAC only where the views differ by more than a rotation (else the epipolar geometry is degenerate):
         # frame to frame, and against the last keyframe (more parallax, and slow independent motion adds up)
         comp = uv0 if guess is None else guess[ok]
@@ -260,10 +274,27 @@ class MultiCameraTracker:
                     R_rel if R_rel is not None else np.eye(3))))
                 keep[ia] &= self._ransac(model, kf_uv[ib], uv1[ia], pred)
         counts["rejected_ransac"] += int((~keep).sum())
-        st.ids, uv1 = st.ids[keep], uv1[keep]
+        st.keep(keep)
+        uv1 = uv1[keep]
         st.vel = ((uv1 - uv0[keep]) / dt_s if dt_s > 0 else np.zeros_like(uv1)).astype(np.float32)
         st.uv = uv1.astype(np.float32)
         counts["tracked"] += len(st.ids)
+
+    def _refine_affine(self, st: _CameraState, image: np.ndarray, uv1: np.ndarray, counts) -> np.ndarray:
+        """Frame-to-frame positions ``uv1`` refined against each track's first patch (affine_klt); a track whose
+        refinement fails, moves too far or whose warp has grown too unlike the identity keeps its KLT position and
+        starts a new template there."""
+        cfg = self.cfg
+        ref, good = affine_klt.refine(st.templates, image, uv1, cfg.affine_iterations, cfg.affine_min_ncc)
+        good &= np.linalg.norm(ref - uv1, axis=1) <= cfg.affine_max_move_px
+        good &= affine_klt.warp_is_sane(st.templates.A, cfg.affine_max_scale_change)
+        out = np.where(good[:, None], ref, uv1).astype(np.float32)
+        restart = np.flatnonzero(~good)
+        if len(restart):
+            st.templates.replace(restart, affine_klt.make_templates(image, out[restart], st.templates.side))
+        counts["affine_refined"] += int(good.sum())
+        counts["affine_restarted"] += len(restart)
+        return out
 
     def _klt_pair(self, a: np.ndarray, b: np.ndarray, cross: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """The images KLT tracks between: gain-matched under ``match_gain``, or ``match_gain_cross`` between cameras."""
