@@ -15,6 +15,7 @@ batched.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import cv2
@@ -60,11 +61,14 @@ class AffineTemplates:
             getattr(self, f)[idx] = getattr(other, f)
 
 
+@functools.lru_cache(maxsize=8)
 def _grid(side: int) -> np.ndarray:
-    """(2, S*S) float32 template pixel offsets from the feature (x, y)."""
+    """(2, S*S) float32 template pixel offsets from the feature (x, y); built once per side, read-only."""
     c = (side - 1) / 2.0
     y, x = np.mgrid[0:side, 0:side].astype(np.float32) - c
-    return np.stack([x.ravel(), y.ravel()])
+    grid = np.stack([x.ravel(), y.ravel()])
+    grid.flags.writeable = False
+    return grid
 
 
 def _sample(image: np.ndarray, t: np.ndarray, A: np.ndarray, grid: np.ndarray) -> np.ndarray:

@@ -61,15 +61,17 @@ def depth_at(depth: np.ndarray, uv: np.ndarray, max_spread: float = 0.02) -> np.
     return out
 
 
+def _stats(e: np.ndarray) -> dict:
+    return {"n": int(len(e)), "median_px": float(np.median(e)) if len(e) else float("nan"),
+            "p90_px": float(np.percentile(e, 90)) if len(e) else float("nan")}
+
+
 def summarise(errors_px: np.ndarray, ages: np.ndarray) -> dict:
     """Median, p90 and count over all observations and per age bin (frames since the track's first pixel)."""
-    def stats(e):
-        return {"n": int(len(e)), "median_px": float(np.median(e)) if len(e) else float("nan"),
-                "p90_px": float(np.percentile(e, 90)) if len(e) else float("nan")}
-    out = {"all": stats(errors_px)}
+    out = {"all": _stats(errors_px)}
     for lo, hi in AGE_BINS:
         sel = (ages >= lo) & (ages <= hi)
-        out[f"{lo}-{hi}" if hi < 10**9 else f">={lo}"] = stats(errors_px[sel])
+        out[f"{lo}-{hi}" if hi < 10**9 else f">={lo}"] = _stats(errors_px[sel])
     return out
 
 
@@ -108,10 +110,10 @@ def measure(replica: str | Path, first: int = 0, frames: int = 0, shift_ms: floa
         images = ds.load_frame(int(stamp))
         if images is None:
             continue
-        T_WC = T_WS(int(stamp) + shift_ns) @ cam0.T_SC
-        R_rel = None if T_prev is None else T_prev[:3, :3].T @ T_WS(int(stamp) + shift_ns)[:3, :3]
-        out = tracker.process(int(stamp), images, R_rel)
-        T_prev = T_WS(int(stamp) + shift_ns)
+        T = T_WS(int(stamp) + shift_ns)
+        T_WC = T @ cam0.T_SC
+        out = tracker.process(int(stamp), images, None if T_prev is None else T_prev[:3, :3].T @ T[:3, :3])
+        T_prev = T
         sel = out.camera_index == 0
         ids, uv = out.landmark_ids[sel], out.uv[sel]
         known = np.array([birth.get(int(i)) is not None for i in ids], bool)
@@ -131,7 +133,7 @@ def measure(replica: str | Path, first: int = 0, frames: int = 0, shift_ms: floa
         raise ValueError(f"{root}: no track lived two frames")
     e, a, k = np.concatenate(errors), np.concatenate(ages), np.concatenate(at_kf)
     summary = summarise(e, a)
-    summary["keyframes"] = summarise(e[k], a[k])["all"]
+    summary["keyframes"] = _stats(e[k])
     return {"replica": str(root), "frames": int(len(stamps)), "first": first, "shift_ms": shift_ms,
             "overrides": list(overrides or []), "tracks": sum(v is not None for v in birth.values()),
             "errors": summary}
