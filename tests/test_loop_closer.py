@@ -222,3 +222,42 @@ def test_verification_set_joins_the_neighbours_landmarks_once_each():
     assert np.all(np.isfinite(p)) and p[list(fs.landmark_ids).index(44), 1] == 6.0
     assert p[list(fs.landmark_ids).index(22), 1] == 4.0
     assert set(_stored_closer(1).verification_set(50)[0].landmark_ids) == {i for i in range(40, 65) if i % 3}
+
+
+def test_a_saved_map_ends_with_the_window_keyframes_moved_by_the_correction():
+    """A checkpoint holds the keyframes still in the estimator's window, not only the pose-graph nodes: at their
+    window pose moved by the newest node's correction, with features and landmark positions where enough are
+    known, each linked to the one before it."""
+    closer = _stored_closer(0)  # nodes 10..50 at the identity pose
+    T_fix = np.eye(4)
+    T_fix[:3, :3], T_fix[:3, 3] = so3_exp([0.0, 0.0, 0.3]), [1.0, -2.0, 0.5]
+    closer.graph.estimate[50] = T_fix @ closer.graph.odom[50]  # as a solve that moved the newest node would
+    rng = np.random.default_rng(1)
+    window = []
+    for k, n_known in ((6, 15), (7, 2)):  # keyframe 70 knows too few of its landmarks to verify against
+        ids = np.arange(10 * k, 10 * k + 15, dtype=np.int64)
+        stamp = k * 10**9
+        closer.add_keyframe_features(stamp, FeatureSet(ids, np.zeros(15, np.int16), rng.uniform(0, 500, (15, 2)),
+                                                       rng.integers(0, 256, (15, 32), dtype=np.uint8)))
+        T_WS = _pose(0.1 * k, [0.5 * k, 0.0, 0.0])
+        known = {int(i): np.array([float(i), 1.0, 3.0]) for i in ids[:n_known]}
+        window.append(KeyframeRecord(10 * k, stamp, T_WS, np.zeros(3), None, {int(i): [] for i in ids}, known))
+    m = closer.sparse_map({"source": "test"}, window + [closer._old[50][2]])  # a record already a node: once
+    assert list(m.keys) == [10, 20, 30, 40, 50, 60, 70]
+    assert list(m.stamps_ns[-2:]) == [6 * 10**9, 7 * 10**9]
+    T_corr = closer.graph.correction()
+    np.testing.assert_allclose(T_corr, T_fix, atol=1e-12)
+    np.testing.assert_allclose(m.T_WS[5], T_fix @ window[0].T_WS, atol=1e-12)
+    fs, p = m.features(5)
+    np.testing.assert_array_equal(fs.landmark_ids, np.arange(60, 75))
+    np.testing.assert_allclose(p[0], T_fix[:3, :3] @ [60.0, 1.0, 3.0] + T_fix[:3, 3], atol=1e-12)
+    assert len(m.features(6)[0].landmark_ids) == 0  # posed, but nothing to verify a match against
+    edges = {(int(a), int(b)): T for (a, b), T in zip(m.edges, m.edge_T)}
+    np.testing.assert_allclose(edges[(50, 60)], inv_T(T_fix) @ T_fix @ window[0].T_WS, atol=1e-12)
+    np.testing.assert_allclose(edges[(60, 70)], inv_T(window[0].T_WS) @ window[1].T_WS, atol=1e-12)
+
+
+def _pose(yaw, t):
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = so3_exp([0.0, 0.0, yaw]), t
+    return T

@@ -49,7 +49,7 @@ import logging
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import X
-from scipy.stats import chi2
+from scipy.special import chdtri  # chi-square quantile: chi2.ppf(p, k) = chdtri(k, 1 - p) (scipy.stats takes ~1.7 s to import)
 
 from services.backend.o2p_config import O2PConfig
 from services.backend.mono_init import metric_hold
@@ -93,7 +93,7 @@ def consistency(f: OccupancyToPoint, T_WA: np.ndarray, T_WB: np.ndarray, cfg: O2
     scale = f.row_scale(nv) / f.info_scale  # evaluate() ran with sqrt(info_scale) rows: the cap on top
     stat = float(scale * np.sum(ev.r**2))
     dof = float(min(nv, cfg.effective_points) if cfg.effective_points > 0 else nv)
-    limit = float(chi2.ppf(cfg.gate_chi2_p, max(dof, 1.0))) if cfg.gate_chi2_p > 0 else float("inf")
+    limit = float(chdtri(max(dof, 1.0), 1.0 - cfg.gate_chi2_p)) if cfg.gate_chi2_p > 0 else float("inf")
     if nv < cfg.min_points_in_field:
         reason = "too_few_inside"
     elif nv < (cfg.min_inside_fraction if min_fraction is None else min_fraction) * n:

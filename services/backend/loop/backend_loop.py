@@ -141,14 +141,21 @@ class LoopClosingBackend:
             self._last_save_ns = stamp_ns
         elif stamp_ns - self._last_save_ns >= period_s * 1e9:
             self._last_save_ns = stamp_ns
-            self.runner.submit_save(self._map_file, self.session)
+            self.runner.submit_save(self._map_file, self.session, self._window_records())
+
+    def _window_records(self) -> list:
+        """The keyframes still in the estimator's window, for the saved map: without them a checkpoint would lag
+        the drone by the window's span (8 keyframes, ~3-4 s), and a back end restarted in flight would look for
+        itself in a map that ends where it was seconds before (tests/test_reliability_faults.py)."""
+        est = self.shell.estimator
+        return self.history.capture_window(est) if est is not None and len(est.keyframes) else []
 
     def save_map(self) -> bool:
         """Write the sparse map now and wait for it (the end of a run); False when not configured or not written."""
         if self._map_file is None:
             return False
         before = self.runner.saved
-        self.runner.submit_save(self._map_file, self.session)
+        self.runner.submit_save(self._map_file, self.session, self._window_records())
         self.runner.drain()
         return self.runner.saved > before
 

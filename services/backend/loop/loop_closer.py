@@ -53,6 +53,7 @@ from shared.geometry import inv_T
 
 log = logging.getLogger("sigmaslam.loop")
 
+WINDOW_EDGE_COV = np.diag([1e-4] * 3 + [1e-4] * 3)  # a saved window keyframe's link: ~0.6 deg, 1 cm (1 sigma)
 PRIOR_KEY_BASE = 1 << 40  # pose-graph keys of a saved map's keyframes: PRIOR_KEY_BASE + row (never a state index)
 PRIOR_STAMP_NS = -(1 << 62)  # their stamp in the place database: older than anything, whatever min_age_s
 
@@ -215,6 +216,12 @@ class LoopCloser:
             self._features.pop(next(iter(self._features)))
         return out
 
+    def _landmarks_seen(self, fs: FeatureSet, rec: KeyframeRecord) -> np.ndarray | None:
+        """The positions (n,3) of the landmarks of ``fs`` as ``rec`` has them (NaN where unknown); None when fewer
+        than ``loop.min_inliers`` are known (too few to verify a loop against)."""
+        p_W = np.array([rec.landmarks.get(int(i), (np.nan,) * 3) for i in fs.landmark_ids], float).reshape(-1, 3)
+        return p_W if np.isfinite(p_W[:, 0]).sum() >= self.cfg.min_inliers else None
+
     def _store_old(self, key: int, fs: FeatureSet, p_W: np.ndarray, rec: KeyframeRecord) -> None:
         if key not in self._old:
             bisect.insort(self._old_keys, key)
@@ -260,8 +267,8 @@ class LoopCloser:
             self._features.pop(s)
         if feats is not None:
             fs, bag = feats
-            p_W = np.array([rec.landmarks.get(int(i), (np.nan,) * 3) for i in fs.landmark_ids], float).reshape(-1, 3)
-            if np.isfinite(p_W[:, 0]).sum() >= self.cfg.min_inliers:
+            p_W = self._landmarks_seen(fs, rec)
+            if p_W is not None:
                 self._store_old(rec.state, fs, p_W, rec)
                 self.db.add(rec.state, rec.stamp_ns, bag)
         self._add_ready_map_to_map()
@@ -378,10 +385,11 @@ class LoopCloser:
             self.graph.optimise(self.cfg.pose_graph_iterations)
             self.solve_ms.append(1e3 * (time.perf_counter() - t0))
 
-    def sparse_map(self, session: dict | None = None) -> SparseMap | None:
+    def sparse_map(self, session: dict | None = None, window: list[KeyframeRecord] = ()) -> SparseMap | None:
         """The map to save: the saved map's keyframes as loaded and, once aligned (always, without a saved map),
         this session's keyframes at their pose-graph estimates with their features and landmark positions moved
-        the same way; None when there is nothing to save."""
+        the same way, then the keyframes of ``window`` (records of those still in the estimator's window, not yet
+        nodes) moved by the newest node's correction; None when there is nothing to save."""
         g = self.graph
         meta = {"vocabulary": self.voc_id, "frame": "W",
                 "cameras": [{"T_SC": T.tolist(), "focal_px": float(f)} for T, f in zip(self._T_SC, self._focal)],
@@ -397,12 +405,31 @@ class LoopCloser:
             edges = [(a, b, T, c, ODOMETRY) for a, b, T, c in g.edges]
             edges += [(lp.old_key, lp.new_key, lp.T_old_new, lp.covariance, LOOP) for lp in g.loops
                       if not self._is_prior(lp.old_key)]
+            self._add_window(kfs, edges, [r for r in window if r.state not in g.estimate])
         session_map = build_map(kfs, edges, meta)
         if self.prior is None:
             return session_map if len(session_map) else None
         links = [(int(self.prior.keys[lp.old_key - PRIOR_KEY_BASE]), lp.new_key, lp.T_old_new, lp.covariance, LOOP)
                  for lp in g.loops if self._is_prior(lp.old_key) and lp.new_key in g.odom] if self.aligned else []
         return concatenate(self.prior, session_map, np.eye(4), links)
+
+    def _add_window(self, kfs: list, edges: list, window: list[KeyframeRecord]) -> None:
+        """Append the window's keyframes (``sparse_map``) to ``kfs`` and ``edges``: each at its window pose moved by
+        the newest node's correction, with its features where they are still held and enough of their landmarks
+        are known (as a node's), linked to the keyframe before it by the window's relative pose (covariance
+        ``WINDOW_EDGE_COV``: the window's marginals are not computed for a checkpoint)."""
+        T_corr = self.graph.correction()
+        prev = (kfs[-1][0], kfs[-1][2]) if kfs else None
+        for rec in window:
+            T = T_corr @ rec.T_WS
+            fs, p, xy = self._features.get(rec.stamp_ns, (None, None))[0], None, None
+            p_W = None if fs is None else self._landmarks_seen(fs, rec)
+            if p_W is not None:
+                p, xy = p_W @ T_corr[:3, :3].T + T_corr[:3, 3], normalised_xy(fs, self._undistort)
+            kfs.append((rec.state, rec.stamp_ns, T, fs if p_W is not None else None, p, xy))
+            if prev is not None:
+                edges.append((prev[0], rec.state, inv_T(prev[1]) @ T, WINDOW_EDGE_COV, ODOMETRY))
+            prev = (rec.state, T)
 
     def _solve_if_due(self, stamp_ns: int) -> bool:
         """Solve the pose graph when loops were added and the last solve is ``min_solve_interval_s`` old (gtsam

@@ -73,12 +73,13 @@ class ThreadedLoopCloser:
     def submit_status(self, stamp_ns: int, status: str, T_pub: np.ndarray | None = None) -> None:
         self._put(("status", int(stamp_ns), status, T_pub))
 
-    def submit_save(self, path, session: dict) -> None:
-        """Write the sparse map (:meth:`LoopCloser.sparse_map`) to ``path`` in the loop thread (never dropped)."""
+    def submit_save(self, path, session: dict, window: list = ()) -> None:
+        """Write the sparse map (:meth:`LoopCloser.sparse_map`, with the window's keyframe records ``window``) to
+        ``path`` in the loop thread (never dropped)."""
         if self.synchronous:
-            self._handle(("save", path, session))
+            self._handle(("save", path, session, list(window)))
         else:
-            self._q.put(("save", path, session))
+            self._q.put(("save", path, session, list(window)))
 
     @property
     def aligned(self) -> bool:
@@ -149,7 +150,7 @@ class ThreadedLoopCloser:
                 if c.note_window(item[1], item[2]):
                     self._publish(c)
             elif kind == "save":
-                m = c.sparse_map(item[2])
+                m = c.sparse_map(item[2], item[3])
                 if m is not None:
                     save_sparse(m, item[1])
                     self.saved += 1
