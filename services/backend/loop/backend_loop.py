@@ -148,7 +148,7 @@ class LoopClosingBackend:
         the drone by the window's span (8 keyframes, ~3-4 s), and a back end restarted in flight would look for
         itself in a map that ends where it was seconds before (tests/test_reliability_faults.py)."""
         est = self.shell.estimator
-        return self.history.capture_window(est) if est is not None and len(est.keyframes) else []
+        return self.history.capture_window(est) if len(est.keyframes) else []
 
     def save_map(self) -> bool:
         """Write the sparse map now and wait for it (the end of a run); False when not configured or not written."""

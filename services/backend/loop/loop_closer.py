@@ -49,7 +49,7 @@ from services.backend.loop.saved_map import (LOOP, ODOMETRY, SparseMap, SparseMa
                                              vocabulary_id)
 from services.backend.loop.verification import FeatureSet, Guide, normalised_xy, verify_pnp
 from services.backend.loop.vocabulary import DEFAULT_PATH, Vocabulary, l1_score
-from shared.geometry import inv_T
+from shared.geometry import inv_T, transform_points
 
 log = logging.getLogger("sigmaslam.loop")
 
@@ -399,7 +399,7 @@ class LoopCloser:
             for k in g.keys:
                 T_corr = g.estimate[k] @ inv_T(g.odom[k])  # window frame -> map frame at this node
                 fs, p_W = (self._old[k][0], self._old[k][1]) if k in self._old else (None, None)
-                p = None if p_W is None else p_W @ T_corr[:3, :3].T + T_corr[:3, 3]
+                p = None if p_W is None else transform_points(T_corr, p_W)
                 xy = None if fs is None else normalised_xy(fs, self._undistort)
                 kfs.append((k, self.node_stamps[k], g.estimate[k], fs, p, xy))
             edges = [(a, b, T, c, ODOMETRY) for a, b, T, c in g.edges]
@@ -424,9 +424,11 @@ class LoopCloser:
             T = T_corr @ rec.T_WS
             fs, p, xy = self._features.get(rec.stamp_ns, (None, None))[0], None, None
             p_W = None if fs is None else self._landmarks_seen(fs, rec)
-            if p_W is not None:
-                p, xy = p_W @ T_corr[:3, :3].T + T_corr[:3, 3], normalised_xy(fs, self._undistort)
-            kfs.append((rec.state, rec.stamp_ns, T, fs if p_W is not None else None, p, xy))
+            if p_W is None:
+                fs = None  # posed, but too few known landmarks to verify a match against
+            else:
+                p, xy = transform_points(T_corr, p_W), normalised_xy(fs, self._undistort)
+            kfs.append((rec.state, rec.stamp_ns, T, fs, p, xy))
             if prev is not None:
                 edges.append((prev[0], rec.state, inv_T(prev[1]) @ T, WINDOW_EDGE_COV, ODOMETRY))
             prev = (rec.state, T)
