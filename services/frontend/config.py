@@ -22,7 +22,7 @@ class FrontendConfig:
     klt_window_px: int = param(15, "KLT window side", "px")
     klt_levels: int = param(3, "KLT pyramid levels above the full image")
     klt_iterations: int = param(10, "KLT iterations per level")
-    klt_affine: bool = param(False, "refine the frame-to-frame tracks against the patch where each feature was first "
+    klt_affine: bool = param(True, "refine the frame-to-frame tracks against the patch where each feature was first "
                              "seen, through an affine warp with gain and offset (services/frontend/affine_klt.py): "
                              "translation-only KLT drifts as a patch grows, shrinks, turns and changes brightness")
     affine_keyframes_only: bool = param(True, "refine at keyframes only (what the estimator's window sees; the next "
