@@ -34,6 +34,16 @@ def scaled_rig(scale: float) -> list[CameraCalib]:
     return out
 
 
+def imu_clock(t0: int, t1: int, frames: np.ndarray, period_ns: int = 5_000_000) -> np.ndarray:
+    """IMU stamps every ``period_ns`` from ``t0`` to ``t1``, the one nearest each frame moved onto the frame's stamp:
+    on the real rig (EuRoC) an IMU sample is taken with every image, and a lockstep player sends it before the frame
+    (IMU first on ties), so the frame's consumers need not wait for IMU up to its time."""
+    stamps = np.arange(t0, t1, period_ns, dtype=np.int64)
+    near = np.clip(np.round((frames - t0) / period_ns).astype(np.int64), 0, len(stamps) - 1)
+    stamps[near] = frames
+    return np.unique(stamps)
+
+
 def make_dataset(out: str | Path, sequence: str = "V1_02", start_s: float = 0.0, seconds: float = 8.0,
                  scale: float = 0.5, real_imu: bool = False, seed: int = 0,
                  blank_s: tuple[float, float] | None = None, room_span_s: tuple[float, float] | None = None) -> Path:
@@ -42,18 +52,19 @@ def make_dataset(out: str | Path, sequence: str = "V1_02", start_s: float = 0.0,
     that two stretches can share one room."""
     files = euroc_files(sequence)
     gt = read_euroc_csv(files["groundtruth"])
-    t0 = int(gt.stamps_ns[0] + start_s * 1e9)
-    t1 = int(t0 + seconds * 1e9)
+    # integer nanoseconds: a float64 near 1.4e18 ns is only good to 256 ns
+    t0 = int(gt.stamps_ns[0]) + int(round(start_s * 1e9))
+    t1 = t0 + int(round(seconds * 1e9))
     sel = (gt.stamps_ns >= t0 - 500_000_000) & (gt.stamps_ns <= t1 + 500_000_000)
     traj = Trajectory(PoseSeries(gt.stamps_ns[sel], gt.p_WS[sel], gt.q_WS_wxyz[sel]))
     frames = np.loadtxt(files["image_timestamps"], dtype=np.int64).reshape(-1)
     frames = frames[(frames >= t0 + 100_000_000) & (frames <= t1)]
+    stamps = imu_clock(t0, t1 + 50_000_000, frames)
     if real_imu:
         imu = read_imu_csv(files["imu"])
         keep = (imu.stamps_ns >= t0) & (imu.stamps_ns <= t1 + 50_000_000)
         imu_arr = np.c_[imu.stamps_ns[keep], imu.omega_S[keep], imu.acc_S[keep]]
     else:
-        stamps = np.arange(t0, t1 + 50_000_000, 5_000_000, dtype=np.int64)
         imu = simulate_imu(traj, stamps, ImuNoise(), seed=seed, gyro_bias0=(0.002, -0.001, 0.003),
                            accel_bias0=(0.03, -0.02, 0.04))
         imu_arr = np.c_[imu.stamps_ns, imu.omega_S, imu.acc_S]
