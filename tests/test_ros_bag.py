@@ -187,6 +187,8 @@ def test_sigmaslam_run_on_a_ros2_bag(tmp_path, micro):
     log = proc.stdout + proc.stderr
     assert proc.returncode == 0, log[-3000:]
     assert "converted" in log and (out / "dataset" / "mav0" / "cam1" / "data.csv").is_file()
+    # the player waited for every service it started (the recorder too) by its heartbeat, not for a time-out
+    assert "not seen within" not in log, log[-3000:]
     stats = json.loads((out / "stats.json").read_text())
     assert stats["frames_sent"] == 60, stats
     ate = json.loads((out / "ate.json").read_text())

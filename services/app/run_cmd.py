@@ -144,7 +144,7 @@ def pipeline_services(cfg, dataset: str, out: Path, realtime: bool, record: bool
                                     stop_timeout_s=s.stop_timeout_s or MAPPING_STOP_TIMEOUT_S)
         services.append(dataclasses.replace(s, restart="never"))
     if record and not any(s.argv and s.argv[0] == "record" for s in services):  # asked for, but not configured
-        services.append(ServiceSpec(name="record", argv=["record", "--out", str(out / "recording.mcap")],
+        services.append(ServiceSpec(name="recorder", argv=["record", "--out", str(out / "recording.mcap")],
                                     restart="never"))
     mode = ["--rate", f"{rate:g}"] if rate > 0 else (["--realtime"] if realtime else ["--lockstep"])
     wait = ["--wait-for", ",".join(s.name for s in services)] if services else []
