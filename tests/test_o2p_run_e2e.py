@@ -3,7 +3,8 @@ processes over Zenoh (frontend, back end, depth, mapping, viewer) and ``o2p.enab
 service's fields (map/field) and the depth service's stereo depth (depth/stereo) reach the back end, which
 builds frame-to-map factors from them (its exit log line ``o2p counts: {...}``); the mapping writes its map.
 
-Reduced form (default): the first 300 frames (15 s) of the default V1_02 replica. ``SIGMASLAM_E2E=full``: all
+Reduced form (default): the first 200 frames (10 s) of the default V1_02 replica (stop 54: 10 frame-to-map
+factors there, 3 at 150 frames). ``SIGMASLAM_E2E=full``: all
 25 s."""
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ def test_run_with_o2p_builds_frame_to_map_factors_from_the_services_messages(tmp
     argv = [sys.executable, "-m", "services.app.cli", "run", str(default_replica), str(REPO / "configs" / "demo.yaml"),
             "--out", str(out), "--timeout-s", "600", "--set", "o2p.enabled=true", "--set", f"viewer.port={free_port()}"]
     if not FULL:
-        argv.append("--player-arg=--max-frames=300")
+        argv.append("--player-arg=--max-frames=200")
     proc = subprocess.run(argv, cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=900)
     log = proc.stdout + proc.stderr
     assert proc.returncode == 0, log[-3000:]
