@@ -43,6 +43,7 @@ def _run(cams, T_SC_given, refine: bool, t_end=14.0, t0=0.5, rate=10.0, seed=1):
     return np.array(errors), est, res
 
 
+@pytest.mark.e2e  # several seconds of CPU: out of the unit tier (tests/README.md)
 def test_a_perturbed_calibration_is_refined_back_to_the_true_one():
     cams = sim.rig(2)
     true = np.array([c.T_SC for c in cams])

@@ -34,6 +34,7 @@ def test_mono_and_stereo_share_the_rectified_intrinsics():
         DepthPipeline(cfg, cam0)
 
 
+@pytest.mark.e2e  # several seconds of CPU: out of the unit tier (tests/README.md)
 def test_mono_pipeline_mvs_depth_after_posed_keyframes():
     cam0 = _cam(0)
     # every pixel kept (max_relative_sigma 0): this is about the mono geometry, not which pixels are sure enough

@@ -70,6 +70,7 @@ def test_shift_right_image_matches_an_integer_shift():
     assert torch.allclose(half[..., 1:], 0.5 * (right[..., 1:] + right[..., :-1]))
 
 
+@pytest.mark.e2e  # several seconds of CPU: out of the unit tier (tests/README.md)
 def test_refine_net_starts_at_sgbm_and_learns():
     torch.manual_seed(0)
     rng = np.random.default_rng(0)

@@ -187,6 +187,7 @@ def test_simulated_imu_preintegration_matches_groundtruth(replica):
     assert np.degrees(worst_r) < 0.05 and worst_p < 1e-3
 
 
+@pytest.mark.e2e  # several seconds of CPU: out of the unit tier (tests/README.md)
 def test_real_imu_is_time_aligned_with_replica_trajectory():
     """After the shift the replica applies, the recorded gyro matches the trajectory's body rate at lag 0."""
     p = plan(ReplicaSpec(sequence="V1_02", imu="real"))
