@@ -65,14 +65,35 @@ def test_templates_keep_append_replace_follow_their_tracks():
     img = _texture()
     pts = _points(img)[:6]
     tpl = affine_klt.make_templates(img, pts, 11)
-    tpl.A[2] = [[1.1, 0], [0, 1.1]]
+    tpl.set_A(np.arange(6) == 2, np.array([[[1.1, 0], [0, 1.1]]], np.float32))
     tpl.keep(np.array([False, False, True, True, True, True]))
     assert len(tpl) == 4 and tpl.A[0, 0, 0] == pytest.approx(1.1)
     tpl.append(affine_klt.make_templates(img, pts[:2], 11))
-    assert len(tpl) == 6 and tpl.sd.shape == (6, 121, 6) and tpl.h_inv.shape == (6, 6, 6)
+    assert len(tpl) == 6 and tpl.grad.shape == (6, 2, 121) and tpl.h_inv.shape == (6, 6, 6)
     tpl.replace(np.array([0]), affine_klt.make_templates(img, pts[5:6], 11))
     np.testing.assert_allclose(tpl.A[0], np.eye(2))
     np.testing.assert_allclose(tpl.values[0], tpl.values[3])  # pts[5] was kept at index 3
+    np.testing.assert_allclose(tpl.values[4], affine_klt.make_templates(img, pts[:1], 11).values[0])
+
+
+def test_templates_follow_their_tracks_through_many_drops_and_additions():
+    """Tracks dropped and added over many frames (the store compacts now and then): each track's template is
+    always the one made for it, in track order."""
+    img = _texture()
+    pts = _points(img)
+    rng = np.random.default_rng(0)
+    tpl = affine_klt.make_templates(img, pts[:5], 11)
+    owner = list(range(5))  # track -> index of the point its template was made from
+    for _ in range(60):
+        keep = rng.random(len(owner)) > 0.2
+        tpl.keep(keep)
+        owner = [o for o, k in zip(owner, keep) if k]
+        new = rng.integers(0, len(pts), int(rng.integers(0, 5)))
+        tpl.append(affine_klt.make_templates(img, pts[new], 11))
+        owner += new.tolist()
+        assert len(tpl) == len(owner)
+    assert len(owner) > 3
+    np.testing.assert_allclose(tpl.values, affine_klt.make_templates(img, pts[owner], 11).values)
 
 
 def test_warp_is_sane():

@@ -5,60 +5,86 @@ shrinks, turns and shears, and the translation that best fits the changed patch 
 V1_02's replica the tracks drift from the true point by ~0.15 px after 1-2 frames to ~1 px after 20-40, growing
 with the scale change and roll since the feature was first seen (tools/eval/track_error.py). Here each track keeps
 its first patch (the template) and an affine warp x -> t + A x of it into the current image, with a gain and an
-offset for the brightness; every frame the warp is refined by inverse-compositional Gauss-Newton (Baker & Matthews
-2004), started at the frame-to-frame KLT position and the previous frame's A. The template does not drift, so the
-track does not either.
+offset for the brightness; the warp is refined by inverse-compositional Gauss-Newton (Baker & Matthews 2004),
+started at the frame-to-frame KLT position and the last A. The template does not drift, so the track does not
+either.
 
 All tracks of a camera are solved together: one ``cv2.remap`` samples every warped patch, and the 6x6 systems are
-batched.
+batched. The templates live in a store that only grows between compactions; the tracker drops and adds tracks every
+frame but refines at keyframes only, so per frame the store moves row numbers, not patches (stop 54).
 """
 
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
+# per track: mean-free template values (S*S), template gradient x and y (2, S*S), inverse Gauss-Newton Hessian (6, 6),
+# warp A (2, 2); float32, plus the values' norm
+_FIELDS = ("values", "norms", "grad", "h_inv", "A")
 
-@dataclass
+
 class AffineTemplates:
-    """Per track (N of them): mean-free template values (N, S*S) and their norms (N,), steepest-descent images
-    (N, S*S, 6), inverse Hessians (N, 6, 6) and the current warp A (N, 2, 2), all float32. ``side`` S is odd;
-    template pixel (i, j) sits at (j - c, i - c) from the feature, c = (S - 1) / 2."""
+    """The templates of N tracks, in track order. ``side`` S is odd; template pixel (i, j) sits at (j - c, i - c)
+    from the feature, c = (S - 1) / 2. :meth:`keep`, :meth:`append` and :meth:`replace` follow the tracker's
+    tracks; the fields (``values``, ``norms``, ``grad``, ``h_inv``, ``A``) are read as arrays in track order
+    (copies), and A is written through :meth:`set_A`."""
 
-    side: int
-    values: np.ndarray
-    norms: np.ndarray
-    sd: np.ndarray
-    h_inv: np.ndarray
-    A: np.ndarray
-
-    FIELDS = ("values", "norms", "sd", "h_inv", "A")
+    def __init__(self, side: int, values, norms, grad, h_inv, A) -> None:
+        self.side = int(side)
+        self._store = {"values": values, "norms": norms, "grad": grad, "h_inv": h_inv, "A": A}
+        self._size = len(values)  # rows of the store in use (some may belong to dropped tracks)
+        self._rows = np.arange(self._size)  # track -> row of the store
 
     @classmethod
     def empty(cls, side: int) -> "AffineTemplates":
         s2 = side * side
         z = np.zeros
-        return cls(side, z((0, s2), np.float32), z(0, np.float32), z((0, s2, 6), np.float32),
+        return cls(side, z((0, s2), np.float32), z(0, np.float32), z((0, 2, s2), np.float32),
                    z((0, 6, 6), np.float32), z((0, 2, 2), np.float32))
 
     def __len__(self) -> int:
-        return len(self.values)
+        return len(self._rows)
+
+    def __getattr__(self, name: str) -> np.ndarray:
+        if name in _FIELDS:
+            return self._store[name][self._rows]
+        raise AttributeError(name)
+
+    def set_A(self, mask: np.ndarray, A: np.ndarray) -> None:
+        """The warps of the tracks in ``mask`` (N,) become ``A`` (mask.sum(), 2, 2)."""
+        self._store["A"][self._rows[mask]] = A
 
     def keep(self, mask: np.ndarray) -> None:
-        for f in self.FIELDS:
-            setattr(self, f, getattr(self, f)[mask])
+        self._rows = self._rows[mask]
 
     def append(self, other: "AffineTemplates") -> None:
-        for f in self.FIELDS:
-            setattr(self, f, np.concatenate([getattr(self, f), getattr(other, f)]))
+        n = len(other)
+        if not n:
+            return
+        if self._size + n > len(self._store["values"]):
+            self._compact(len(self._rows) + n)
+        for f in _FIELDS:
+            self._store[f][self._size:self._size + n] = getattr(other, f)
+        self._rows = np.concatenate([self._rows, np.arange(self._size, self._size + n)])
+        self._size += n
 
     def replace(self, idx: np.ndarray, other: "AffineTemplates") -> None:
         """Tracks ``idx`` start over from ``other``'s templates (same order)."""
-        for f in self.FIELDS:
-            getattr(self, f)[idx] = getattr(other, f)
+        for f in _FIELDS:
+            self._store[f][self._rows[idx]] = getattr(other, f)
+
+    def _compact(self, need: int) -> None:
+        """Keep only the rows of live tracks, with room for ``need`` tracks and as many again."""
+        cap = max(2 * need, 64)
+        for f, a in self._store.items():
+            new = np.zeros((cap, *a.shape[1:]), a.dtype)
+            new[:len(self._rows)] = a[self._rows]
+            self._store[f] = new
+        self._size = len(self._rows)
+        self._rows = np.arange(self._size)
 
 
 @functools.lru_cache(maxsize=8)
@@ -78,6 +104,14 @@ def _sample(image: np.ndarray, t: np.ndarray, A: np.ndarray, grid: np.ndarray) -
                      ).astype(np.float32)
 
 
+def _steepest_descent(grad: np.ndarray, side: int) -> np.ndarray:
+    """(N, K, 6): d(template at t + A x)/dp for p = (a11, a12, a21, a22, tx, ty) at A = I, from the template's
+    gradient (N, 2, K): rows (x, y, 0, 0, 1, 0) and (0, 0, x, y, 0, 1) weighted by gx and gy."""
+    x, y = _grid(side)
+    gx, gy = grad[:, 0], grad[:, 1]
+    return np.stack([gx * x, gx * y, gy * x, gy * y, gx, gy], axis=2)
+
+
 def make_templates(image: np.ndarray, uv: np.ndarray, side: int) -> AffineTemplates:
     """Templates of the features at ``uv`` (N,2) in ``image`` (uint8): the patch, its gradient (central differences
     on a patch one pixel wider) and the inverse Gauss-Newton Hessian of the affine warp; A = identity."""
@@ -88,16 +122,14 @@ def make_templates(image: np.ndarray, uv: np.ndarray, side: int) -> AffineTempla
     eye = np.tile(np.eye(2, dtype=np.float32), (n, 1, 1))
     wide = _sample(image, uv, eye, _grid(side + 2)).reshape(n, side + 2, side + 2)
     t = wide[:, 1:-1, 1:-1].reshape(n, -1)
-    gx = 0.5 * (wide[:, 1:-1, 2:] - wide[:, 1:-1, :-2]).reshape(n, -1)
-    gy = 0.5 * (wide[:, 2:, 1:-1] - wide[:, :-2, 1:-1]).reshape(n, -1)
-    x, y = _grid(side)
-    # d(t + A x)/dp for p = (a11, a12, a21, a22, tx, ty) at A = I: rows (x, y, 0, 0, 1, 0) and (0, 0, x, y, 0, 1)
-    sd = np.stack([gx * x, gx * y, gy * x, gy * y, gx, gy], axis=2)
+    grad = np.stack([0.5 * (wide[:, 1:-1, 2:] - wide[:, 1:-1, :-2]).reshape(n, -1),
+                     0.5 * (wide[:, 2:, 1:-1] - wide[:, :-2, 1:-1]).reshape(n, -1)], axis=1)
+    sd = _steepest_descent(grad, side)
     h = np.swapaxes(sd, 1, 2).astype(np.float64) @ sd.astype(np.float64)
     scale = np.trace(h, axis1=1, axis2=2)[:, None, None] * 1e-6 + 1e-6
     h_inv = np.linalg.inv(h + scale * np.eye(6)).astype(np.float32)
     tc = t - t.mean(1, keepdims=True)
-    return AffineTemplates(side, tc, np.linalg.norm(tc, axis=1) + 1e-6, sd, h_inv, eye)
+    return AffineTemplates(side, tc, (np.linalg.norm(tc, axis=1) + 1e-6).astype(np.float32), grad, h_inv, eye)
 
 
 def refine(tpl: AffineTemplates, image: np.ndarray, uv: np.ndarray, iterations: int = 6,
@@ -111,8 +143,10 @@ def refine(tpl: AffineTemplates, image: np.ndarray, uv: np.ndarray, iterations: 
     if n == 0:
         return t, np.zeros(0, bool)
     grid = _grid(tpl.side)
-    A = tpl.A.copy()
-    Tc, Tn2 = tpl.values, tpl.norms ** 2
+    A = tpl.A
+    Tc, norms, h_inv = tpl.values, tpl.norms, tpl.h_inv
+    Tn2 = norms ** 2
+    sd = _steepest_descent(tpl.grad, tpl.side)
     eye2 = np.eye(2, dtype=np.float32)
     step = np.full(n, np.inf, np.float32)
     for _ in range(iterations):
@@ -122,7 +156,7 @@ def refine(tpl: AffineTemplates, image: np.ndarray, uv: np.ndarray, iterations: 
         gain = np.einsum("nk,nk->n", Pc, Tc) / Tn2
         gain = np.where(gain > 1e-3, gain, 1.0).astype(np.float32)
         r = Pc / gain[:, None] - Tc
-        dp = (tpl.h_inv @ (r[:, None, :] @ tpl.sd).transpose(0, 2, 1))[:, :, 0]  # (N, 6)
+        dp = (h_inv @ (r[:, None, :] @ sd).transpose(0, 2, 1))[:, :, 0]  # (N, 6)
         # inverse compositional: W(x) <- W(W_dp^-1(x)); W_dp(x) = (I + D) x + d
         M = np.linalg.inv(eye2 + dp[:, :4].reshape(n, 2, 2))
         AM = A @ M
@@ -133,9 +167,9 @@ def refine(tpl: AffineTemplates, image: np.ndarray, uv: np.ndarray, iterations: 
             break
     P = _sample(image, t, A, grid)
     Pc = P - P.mean(1, keepdims=True)
-    ncc = np.einsum("nk,nk->n", Pc, Tc) / (np.linalg.norm(Pc, axis=1) * tpl.norms + 1e-6)
+    ncc = np.einsum("nk,nk->n", Pc, Tc) / (np.linalg.norm(Pc, axis=1) * norms + 1e-6)
     ok = np.all(np.isfinite(t), 1) & (step < 0.1) & (ncc >= min_ncc)
-    tpl.A[ok] = A[ok]
+    tpl.set_A(ok, A[ok])
     return t, ok
 
 
