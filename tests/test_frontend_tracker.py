@@ -362,3 +362,25 @@ def test_affine_refinement_keeps_tracks_on_their_points(stereo_seq, keyframes_on
     assert refined > 5 * restarted > 0 or (refined > 0 and restarted == 0)
     kf = [o for o in outs if o.is_keyframe]
     assert len(kf) < len(outs)  # keyframes-only work is a subset
+
+
+def test_a_frontend_process_behind_the_sensor_skips_its_oldest_frames():
+    """Live, frames that wait beyond frontend.max_backlog_frames are skipped oldest first (the runner counts them as
+    drops), so the pose latency stays bounded; 0 keeps every frame; a negative bound is refused."""
+    from services.frontend.process_node import FrontendProcessNode
+    from services.system_config import load_system_config
+    from shared import topics
+
+    cfg = load_system_config(None, [])
+    node = FrontendProcessNode(cfg, fs.rig())
+    trigger = next(i for i in node.inputs if i.role == "trigger")
+    assert trigger.topic is topics.FRAME and getattr(node, trigger.shed) == node.shed  # the runner sheds through it
+    pending = list(range(7))
+    kept, skipped = node.shed(pending)
+    bound = cfg.frontend.max_backlog_frames
+    assert bound > 0 and kept == pending[-bound:] and skipped == 7 - bound
+    assert node.shed(pending[:bound]) == (pending[:bound], 0)
+    unbounded = FrontendProcessNode(load_system_config(None, ["frontend.max_backlog_frames=0"]), fs.rig())
+    assert unbounded.shed(pending) == (pending, 0)
+    with pytest.raises(ValueError, match="max_backlog_frames"):
+        dataclasses.replace(FrontendConfig(), max_backlog_frames=-1)

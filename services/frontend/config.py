@@ -81,10 +81,16 @@ class FrontendConfig:
     # --- service ---
     budget_ms: float = param(15.0, "per-frame budget of the tracking stage (stats topic)", "ms")
     imu_wait_s: float = param(0.05, "how long a frame waits for the gyro samples up to its time", "s")
+    max_backlog_frames: int = param(2, "live: when more camera frames than this wait for the frontend process (it "
+                                    "fell behind the sensor), the oldest are skipped (counted as drops; the next "
+                                    "frame is tracked from the last one handled), so the pose latency stays bounded; "
+                                    "0: never skip")
 
     def __post_init__(self) -> None:
         if not 5 <= self.affine_window_px <= 41:
             raise ValueError(f"frontend.affine_window_px must be 5..41, got {self.affine_window_px}")
+        if self.max_backlog_frames < 0:
+            raise ValueError(f"frontend.max_backlog_frames must be >= 0, got {self.max_backlog_frames}")
         if self.affine_iterations < 1:
             raise ValueError(f"frontend.affine_iterations must be >= 1, got {self.affine_iterations}")
         if not -1.0 <= self.affine_min_ncc <= 1.0:

@@ -10,6 +10,7 @@ back end's process; the fast path picks up each new window when it comes (``esti
 
 from __future__ import annotations
 
+from services.backend.backlog import shed_backlog
 from services.backend.odometry_node import OdometryNode
 from services.frontend.node import FrontendNode
 from shared import topics
@@ -23,7 +24,8 @@ class FrontendProcessNode(ProcessNode):
     name = "frontend"
     stage = "track"  # a frame's whole path to its state: tracking, then the fast path (timed alone as 'fast_path')
     inputs = (
-        Input(topics.FRAME, "on_frame", role="trigger", note="images to track"),
+        Input(topics.FRAME, "on_frame", role="trigger", shed="shed",
+              note="images to track (the oldest skipped beyond frontend.max_backlog_frames)"),
         Input(topics.IMU, "on_imu", wait_until_trigger_stamp=True,
               note="gyro rotation prior; pre-integration from the keyframe"),
         Input(topics.WINDOW, "on_window", policy="latest", depth=2, wait_until_trigger_stamp=True,
@@ -43,6 +45,10 @@ class FrontendProcessNode(ProcessNode):
         self.names = self.frontend.names
         self.budget_ms = cfg.frontend.budget_ms + cfg.backend.fast_path_budget_ms
         self.wait_s = max(cfg.frontend.imu_wait_s, cfg.backend.imu_wait_s)
+        self.max_backlog = cfg.frontend.max_backlog_frames
+
+    def shed(self, pending) -> tuple[list, int]:
+        return shed_backlog(pending, self.max_backlog, is_keyframe=lambda f: False)
 
     def wait_stamp(self, inp: Input, trigger_stamp_ns: int) -> int:
         return self.fast_path.wait_stamp(inp, trigger_stamp_ns) if inp.topic is topics.WINDOW else trigger_stamp_ns
