@@ -1,6 +1,6 @@
 from dataclasses import dataclass
 
-from services.backend.backlog import shed_backlog
+from shared.backlog import shed_backlog
 from transport.queues import BoundedQueue
 
 

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.backend.backlog import shed_backlog
+from shared.backlog import shed_backlog
 from services.backend.cameras import BackendCamera
 from services.backend.estimator import BackendInputError, WindowedVioEstimator, camera_from_calib
 from services.backend.frame_result import FrameResult

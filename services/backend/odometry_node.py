@@ -15,7 +15,7 @@ import logging
 
 import numpy as np
 
-from services.backend.backlog import shed_backlog
+from shared.backlog import shed_backlog
 from services.backend.loop.backend_loop import corrected_state
 from services.backend.node import backend_cameras
 from services.backend.odometry import FrameTracker

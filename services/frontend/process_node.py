@@ -10,7 +10,7 @@ back end's process; the fast path picks up each new window when it comes (``esti
 
 from __future__ import annotations
 
-from services.backend.backlog import shed_backlog
+from shared.backlog import shed_backlog
 from services.backend.odometry_node import OdometryNode
 from services.frontend.node import FrontendNode
 from shared import topics

@@ -1,4 +1,5 @@
-"""Catching up when a stage falls behind its input (BRIEF sec. 7: degrade, count, never fall behind).
+"""Catching up when a stage falls behind its input (BRIEF sec. 7: degrade, count, never fall behind): the back end,
+the fast path driven on its own and the frontend process (camera frames) shed through it.
 
 Feature frames that wait in a queue make every later output late by the time they take. When more than
 ``max_backlog`` frames wait, the oldest frames that are not keyframes are skipped: their IMU samples are still
