@@ -285,3 +285,19 @@ def test_override_gives_a_checked_changed_copy():
         override(cfg, {"supervisor.services": [ServiceSpec(name="a", argv=["frontend"], restart="sometimes")]})
     with pytest.raises(ConfigError, match="unknown key"):
         override(cfg, {"rig.calib": "/x"})
+
+
+def test_the_run_player_waits_for_the_heartbeats_its_services_send(tmp_path):
+    """`sigmaslam run` starts the player with --wait-for naming each service's node (its heartbeat), whatever the
+    service is called in the config: a service named 'fe' runs the frontend node, the recorder's node is 'recorder'."""
+    from services.app.run_cmd import pipeline_services
+
+    cfg = load_system_config(None, ["supervisor.services=[{name: fe, argv: [frontend]}, {name: be, argv: [backend]}]"])
+    services = pipeline_services(cfg, "DATA", tmp_path, realtime=True, record=True, player_args=[])
+    assert [s.name for s in services] == ["fe", "be", "recorder", "player"]
+    player = services[-1].argv
+    assert player[player.index("--wait-for") + 1] == "frontend,backend,recorder"
+    plain = pipeline_services(load_system_config(None, []), "DATA", tmp_path, realtime=False, record=False,
+                              player_args=[])
+    argv = plain[-1].argv
+    assert argv[argv.index("--wait-for") + 1] == "frontend,backend" and "--lockstep" in argv

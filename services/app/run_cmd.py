@@ -63,6 +63,9 @@ log = logging.getLogger("sigmaslam.run")
 
 # used when the config lists no pipeline service (besides player and recorder)
 MAPPING_STOP_TIMEOUT_S = 60.0  # SIGKILL a mapping service still writing its map only after this long
+# subcommand -> the name its node's heartbeat carries, where the two differ
+HEARTBEAT_NAMES = {"record": "recorder"}
+
 DEFAULT_PIPELINE = (ServiceSpec(name="frontend", argv=["frontend"]), ServiceSpec(name="backend", argv=["backend"]))
 
 # per-frame stages whose medians add up to the estimator's cost per camera frame: the frontend process's tracking
@@ -147,7 +150,8 @@ def pipeline_services(cfg, dataset: str, out: Path, realtime: bool, record: bool
         services.append(ServiceSpec(name="recorder", argv=["record", "--out", str(out / "recording.mcap")],
                                     restart="never"))
     mode = ["--rate", f"{rate:g}"] if rate > 0 else (["--realtime"] if realtime else ["--lockstep"])
-    wait = ["--wait-for", ",".join(s.name for s in services)] if services else []
+    # the player waits for each service's heartbeat, which carries its node's name, not the service's
+    wait = ["--wait-for", ",".join(HEARTBEAT_NAMES.get(s.argv[0], s.argv[0]) for s in services)] if services else []
     services.append(ServiceSpec(name="player", argv=["player", dataset, *mode, *wait, *player_args], restart="never"))
     return services
 
