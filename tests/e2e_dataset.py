@@ -59,13 +59,12 @@ def make_dataset(out: str | Path, sequence: str = "V1_02", start_s: float = 0.0,
     traj = Trajectory(PoseSeries(gt.stamps_ns[sel], gt.p_WS[sel], gt.q_WS_wxyz[sel]))
     frames = np.loadtxt(files["image_timestamps"], dtype=np.int64).reshape(-1)
     frames = frames[(frames >= t0 + 100_000_000) & (frames <= t1)]
-    stamps = imu_clock(t0, t1 + 50_000_000, frames)
     if real_imu:
         imu = read_imu_csv(files["imu"])
         keep = (imu.stamps_ns >= t0) & (imu.stamps_ns <= t1 + 50_000_000)
         imu_arr = np.c_[imu.stamps_ns[keep], imu.omega_S[keep], imu.acc_S[keep]]
     else:
-        imu = simulate_imu(traj, stamps, ImuNoise(), seed=seed, gyro_bias0=(0.002, -0.001, 0.003),
+        imu = simulate_imu(traj, imu_clock(t0, t1 + 50_000_000, frames), ImuNoise(), seed=seed, gyro_bias0=(0.002, -0.001, 0.003),
                            accel_bias0=(0.03, -0.02, 0.04))
         imu_arr = np.c_[imu.stamps_ns, imu.omega_S, imu.acc_S]
     gt_stamps = np.arange(t0, t1, 5_000_000, dtype=np.int64)
