@@ -41,27 +41,28 @@ from services.backend.cameras import BackendCamera, camera_from_calib  # noqa: F
 from services.backend.config import BackendConfig
 from services.backend.extrinsics import ExtrinsicRefinement
 from services.backend.frame_result import FrameResult, to_message_covariance
-from services.backend.gravity_align import GravityAlignment, MovingStartAligner
+from services.backend.gravity_align import MovingStartAligner
 from services.backend.imu_factors import ImuBuffer, imu_factor, make_bias, make_params, predict
 from services.backend.motion_only import optimise_latest
 from services.backend.priors import WindowPrior, window_marginals
 from services.backend.protocols import ExtraFactorSource, MarginalisationListener
-from services.backend.landmarks import WindowLandmarks, gather_landmarks
 from services.backend.mono_init import bootstrap as mono_bootstrap
 from services.backend.observations import ObservationBook
 from services.backend.still import mono_frame_factors
 from services.backend.time_offset import TimeOffsetEstimator, interval_residual
 from services.backend.triangulation import new_landmarks
 from services.backend.vision_factors import ProjectionModel
+from services.backend.window_api import WindowReadApi
 from services.backend.window_rules import (BackendInputError, keyframe_due,  # noqa: F401 (re-exported)
                                            observation_arrays, reprojection_outliers, schur_ordering,
                                            state_keys)
 
 
-class WindowedVioEstimator:
+class WindowedVioEstimator(WindowReadApi):
     """Feed IMU with :meth:`add_imu` and frames with :meth:`process_frame` (in time order). ``extra_factors``:
     sources of factors for every window graph; ``on_marginalise``: told before the oldest keyframe leaves the
-    window (services/backend/protocols.py). Others read the window through the read API at the end."""
+    window (services/backend/protocols.py). Others read the window through the read API
+    (services/backend/window_api.py)."""
 
     def __init__(self, cfg: BackendConfig, cameras: list[BackendCamera], imu_calib=None, *,
                  extra_factors: Sequence[ExtraFactorSource] = (),
@@ -401,93 +402,6 @@ class WindowedVioEstimator:
             keyframe_T_WS=np.array([self.values.atPose3(X(k)).matrix() for k in kfs]),
             num_landmarks=len(self._book.in_graph), T_SC=None if self._extrinsics is None else self._T_SC.copy(),
             time_offset_s=0.0 if self.time_offset is None else self.time_offset.td)
-
-    def window_landmarks(self, max_count: int | None = None) -> WindowLandmarks:
-        """The window's well-constrained landmarks at the current estimate, at most ``max_count`` (default
-        ``cfg.max_published_landmarks``): those last seen most recently, then seen most often, are kept."""
-        limit = self.cfg.max_published_landmarks if max_count is None else max_count
-        return gather_landmarks(self._book.by_landmark, self._book.in_graph, self.values, self.stamps, limit)
-
-    # ---------------------------------------------------------------- introspection
-    def window_counts(self) -> dict[str, int]:
-        """Sizes that bound the per-frame cost: states in the window, landmarks with factors, total variables."""
-        return {"keyframes": len(self.keyframes), "states": len(self.stamps), "landmarks": len(self._book.in_graph),
-                "variables": int(self.values.size()), "observed_landmarks": len(self._book.by_landmark)}
-
-    # ---------------------------------------------------------------- read API (mono_init, loop/history.py)
-    @property
-    def focal_px(self) -> np.ndarray:
-        """(C,) focal length of each camera [px] (a copy)."""
-        return self._focal.copy()
-
-    @property
-    def T_SC(self) -> np.ndarray:
-        """(C,4,4) pose of each camera in the body frame S (a copy)."""
-        return self._T_SC.copy()
-
-    def cameras_in_use(self) -> list[BackendCamera]:
-        """The rig's cameras with the extrinsics the window uses now (the refined ones with refinement on)."""
-        return [dataclasses.replace(c, T_SC=T.copy()) for c, T in zip(self.cameras, self._T_SC)]
-
-    @property
-    def extrinsic_covariance(self) -> np.ndarray:
-        """(C,6,6) covariance of each camera's carried T_SC prior (rotation [rad], translation [m]), refinement on."""
-        return self._extrinsics.covariance.copy()
-
-    @property
-    def prior_covariance(self) -> np.ndarray:
-        """(15,15) covariance of the prior on the window's oldest state, order (rotation, position, velocity,
-        accelerometer bias, gyro bias) (a copy)."""
-        return self._prior.cov.copy()
-
-    @property
-    def prior_carried(self) -> int:
-        """Marginalisations that kept the previous prior's covariance (the window had no marginals)."""
-        return self._prior.carried
-
-    @property
-    def gravity_alignment(self) -> GravityAlignment | None:
-        """What the moving start's gravity alignment did (None: not done, gravity_align.py)."""
-        return self._gravity.result
-
-    @property
-    def gravity_alignment_failures(self) -> int:
-        """Gravity alignments of a moving start refused so far."""
-        return self._gravity.failures
-
-    @property
-    def mono_pending(self) -> bool:
-        """One camera: the window has no metric scale yet (it neither stood still nor was rebuilt by mono_init)."""
-        return self._mono_pending
-
-    def observations_of(self, state: int) -> dict[int, tuple[tuple[int, np.ndarray], ...]]:
-        """landmark -> ((camera, normalised xy (2,)), ...) of the window's observations at ``state``, in the
-        order landmarks were first seen; a new dict (the xy arrays are the window's own: do not modify them)."""
-        return self._book.of_state(state)
-
-    def window_points(self) -> tuple[np.ndarray, np.ndarray]:
-        """(ids (N,), p_W (N,3)) of every triangulated landmark with factors in the window, at the current estimate."""
-        ids = np.array(sorted(self._book.in_graph), np.int64)
-        p = np.array([self.values.atPoint3(L(int(lm))) for lm in ids], float).reshape(-1, 3)
-        return ids, p
-
-    def landmark_in_graph(self, lm: int) -> bool:
-        """Whether landmark ``lm`` is triangulated and has factors in the window's graph (a value L(lm))."""
-        return lm in self._book.in_graph
-
-    def imu_factor_to(self, state: int) -> gtsam.NonlinearFactor | None:
-        """The IMU factor from the keyframe before ``state`` to ``state`` (None for the oldest state)."""
-        return self._imu_factors.get(state)
-
-    def joint_marginal(self, keys: list[int]) -> np.ndarray | None:
-        """Joint marginal covariance of gtsam ``keys`` from the last optimisation's marginals (computed at keyframes
-        or with ``compute_covariance``); None when there are none or gtsam cannot compute it."""
-        if self._marginals is None:
-            return None
-        try:
-            return self._marginals.jointMarginalCovariance(keys).fullMatrix()
-        except RuntimeError:
-            return None
 
     # ---------------------------------------------------------------- writes (mono_init's rebuild)
     def reset_prior(self, state: int, tilt_sigma: float, vel_sigma: float, gyro_bias_sigma: float) -> None:
