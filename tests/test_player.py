@@ -127,6 +127,41 @@ def test_lockstep_waits_for_the_estimator(tmp_path, dataset):
     assert "0 lockstep timeouts" in "".join(lines)
 
 
+def test_lockstep_plays_the_imu_sample_after_each_frame_before_waiting(tmp_path, dataset):
+    """IMU samples that never fall on a frame's stamp (a simulated IMU's own clock): the estimator integrates up to
+    the frame, so it answers a frame only once a sample at or after it came; the player must send that sample
+    before it waits for the answer, or every frame waits out the lockstep timeout."""
+    root = tmp_path / "offset"
+    src = EurocDataset(dataset)
+    frames = [(int(t), [np.zeros((30, 40), np.uint8)] * 2) for t in src.frame_stamps_ns]
+    t_imu = src.imu_stamps_ns + 2_000_000  # 2 ms after each frame, never on one
+    assert not np.isin(src.frame_stamps_ns, t_imu).any()
+    write_euroc(root, {"cam0": _cam_yaml("cam0", 0.0), "cam1": _cam_yaml("cam1", 0.1)}, frames,
+                np.column_stack([t_imu, src.imu_values]), {"sensor_type": "imu", "rate_hz": 200}, imu_stamps_ns=t_imu)
+    with router() as tcfg:
+        cfg = _config(tmp_path, tcfg, mode="lockstep", lockstep_timeout_s=2.0)
+        with Node("tester", tcfg) as node:
+            col = Collector(node)
+            state_pub = node.publisher(topics.STATE)
+            proc, lines = _start_player(cfg, root)
+            answered = 0
+            deadline = time.monotonic() + 60
+            while not col.ends and time.monotonic() < deadline:
+                if len(col.frames) > answered:
+                    stamp = col.frames[answered][1].header.stamp_ns
+                    if any(m.header.stamp_ns >= stamp for m in list(col.imu)):  # what the fast path waits for
+                        state_pub.publish(EstimatorState(header=Header(stamp_ns=stamp, seq=answered, frame_id="W"),
+                                                         T_WS=np.eye(4), v_W=np.zeros(3), gyro_bias=np.zeros(3),
+                                                         acc_bias=np.zeros(3), covariance=np.eye(15)))
+                        answered += 1
+                time.sleep(0.005)
+            _finish(proc, lines)
+    assert len(col.frames) == N_FRAMES and answered == N_FRAMES
+    assert "0 lockstep timeouts" in "".join(lines), "".join(lines)
+    assert len(col.imu) == len(t_imu)  # every sample once, none held back or sent twice
+    assert [m.header.stamp_ns for m in col.imu] == sorted(m.header.stamp_ns for m in col.imu)
+
+
 def test_pause_resume_stop(tmp_path, dataset):
     with router() as tcfg:
         cfg = _config(tmp_path, tcfg, mode="rate", rate=0.1, start_paused=True)

@@ -102,7 +102,8 @@ def main(args: argparse.Namespace) -> int:
         control = PlayerControl(node, paused=args.paused or pc.start_paused)
         _wait_for_services(node, [n for n in args.wait_for.split(",") if n], args.wait_timeout_s)
         frames = timeouts = 0
-        last_frame_ns = 0
+        last_frame_ns, last_imu_ns = 0, -1
+        held = None  # lockstep: a frame read ahead while looking for the IMU sample that follows a frame
         t_wall0 = t_data0 = None
         try:
             messages = iter(pc.messages(ds))
@@ -113,7 +114,7 @@ def main(args: argparse.Namespace) -> int:
             if not control.wait_while_paused():
                 break
             try:
-                msg = next(messages)
+                msg, held = (held, None) if held is not None else (next(messages), None)
             except StopIteration:
                 break
             except DatasetError as exc:  # e.g. a recording cut short: end the stream cleanly
@@ -129,14 +130,17 @@ def main(args: argparse.Namespace) -> int:
                     break
             if isinstance(msg, ImuSample):
                 imu_pub.publish(msg)
+                last_imu_ns = stamp
                 continue
             if max_frames and frames >= max_frames:
                 break
             frame_pub.publish(msg)
             frames += 1
             last_frame_ns = stamp
-            if lockstep and not _await_state(node, states, stamp, timeout_s):
-                timeouts += 1
+            if lockstep:
+                last_imu_ns, held = _imu_up_to(messages, imu_pub, stamp, last_imu_ns)
+                if not _await_state(node, states, stamp, timeout_s):
+                    timeouts += 1
         end_pub.publish(StreamEnd(header=Header(stamp_ns=last_frame_ns, seq=0, frame_id="player"),
                                   source="player", frames_sent=frames))
         log.info("player: %d frames, %d lockstep timeouts, dataset counters %s", frames, timeouts, ds.stats)
@@ -183,6 +187,26 @@ class PlayerControl:
         """Seconds spent paused since the last call (the rate clock skips them)."""
         s, self._paused_s = self._paused_s, 0.0
         return s
+
+
+def _imu_up_to(messages, imu_pub, frame_ns: int, last_imu_ns: int):
+    """Lockstep: publish the IMU samples that follow a frame until one is stamped at or after it (the estimator
+    integrates up to the frame's stamp, and would otherwise wait for a sample the player holds back until the frame
+    is answered). Returns the last published IMU stamp and the first message that is not an IMU sample (None: none
+    read; the stream's end or a dataset error ends the look-ahead, and the player's next read ends the stream)."""
+    while last_imu_ns < frame_ns:
+        try:
+            msg = next(messages)
+        except StopIteration:
+            return last_imu_ns, None
+        except DatasetError as exc:
+            log.error("player: %s", exc)
+            return last_imu_ns, None
+        if not isinstance(msg, ImuSample):
+            return last_imu_ns, msg
+        imu_pub.publish(msg)
+        last_imu_ns = int(msg.header.stamp_ns)
+    return last_imu_ns, None
 
 
 def _await_state(node: Node, states, stamp_ns: int, timeout_s: float) -> bool:
