@@ -99,6 +99,9 @@ class ProcessNode:
     # runner paces by wall time (newer messages replace older ones in a keep-latest queue), the in-process runner
     # by the messages' stamps (a trigger sooner than this after the last handled one is skipped)
 
+    backlog: int = 0  # trigger messages already waiting when the one being handled was taken (set by the Zenoh
+    # runner; always 0 in process, where nothing waits): a node may do less while it is behind
+
     def handle(self, inp: Input, msg: Message) -> list[Emit]:
         """Call ``inp``'s handler and check that everything it emits is a declared output."""
         out = getattr(self, inp.handler)(msg) or []

@@ -316,6 +316,34 @@ def test_deferred_detection_leaves_keyframes_and_tracks_unchanged(stereo_seq):
     assert sum(o.counts.get("detected", 0) for o in now[1:] if not o.is_keyframe) > 0
 
 
+def test_skipped_deferred_detection_leaves_new_features_to_keyframes(stereo_seq):
+    """skip_deferred (a live frontend behind its camera) leaves out a non-keyframe's new features: between two
+    keyframes no track is born, each skip is counted, and keyframes still detect, so tracking goes on."""
+    room, cams, poses, images = stereo_seq
+    cfg = dataclasses.replace(FrontendConfig(), kf_min_parallax_px=4.0)
+    tr = MultiCameraTracker(cfg, cams)
+    outs, skipped = [], 0
+    for k, (T, ims) in enumerate(zip(poses, images)):
+        R = fs.relative_rotation(poses[k - 1], T) if k else None
+        outs.append(tr.process(int(round(k * DT * 1e9)), ims, R, may_defer=True))
+        if tr.detection_pending:
+            tr.skip_deferred()
+            skipped += 1
+    assert tr.totals["detection_skipped"] == skipped > 0
+    assert not tr.detection_pending
+    kf_ids: set[int] = set()
+    born_at_keyframes = 0
+    for o in outs:
+        ids = set(o.landmark_ids.tolist())
+        if o.is_keyframe:
+            born_at_keyframes += len(ids - kf_ids)
+            kf_ids = ids
+        elif kf_ids:
+            assert ids <= kf_ids  # nothing new between keyframes
+    assert born_at_keyframes > 0 and sum(o.is_keyframe for o in outs) > 1
+    assert min(len(o.landmark_ids) for o in outs[1:]) > 0
+
+
 def test_time_offset_moves_published_tracks_back_along_their_image_motion(stereo_seq):
     """set_time_offset(td): each published track is moved by -td x (its position - its position a frame earlier)
     / dt, which puts it at the true projection td earlier; tracks new in a frame are not moved; the tracker's own
@@ -384,3 +412,31 @@ def test_a_frontend_process_behind_the_sensor_skips_its_oldest_frames():
     assert unbounded.shed(pending) == (pending, 0)
     with pytest.raises(ValueError, match="max_backlog_frames"):
         dataclasses.replace(FrontendConfig(), max_backlog_frames=-1)
+
+
+@pytest.mark.parametrize("skip", [False, True])
+def test_the_frontend_node_skips_detection_only_when_behind_and_asked_to(stereo_seq, skip):
+    """FrontendNode.after_publish(behind=...): with frontend.skip_detection_when_behind, a frame taken while the
+    next one waited gets no new features; a frame taken on time always does, and so does every frame without
+    the setting."""
+    from services.frontend.node import FrontendNode
+    from shared.messages import EstimatorState, Header, MultiCameraFrame
+
+    room, cams, poses, images = stereo_seq
+    cfg = dataclasses.replace(FrontendConfig(), kf_min_parallax_px=4.0, skip_detection_when_behind=skip)
+    node = FrontendNode(cfg, cams)
+    node.on_state(EstimatorState(header=Header(stamp_ns=0, seq=0, frame_id="W"), T_WS=np.eye(4), v_W=np.zeros(3),
+                                 gyro_bias=np.zeros(3), acc_bias=np.zeros(3), covariance=np.eye(15),
+                                 status="tracking"))  # detection is deferred only while the estimator tracks
+    done = {True: 0, False: 0}
+    for k, ims in enumerate(images):
+        t = int(round(k * DT * 1e9))
+        node.on_frame(MultiCameraFrame(header=Header(stamp_ns=t, seq=k, frame_id="rig"), images=tuple(ims),
+                                       camera_names=tuple(node.names), stamps_ns=np.full(len(ims), t, np.int64)))
+        behind = k % 4 == 1  # here every other frame is a keyframe: behind at half of the others
+        pending = node.tracker.detection_pending
+        node.after_publish(behind=behind)
+        assert not node.tracker.detection_pending
+        done[behind] += pending
+    assert done[True] > 0 and done[False] > 0
+    assert node.tracker.totals["detection_skipped"] == (done[True] if skip else 0)

@@ -25,10 +25,12 @@ class SlowCounter(ProcessNode):
 
     def __init__(self) -> None:
         self.handled: list[int] = []
+        self.backlogs: list[int] = []
 
     def on_frame(self, f):
         time.sleep(0.1)
         self.handled.append(int(f.header.stamp_ns))
+        self.backlogs.append(self.backlog)
 
 
 def _frame(k: int) -> MultiCameraFrame:
@@ -62,3 +64,6 @@ def test_a_slow_node_on_a_keep_latest_trigger_does_not_build_a_backlog():
     # keeping the newest 4 leaves ~12 handled while frames come plus at most 4 behind
     assert len(node.handled) <= 30, len(node.handled)
     assert node.handled[-1] == last
+    # the node is told how many frames waited when it took each one: behind while frames come, none at the end
+    assert max(node.backlogs) >= 1 and node.backlogs[-1] == 0
+    assert max(node.backlogs) <= topics.FRAME.queue_depth

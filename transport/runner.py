@@ -8,7 +8,8 @@
 The node's declared inputs become subscribers (their queue policy and depth), its outputs publishers. The loop
 blocks on the trigger input; before each trigger message it drains the side inputs (first those the trigger waits
 for, up to ``node.wait_s`` until one is stamped at or after the trigger, then the others in declared order), sheds
-a backlog with the node's ``shed`` method when the trigger input declares one (else, on a keep-latest trigger
+a backlog with the node's ``shed`` method when the trigger input declares one, tells the node how many messages
+still wait behind the one it takes (``node.backlog``) (else, on a keep-latest trigger
 queue, keeps the newest ``depth`` messages taken but not yet handled, the rest counted as drops), and times the trigger's handler as
 the node's stage in ``stats/<name>``, publishes what it returned, then calls the node's ``after_publish``; with ``node.trigger_period_s`` it takes trigger messages on a
 schedule of that period (:func:`next_trigger_time`: a message that took longer than the period is made up by taking
@@ -124,6 +125,7 @@ def run_node(node: ProcessNode, cfg: TransportConfig, stopped=None, ready=None) 
                     pending.popleft()
                 sub.queue.count_shed(skipped)
             msg = pending.popleft()
+            node.backlog = len(pending)
             next_t = next_trigger_time(next_t, time.monotonic(), node.trigger_period_s)
             stamp = int(msg.header.stamp_ns)
             w.drain(waited)

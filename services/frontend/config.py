@@ -40,6 +40,10 @@ class FrontendConfig:
                                   "tracked features first and detect and match new ones after (off the latency "
                                   "path; the window takes keyframes only, so it sees the same features). Needs "
                                   "kf_max_interval_s <= backend.max_keyframe_interval_s")
+    skip_detection_when_behind: bool = param(False, "a live frontend whose next frame is already waiting when it "
+                                             "takes a frame leaves out that frame's deferred detection (keyframes "
+                                             "always detect; the window sees keyframes only), so it catches up "
+                                             "instead of skipping frames; lockstep runs are never behind")
     use_gyro_prior: bool = param(True, "start KLT at the position predicted by the gyro-integrated rotation")
     match_gain: bool = param(False, "before each KLT (frame to frame, camera to camera) scale the brighter image "
                              "of the pair to the darker one's mean grey level: KLT assumes constant brightness, "

@@ -88,8 +88,11 @@ class FrontendNode(ProcessNode):
         out.append(Emit(topics.FEATURES, msg))
         return out
 
-    def after_publish(self) -> list[Emit]:
-        """New features of a frame whose detection waited until its features were sent."""
+    def after_publish(self, behind: bool = False) -> list[Emit]:
+        """New features of a frame whose detection waited until its features were sent; none when ``behind`` (the
+        next frame was waiting when this one was taken) and ``skip_detection_when_behind``."""
+        if behind and self.cfg.skip_detection_when_behind:
+            self.tracker.skip_deferred()
         if self.tracker.detection_pending:  # timed only when there is something to do (not after keyframes)
             with self.timer("detect_after"):
                 self.tracker.finish_frame()

@@ -73,4 +73,4 @@ class FrontendProcessNode(ProcessNode):
         return [*states, *tracks]
 
     def after_publish(self) -> list[Emit]:
-        return self.frontend.after_publish()
+        return self.frontend.after_publish(behind=self.backlog > 0)

@@ -218,6 +218,13 @@ class MultiCameraTracker:
         """Whether :meth:`process` left the last frame's detection for :meth:`finish_frame`."""
         return self._deferred is not None
 
+    def skip_deferred(self) -> None:
+        """Leave out the detection :meth:`process` deferred for the last frame (counted as ``detection_skipped``);
+        the next keyframe detects in any case."""
+        if self._deferred is not None:
+            self._deferred = None
+            self.totals["detection_skipped"] += 1
+
     def finish_frame(self) -> int:
         """Detect and match new features in the last frame if :meth:`process` deferred it; their count."""
         images, self._deferred = self._deferred, None
