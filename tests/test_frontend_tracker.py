@@ -440,3 +440,4 @@ def test_the_frontend_node_skips_detection_only_when_behind_and_asked_to(stereo_
         done[behind] += pending
     assert done[True] > 0 and done[False] > 0
     assert node.tracker.totals["detection_skipped"] == (done[True] if skip else 0)
+    assert node.counters()["detections_skipped"]() == (done[True] if skip else 0)  # in stats/frontend

@@ -88,6 +88,9 @@ class FrontendNode(ProcessNode):
         out.append(Emit(topics.FEATURES, msg))
         return out
 
+    def counters(self) -> dict:
+        return {"detections_skipped": lambda: self.tracker.totals["detection_skipped"]}
+
     def after_publish(self, behind: bool = False) -> list[Emit]:
         """New features of a frame whose detection waited until its features were sent; none when ``behind`` (the
         next frame was waiting when this one was taken) and ``skip_detection_when_behind``."""

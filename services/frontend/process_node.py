@@ -72,5 +72,8 @@ class FrontendProcessNode(ProcessNode):
             self.frontend.on_state(e.msg)
         return [*states, *tracks]
 
+    def counters(self) -> dict:
+        return self.frontend.counters()
+
     def after_publish(self) -> list[Emit]:
         return self.frontend.after_publish(behind=self.backlog > 0)
