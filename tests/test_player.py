@@ -101,6 +101,13 @@ def test_rate_mode_publishes_everything_in_time(tmp_path, dataset):
     assert col.frames[0][1].camera_names == ("cam0", "cam1")
 
 
+def _answer(state_pub, stamp_ns: int, seq: int) -> None:
+    """The estimator's answer to the frame stamped ``stamp_ns`` (what a lockstep player waits for)."""
+    state_pub.publish(EstimatorState(header=Header(stamp_ns=stamp_ns, seq=seq, frame_id="W"), T_WS=np.eye(4),
+                                     v_W=np.zeros(3), gyro_bias=np.zeros(3), acc_bias=np.zeros(3),
+                                     covariance=np.eye(15)))
+
+
 def test_lockstep_waits_for_the_estimator(tmp_path, dataset):
     with router() as tcfg:
         cfg = _config(tmp_path, tcfg, mode="lockstep", lockstep_timeout_s=10.0)
@@ -116,9 +123,7 @@ def test_lockstep_waits_for_the_estimator(tmp_path, dataset):
                     time.sleep(0.15)  # a slow estimator
                     outstanding_max = max(outstanding_max, len(col.frames) - answered)
                     stamp = col.frames[answered][1].header.stamp_ns
-                    state_pub.publish(EstimatorState(header=Header(stamp_ns=stamp, seq=answered, frame_id="W"),
-                                                     T_WS=np.eye(4), v_W=np.zeros(3), gyro_bias=np.zeros(3),
-                                                     acc_bias=np.zeros(3), covariance=np.eye(15)))
+                    _answer(state_pub, stamp, answered)
                     answered += 1
                 time.sleep(0.005)
             _finish(proc, lines)
@@ -150,9 +155,7 @@ def test_lockstep_plays_the_imu_sample_after_each_frame_before_waiting(tmp_path,
                 if len(col.frames) > answered:
                     stamp = col.frames[answered][1].header.stamp_ns
                     if any(m.header.stamp_ns >= stamp for m in list(col.imu)):  # what the fast path waits for
-                        state_pub.publish(EstimatorState(header=Header(stamp_ns=stamp, seq=answered, frame_id="W"),
-                                                         T_WS=np.eye(4), v_W=np.zeros(3), gyro_bias=np.zeros(3),
-                                                         acc_bias=np.zeros(3), covariance=np.eye(15)))
+                        _answer(state_pub, stamp, answered)
                         answered += 1
                 time.sleep(0.005)
             _finish(proc, lines)
