@@ -8,9 +8,9 @@
 The node's declared inputs become subscribers (their queue policy and depth), its outputs publishers. The loop
 blocks on the trigger input; before each trigger message it drains the side inputs (first those the trigger waits
 for, up to ``node.wait_s`` until one is stamped at or after the trigger, then the others in declared order), sheds
-a backlog with the node's ``shed`` method when the trigger input declares one, tells the node how many messages
-still wait behind the one it takes (``node.backlog``) (else, on a keep-latest trigger
-queue, keeps the newest ``depth`` messages taken but not yet handled, the rest counted as drops), and times the trigger's handler as
+a backlog with the node's ``shed`` method when the trigger input declares one (else, on a keep-latest trigger
+queue, keeps the newest ``depth`` messages taken but not yet handled, the rest counted as drops), tells the node how
+many messages still wait behind the one it takes (``node.backlog``), and times the trigger's handler as
 the node's stage in ``stats/<name>``, publishes what it returned, then calls the node's ``after_publish``; with ``node.trigger_period_s`` it takes trigger messages on a
 schedule of that period (:func:`next_trigger_time`: a message that took longer than the period is made up by taking
 the next one sooner, so the average rate holds; a keep-latest trigger queue drops the ones in between, counted). While no trigger message comes it drains the side inputs, hands the idle
@@ -25,6 +25,7 @@ import logging
 import time
 from collections import deque
 
+from shared.backlog import shed_backlog
 from shared.dataflow import Emit, Input, ProcessNode, RejectedMessage
 from shared.ratelimit import RateLimitedLog
 from transport.config import TransportConfig
@@ -119,11 +120,11 @@ def run_node(node: ProcessNode, cfg: TransportConfig, stopped=None, ready=None) 
                     sub.queue.count_shed(skipped)
                     log.warning("%s: %d messages behind, skipped %d to catch up", node.name, len(pending), skipped)
                 pending = deque(kept)
-            elif sub.queue.policy == "latest" and len(pending) > sub.queue.maxlen:
-                skipped = len(pending) - sub.queue.maxlen  # keep-latest holds across turns, not only in the queue
-                for _ in range(skipped):
-                    pending.popleft()
-                sub.queue.count_shed(skipped)
+            elif sub.queue.policy == "latest":  # keep-latest holds across turns, not only in the queue
+                kept, skipped = shed_backlog(pending, sub.queue.maxlen, is_keyframe=lambda m: False)
+                if skipped:
+                    sub.queue.count_shed(skipped)
+                    pending = deque(kept)
             msg = pending.popleft()
             node.backlog = len(pending)
             next_t = next_trigger_time(next_t, time.monotonic(), node.trigger_period_s)

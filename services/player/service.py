@@ -114,7 +114,10 @@ def main(args: argparse.Namespace) -> int:
             if not control.wait_while_paused():
                 break
             try:
-                msg, held = (held, None) if held is not None else (next(messages), None)
+                if held is None:
+                    msg = next(messages)
+                else:
+                    msg, held = held, None
             except StopIteration:
                 break
             except DatasetError as exc:  # e.g. a recording cut short: end the stream cleanly
