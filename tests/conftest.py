@@ -3,6 +3,7 @@
 Tiers, one marker per test, set here at collection:
 
 * ``e2e``: marked by hand (``@pytest.mark.e2e`` or a module's ``pytestmark``): slow end-to-end runs.
+* A tier marked by hand wins; a test with two tier markers stops the collection with a list of them.
 * ``service``: marked by hand (``@pytest.mark.service``), or found: the test, one of its fixtures, or a function
   or class of its module that it calls reaches ``subprocess``, ``zenoh``, ``transport.session``/``node``/``pubsub``
   or ``tests/helpers_zenoh.py``, or requests the ``zenoh_router`` fixture.
@@ -94,13 +95,22 @@ def _is_service(item: pytest.Item) -> bool:
     return False
 
 
+TIERS = ("unit", "service", "e2e")
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """A test marked by hand keeps its tier; the others get one here. Two tiers on one test (e.g. ``e2e`` on a test
+    of a module whose ``pytestmark`` is ``unit``) would put it in both ``-m`` selections: that stops the run."""
+    clashes = []
     for item in items:
-        if item.get_closest_marker("e2e"):
-            continue
-        if item.get_closest_marker("service"):
-            continue
-        item.add_marker(pytest.mark.service if _is_service(item) else pytest.mark.unit)
+        marked = [t for t in TIERS if item.get_closest_marker(t)]
+        if len(marked) > 1:
+            clashes.append(f"{item.nodeid}: {', '.join(marked)}")
+        elif not marked:
+            item.add_marker(pytest.mark.service if _is_service(item) else pytest.mark.unit)
+    if clashes:
+        raise pytest.UsageError("each test is in exactly one tier (tests/README.md); these have more than one:\n  "
+                                + "\n  ".join(clashes))
 
 
 class UnitTierViolation(AssertionError):

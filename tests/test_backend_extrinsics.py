@@ -12,7 +12,6 @@ from services.backend.extrinsics import carried_covariance
 from shared.geometry import pose_error
 from tools.vio.extrinsics_bench import perturb_extrinsics
 
-pytestmark = pytest.mark.unit
 
 GYRO_BIAS = np.array([0.002, -0.001, 0.003])
 ACC_BIAS = np.array([0.05, -0.03, 0.02])

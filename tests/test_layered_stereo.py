@@ -1,6 +1,7 @@
 """The layered stereo generator renders exact pairs (the right view is the left one moved by the disparity,
 occlusions where a nearer surface hides a farther one), its set is reproducible from the seed, and the SGBM-guided
 network starts from SGBM's answer and learns from the set."""
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -9,7 +10,6 @@ from services.depth.refine_net import RefineStereoNet, shift_right_image
 from tools.depth.layered_stereo import Surface, camera_effects, random_frame, render_pair
 from tools.depth.materials import fractal_noise, random_material
 
-pytestmark = pytest.mark.unit
 
 
 def _surface(rng, h, w_ext, u0, mask=None, gx=0.0, gy=0.0):
@@ -115,6 +115,45 @@ def test_a_shard_is_written_whole_and_read_back(tmp_path):
     assert torch.isfinite(d0).all() and (u >= 0).all() and matched.dtype == torch.bool
     with pytest.raises(SystemExit, match="no complete shard"):
         load_shards(tmp_path, "train")
+
+
+def test_occlusion_free_masks_the_background_hidden_left_of_a_foreground_block():
+    from tools.depth.make_stereo_data import occlusion_free
+
+    d = np.full((3, 80), 10.0, np.float32)
+    d[:, 40:51] = 20.0  # lands at 20-30 in the right view, over the background of left columns 30-40
+    seen = occlusion_free(d)
+    assert not seen[:, :10].any()  # background x < 10 leaves the right image
+    assert not seen[:, 31:40].any() and seen[:, 41:50].all()  # hidden behind the block / the block itself
+    assert seen[:, 12:29].all() and seen[:, 52:].all()
+    d[1, 5] = np.nan
+    assert not occlusion_free(d)[1, 5]
+
+
+def test_a_room_scene_becomes_a_training_shard_with_its_disparity(tmp_path):
+    """make_stereo_data --rooms: a procedural room scene (make_dataset's npz) -> shard rooms_NNNN, disparity f b / z."""
+    from tools.depth.make_stereo_data import room_shard
+    from tools.depth.stereo_shards import frame, load_shards
+
+    rng = np.random.default_rng(0)
+    K = np.array([[100.0, 0, 80], [0, 100.0, 48], [0, 0, 1]])
+    wide = cv2.GaussianBlur((rng.random((96, 216)) * 255).astype(np.uint8), (3, 3), 0)
+    left, right = wide[:, 40:200], wide[:, 48:208]  # right[x - 8] = left[x]: disparity 8 px everywhere
+    z = np.full((96, 160), 100.0 * 0.1 / 8.0, np.float32)
+    np.savez(tmp_path / "scene_01000.npz", left=np.stack([left, left]), right=np.stack([right, right]),
+             depth=np.stack([z, z]), T_WC=np.stack([np.eye(4)] * 2), K=K, baseline_m=0.1)
+    job = (str(tmp_path / "out"), [str(tmp_path / "scene_01000.npz")], 0)
+    assert "2 frames from 1 scenes" in room_shard(job) and room_shard(job).endswith("kept")
+    shards = load_shards(tmp_path / "out", "train")
+    assert [s["name"] for s in shards] == ["rooms_0000"]
+    f = frame(shards[0], 1)
+    np.testing.assert_allclose(f["disparity"], 8.0, atol=1 / 256)
+    assert f["u_max"] == pytest.approx(8.0, abs=1e-4) and not f["nonocc"][:, :8].any() and f["nonocc"][:, 8:].all()
+    m = np.isfinite(f["sgbm"])  # SGBM's search range (16 or 96 px) leaves that many left columns unmatched
+    assert m[:, 96:].mean() > 0.8 and np.median(np.abs(f["sgbm"][m] - 8.0)) < 0.5
+    np.savez(tmp_path / "left_only.npz", left=np.stack([left]), depth=np.stack([z]), K=K, baseline_m=0.1)
+    with pytest.raises(SystemExit, match="no right views"):
+        room_shard((str(tmp_path / "out"), [str(tmp_path / "left_only.npz")], 1))
 
 
 def test_loader_processes_give_seeded_batches_that_differ_per_process(tmp_path):
