@@ -10,6 +10,12 @@ each shard a folder of .npy arrays (memory-mapped by training): ``left``, ``righ
 depth service's 96 px or the frame's range rounded up to 16, at random). A shard is a function of (seed, split,
 index): existing shards are kept, a shard is written to a temporary folder and renamed when complete.
 ``dataset.json`` records the command, seeds, counts, sizes and the photographs used as materials.
+
+``--rooms DIR`` adds the training scenes of a procedural room set (``tools/depth/make_dataset.py``, its ``train``
+split: rectified pairs with exact left depth) as extra training shards ``rooms_NNNN`` (5 scenes each, same arrays;
+disparity = f b / z, the occlusion mask by forward warping). Crops are drawn shard by shard, so rooms make up about
+their share of the frames. The validation split stays layered only, so the sigma
+gain is fitted on the same frames as before.
 """
 from __future__ import annotations
 
@@ -54,6 +60,62 @@ def render_shard(job: tuple[str, str, int, int, int, str | None]) -> str:
         arrays["sgbm"].append(np.where(np.isfinite(sg), np.rint(np.nan_to_num(sg) * 16), 0).astype(np.uint16))
         arrays["u_max"].append(np.float32(f["u_max"]))
         arrays["sgbm_range"].append(np.int16(rng_sgbm))
+    _write_shard(final, arrays)
+    return f"{final} {n} frames {h}x{w}"
+
+
+def occlusion_free(disparity: np.ndarray) -> np.ndarray:
+    """Pixels of the left view that the right view sees: the left pixel x lands at x - d in the right image; it is
+    occluded when a pixel of the same row with a larger disparity lands within half a pixel of it, or when it
+    leaves the right image."""
+    h, w = disparity.shape
+    d = np.nan_to_num(disparity, nan=0.0)
+    xr = np.arange(w)[None, :] - d
+    col = np.rint(xr).astype(int)
+    inside = (col >= 0) & (col < w)
+    front = np.full((h, w), -np.inf)
+    rows = np.broadcast_to(np.arange(h)[:, None], (h, w))
+    np.maximum.at(front, (rows[inside], col[inside]), d[inside])
+    seen = np.zeros((h, w), bool)
+    seen[inside] = d[inside] >= front[rows[inside], col[inside]] - 0.5
+    return seen & np.isfinite(disparity)
+
+
+def room_shard(job: tuple[str, list[str], int]) -> str:
+    """Procedural room scenes (make_dataset's npz files, all 512x384) as training shard ``rooms_<index>``."""
+    out, scene_paths, index = job
+    from services.depth.sgbm import SgbmParams, sgbm_disparity
+
+    final = Path(out) / "train" / f"rooms_{index:04d}"
+    if (final / "u_max.npy").is_file():
+        return f"{final} kept"
+    rng = np.random.default_rng([index, 31_000])
+    arrays = {k: [] for k in ("left", "right", "disparity", "nonocc", "sgbm", "u_max", "sgbm_range")}
+    for scene_path in scene_paths:
+        with np.load(scene_path) as z:
+            s = dict(z)
+        if "right" not in s:
+            raise SystemExit(f"{scene_path}: no right views (rendered with --left-only)")
+        fb = float(s["K"][0, 0]) * float(s["baseline_m"])
+        for left, right, z in zip(s["left"], s["right"], s["depth"]):
+            ok = np.isfinite(z) & (z > 0)
+            disp = np.where(ok, fb / np.where(ok, z, 1.0), np.nan).astype(np.float32)
+            u_max = float(np.nanmax(disp))
+            rng_sgbm = SERVICE_RANGE if rng.random() < 0.5 else int(np.ceil((u_max + 1) / 16) * 16)
+            sg = sgbm_disparity(left, right, SgbmParams(num_disparities=rng_sgbm))
+            arrays["left"].append(left)
+            arrays["right"].append(right)
+            arrays["disparity"].append(np.clip(np.rint(np.nan_to_num(disp) * 256), 0, 65535).astype(np.uint16))
+            arrays["nonocc"].append(occlusion_free(disp).astype(np.uint8))
+            arrays["sgbm"].append(np.where(np.isfinite(sg), np.rint(np.nan_to_num(sg) * 16), 0).astype(np.uint16))
+            arrays["u_max"].append(np.float32(u_max))
+            arrays["sgbm_range"].append(np.int16(rng_sgbm))
+    _write_shard(final, arrays)
+    return f"{final} {len(arrays['left'])} frames from {len(scene_paths)} scenes"
+
+
+def _write_shard(final: Path, arrays: dict[str, list]) -> None:
+    """Writes the arrays to a temporary folder and renames it: a killed render leaves no half shard."""
     tmp = final.with_name(final.name + f".tmp{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
@@ -61,7 +123,6 @@ def render_shard(job: tuple[str, str, int, int, int, str | None]) -> str:
         np.save(tmp / f"{k}.npy", np.stack(v))
     shutil.rmtree(final, ignore_errors=True)
     tmp.rename(final)
-    return f"{final} {n} frames {h}x{w}"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -74,6 +135,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--real", default=None, help="folder of real images used as photographic materials (default "
                    "$SIGMASLAM_SHARED/data/real when present; 'none': scikit-image photographs only)")
+    p.add_argument("--rooms", default=None, help="also convert the train split of this procedural room set "
+                   "(tools/depth/make_dataset.py, with right views) into training shards rooms_NNNN")
     a = p.parse_args(argv)
     from shared.paths import shared_dir
     from tools.depth.materials import load_photos
@@ -87,15 +150,24 @@ def main(argv: list[str] | None = None) -> int:
     for split, frames in (("train", a.train), ("val", a.val)):
         for i in range((frames + a.shard - 1) // a.shard):
             jobs.append((a.out, split, a.seed, i, min(a.shard, frames - i * a.shard), real))
+    rooms = sorted((Path(a.rooms) / "train").glob("scene_*.npz")) if a.rooms else []
+    if a.rooms and not rooms:
+        raise SystemExit(f"{a.rooms}/train: no scene_*.npz (render them: python -m tools.depth.make_dataset)")
+    per = max(1, a.shard // 12)  # make_dataset's walks have 12 frames: a room shard about as large as a layered one
+    room_jobs = [(a.out, [str(r) for r in rooms[i:i + per]], i // per) for i in range(0, len(rooms), per)]
     t0 = time.time()
     Path(a.out).mkdir(parents=True, exist_ok=True)
     with Pool(a.workers) as pool:
-        for k, msg in enumerate(pool.imap_unordered(render_shard, jobs)):
-            print(f"[make_stereo_data] {k + 1}/{len(jobs)} {msg} ({time.time() - t0:.0f} s)", flush=True)
+        done = [pool.imap_unordered(render_shard, jobs),
+                pool.imap_unordered(room_shard, room_jobs)]
+        total = len(jobs) + len(room_jobs)
+        for k, msg in enumerate(m for it in done for m in it):
+            print(f"[make_stereo_data] {k + 1}/{total} {msg} ({time.time() - t0:.0f} s)", flush=True)
     meta = {"command": "python -m tools.depth.make_stereo_data " + " ".join(argv if argv is not None else sys.argv[1:]),
             "generator": "tools/depth/layered_stereo.py + tools/depth/materials.py", "seed": a.seed,
             "split_seed": SPLIT_SEED, "frames": {"train": a.train, "val": a.val}, "shard": a.shard,
-            "heights": HEIGHTS, "widths": WIDTHS, "materials": sources, "render_wall_s": round(time.time() - t0)}
+            "heights": HEIGHTS, "widths": WIDTHS, "materials": sources,
+            "rooms": {"from": a.rooms, "scenes": [r.name for r in rooms]} if rooms else None, "render_wall_s": round(time.time() - t0)}
     (Path(a.out) / "dataset.json").write_text(json.dumps(meta, indent=1))
     print(f"[make_stereo_data] done in {time.time() - t0:.0f} s: {a.out}", flush=True)
     return 0

@@ -13,10 +13,11 @@ KEYS = ("left", "right", "disparity", "nonocc", "sgbm", "u_max", "sgbm_range")
 
 
 def load_shards(root: str | Path, split: str) -> list[dict[str, np.ndarray]]:
-    """Every complete shard of ``split`` as a dict of memory-mapped arrays (plus 'name')."""
+    """Every complete shard of ``split`` (layered ``shard_NNNN`` and procedural-room ``rooms_NNNN``) as a dict of
+    memory-mapped arrays (plus 'name')."""
     d = Path(root) / split
     shards = []
-    for s in sorted(d.glob("shard_????")):
+    for s in sorted([*d.glob("shard_????"), *d.glob("rooms_????")]):
         if all((s / f"{k}.npy").is_file() for k in KEYS):
             shards.append({k: np.load(s / f"{k}.npy", mmap_mode="r") for k in KEYS} | {"name": s.name})
     if not shards:
