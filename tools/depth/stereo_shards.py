@@ -12,14 +12,18 @@ from services.depth.sgbm import fill_background
 KEYS = ("left", "right", "disparity", "nonocc", "sgbm", "u_max", "sgbm_range")
 
 
-def load_shards(root: str | Path, split: str) -> list[dict[str, np.ndarray]]:
-    """Every complete shard of ``split`` (layered ``shard_NNNN`` and procedural-room ``rooms_NNNN``) as a dict of
-    memory-mapped arrays (plus 'name')."""
+def shard_dirs(root: str | Path, split: str) -> list[Path]:
+    """The complete shards of ``split``: layered ``shard_NNNN`` and procedural-room ``rooms_NNNN`` folders."""
     d = Path(root) / split
-    shards = []
-    for s in sorted([*d.glob("shard_????"), *d.glob("rooms_????")]):
-        if all((s / f"{k}.npy").is_file() for k in KEYS):
-            shards.append({k: np.load(s / f"{k}.npy", mmap_mode="r") for k in KEYS} | {"name": s.name})
+    return [s for s in sorted([*d.glob("shard_????"), *d.glob("rooms_????")])
+            if all((s / f"{k}.npy").is_file() for k in KEYS)]
+
+
+def load_shards(root: str | Path, split: str) -> list[dict[str, np.ndarray]]:
+    """Every complete shard of ``split`` (:func:`shard_dirs`) as a dict of memory-mapped arrays (plus 'name')."""
+    d = Path(root) / split
+    shards = [{k: np.load(s / f"{k}.npy", mmap_mode="r") for k in KEYS} | {"name": s.name}
+              for s in shard_dirs(root, split)]
     if not shards:
         raise SystemExit(f"{d}: no complete shard (render them: python -m tools.depth.make_stereo_data)")
     return shards

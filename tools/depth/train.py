@@ -211,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     real = []
     if a.net == "stereo_refine":
         from tools.depth.real_pairs import load_real_pairs, proxy_loss, real_batch
-        from tools.depth.stereo_shards import RefineBatches, load_shards, refine_batch
+        from tools.depth.stereo_shards import RefineBatches, load_shards, refine_batch, shard_dirs
 
         train = load_shards(root, "train")
         if a.loader_workers > 0:
@@ -274,7 +274,7 @@ def main(argv: list[str] | None = None) -> int:
         torch.nn.utils.clip_grad_norm_(net.parameters(), 5.0)
         opt.step()
         step += 1
-        if step % 200 == 0 and a.net == "stereo_refine" and not a.loader_workers and len(list((root / "train").glob("shard_????"))) > len(train):
+        if step % 200 == 0 and a.net == "stereo_refine" and not a.loader_workers and len(shard_dirs(root, "train")) > len(train):
             train = load_shards(root, "train")  # shards still rendering when training started join in
         elif step % 200 == 0 and a.net != "stereo_refine" and len(list((root / "train").glob("scene_?????.npz"))) > len(train):
             train = load_split(root, "train", train)  # scenes still rendering when training started join in
