@@ -211,3 +211,61 @@ def test_recalibrate_sets_the_median_rule_gain_and_keeps_the_old_one_on_record(t
     weights.save(StereoNet(96), tmp_path / "s", "stereo", {"max_disparity": 96}, {"gain": 1.0})
     with pytest.raises(SystemExit, match="only 'stereo_refine'"):
         recalibrate.main([str(tmp_path / "s.pt"), "--data", str(tmp_path / "data")])
+
+
+def test_a_stereo_net_hole_fill_starts_from_sgbm_and_the_fillers_disparity_and_survives_save_and_load(tmp_path):
+    """hole_fill='stereo_net': untrained (zero correction) the output is SGBM where it matched and the held
+    StereoNet's disparity in SGBM's holes; the filler's weights travel in the same file."""
+    from services.depth import weights
+    from services.depth.sgbm import SgbmParams, sgbm_disparity
+
+    torch.manual_seed(0)
+    f = random_frame(np.random.default_rng(1), [], 64, 96, u_max=12.0)
+    net = RefineStereoNet(max_disparity=16, width=16, hole_fill="stereo_net").eval()
+    t = lambda a: torch.from_numpy(np.ascontiguousarray(a)).float()[None, None]
+    with torch.inference_mode():
+        u, sigma = net(t(f["left"]), t(f["right"]))
+        fill = net.filler(t(f["left"]), t(f["right"]))[0][0].numpy()
+    sg = sgbm_disparity(f["left"], f["right"], SgbmParams(num_disparities=16))
+    m = np.isfinite(sg)
+    assert 0 < m.mean() < 1
+    np.testing.assert_allclose(u[0].numpy()[m], sg[m], atol=1e-5)
+    np.testing.assert_allclose(u[0].numpy()[~m], np.maximum(fill[~m], 0), atol=1e-5)
+    assert not any(p.requires_grad for p in net.filler.parameters())
+    weights.save(net, tmp_path / "w", "stereo_refine", {"max_disparity": 16, "width": 16, "hole_fill": "stereo_net"},
+                 {"gain": 1.0})
+    again, meta = weights.load(tmp_path / "w.pt")
+    with torch.inference_mode():
+        np.testing.assert_allclose(again(t(f["left"]), t(f["right"]))[0].numpy(), u.numpy(), atol=1e-4)
+    with pytest.raises(ValueError, match="hole_fill"):
+        RefineStereoNet(hole_fill="nearest")
+
+
+def test_shards_with_a_fill_start_the_holes_from_it_and_training_must_match_it(tmp_path):
+    """stereo_shards DATA --fill-weights W writes fill.npy + fill.json; the crops' d0 then takes SGBM's holes from
+    it, and train.py refuses data whose fill is not the one --hole-fill names (or a fill it was not given)."""
+    from services.depth import weights
+    from services.depth.stereo_net import StereoNet
+    from tools.depth.make_stereo_data import render_shard
+    from tools.depth.stereo_shards import add_fill, frame, initial_disparity, load_shards
+    from tools.depth.train import check_hole_fill
+
+    render_shard((str(tmp_path), "train", 3, 0, 2, None))
+    f = frame(load_shards(tmp_path, "train")[0], 0)
+    holes = ~np.isfinite(f["sgbm"])
+    assert "fill" not in f and holes.any() and np.isfinite(initial_disparity(f)).all()
+    assert check_hole_fill(tmp_path, "") == {}
+    torch.manual_seed(0)
+    w = weights.save(StereoNet(96), tmp_path / "sn", "stereo", {"max_disparity": 96}, {"gain": 1.0})
+    assert add_fill(tmp_path, str(w), threads=1) == 2 and add_fill(tmp_path, str(w), threads=1) == 0  # kept
+    f = frame(load_shards(tmp_path, "train")[0], 0)
+    d0 = initial_disparity(f)
+    np.testing.assert_array_equal(d0[holes], f["fill"][holes])
+    np.testing.assert_array_equal(d0[~holes], f["sgbm"][~holes])
+    assert check_hole_fill(tmp_path, str(w)) == {"hole_fill_weights": str(w)}
+    with pytest.raises(SystemExit, match="--hole-fill"):
+        check_hole_fill(tmp_path, "")
+    with pytest.raises(SystemExit, match="has a fill from"):
+        check_hole_fill(tmp_path, str(tmp_path / "other.pt"))
+    with pytest.raises(SystemExit, match="not .*other.pt"):
+        add_fill(tmp_path, str(tmp_path / "other.pt"))

@@ -2,7 +2,8 @@
 
 OpenCV SGBM (left-right checked) is matching that holds on real photographs, but it leaves holes (occlusions,
 textureless and repetitive areas, the unmatched band at the left border) and has no per-pixel uncertainty. This
-network takes SGBM's disparity with its holes filled from the background side (``fill_background``) and learns
+network takes SGBM's disparity with its holes filled from the background side (``fill_background``), or by a
+correlation-volume :class:`StereoNet` it holds (``hole_fill="stereo_net"``), and learns
 to fill, correct and judge it from what the pair says around that disparity. Its inputs are all at full
 resolution and relative to the initial disparity d0, so they look the same on rendered and real images:
 
@@ -41,10 +42,23 @@ def shift_right_image(right: torch.Tensor, disp: torch.Tensor) -> torch.Tensor:
     return F.grid_sample(right, grid, mode="bilinear", padding_mode="border", align_corners=True)
 
 
+HOLE_FILLS = ("background", "stereo_net")
+
+
 class RefineStereoNet(nn.Module):
-    def __init__(self, max_disparity: int = 96, width: int = 64) -> None:
+    def __init__(self, max_disparity: int = 96, width: int = 64, hole_fill: str = "background") -> None:
+        """``hole_fill``: what SGBM's holes start from: ``background`` (:func:`fill_background`) or ``stereo_net``
+        (the disparity of a correlation-volume :class:`StereoNet` held as ``self.filler``, its weights in this
+        network's state; it searches the whole range where SGBM found nothing)."""
         super().__init__()
+        if hole_fill not in HOLE_FILLS:
+            raise ValueError(f"hole_fill {hole_fill!r}: one of {HOLE_FILLS}")
         self.max_disparity = max_disparity
+        self.hole_fill = hole_fill
+        if hole_fill == "stereo_net":
+            from services.depth.stereo_net import StereoNet
+
+            self.filler = StereoNet(max_disparity).requires_grad_(False)
         cin = (4 + len(OFFSETS)) * FOLD * FOLD
         self.inp = nn.Sequential(nn.Conv2d(cin, width, 1), nn.LeakyReLU(0.1, inplace=True), conv(width, width))
         self.down1 = nn.Sequential(conv(width, 96, 2), conv(96, 96))
@@ -83,12 +97,14 @@ class RefineStereoNet(nn.Module):
         """Runs SGBM (search range ``search_px``, default ``max_disparity``, rounded up to 16) on each pair, then
         :meth:`refine`. Images in 0-255."""
         rng = int(np.ceil((search_px or self.max_disparity) / 16) * 16)
+        fill = self.filler(left, right)[0].float().cpu().numpy() if self.hole_fill == "stereo_net" else None
         d0s, ms = [], []
-        for lt, rt in zip(left[:, 0], right[:, 0]):
+        for k, (lt, rt) in enumerate(zip(left[:, 0], right[:, 0])):
             to8 = lambda t: np.clip(t.detach().cpu().numpy(), 0, 255).astype(np.uint8)
             sg = sgbm_disparity(to8(lt), to8(rt), SgbmParams(num_disparities=rng))
-            d0s.append(fill_background(sg))
-            ms.append(np.isfinite(sg))
+            m = np.isfinite(sg)
+            d0s.append(fill_background(sg) if fill is None else np.where(m, sg, fill[k]).astype(np.float32))
+            ms.append(m)
         d0 = torch.from_numpy(np.stack(d0s)).to(left.device)
         matched = torch.from_numpy(np.stack(ms)).to(left.device)
         return self.refine(left, right, d0, matched)

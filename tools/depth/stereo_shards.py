@@ -2,6 +2,7 @@
 validation frames for the SGBM-guided network (services/depth/refine_net.py)."""
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +11,7 @@ import torch
 from services.depth.sgbm import fill_background
 
 KEYS = ("left", "right", "disparity", "nonocc", "sgbm", "u_max", "sgbm_range")
+OPTIONAL = ("fill",)  # (N,H,W) uint16 in 1/16 px: a network's disparity for SGBM's holes (add_fill)
 
 
 def shard_dirs(root: str | Path, split: str) -> list[Path]:
@@ -22,8 +24,9 @@ def shard_dirs(root: str | Path, split: str) -> list[Path]:
 def load_shards(root: str | Path, split: str) -> list[dict[str, np.ndarray]]:
     """Every complete shard of ``split`` (:func:`shard_dirs`) as a dict of memory-mapped arrays (plus 'name')."""
     d = Path(root) / split
-    shards = [{k: np.load(s / f"{k}.npy", mmap_mode="r") for k in KEYS} | {"name": s.name}
-              for s in shard_dirs(root, split)]
+    shards = [{k: np.load(s / f"{k}.npy", mmap_mode="r") for k in KEYS if (s / f"{k}.npy").is_file()}
+              | {k: np.load(s / f"{k}.npy", mmap_mode="r") for k in OPTIONAL if (s / f"{k}.npy").is_file()}
+              | {"name": s.name} for s in shard_dirs(root, split)]
     if not shards:
         raise SystemExit(f"{d}: no complete shard (render them: python -m tools.depth.make_stereo_data)")
     return shards
@@ -32,9 +35,50 @@ def load_shards(root: str | Path, split: str) -> list[dict[str, np.ndarray]]:
 def frame(shard: dict, i: int) -> dict[str, np.ndarray]:
     """Frame i of a shard decoded: disparity and SGBM in px (SGBM NaN where it found no match)."""
     sg = shard["sgbm"][i].astype(np.float32) / 16.0
-    return {"left": np.asarray(shard["left"][i]), "right": np.asarray(shard["right"][i]),
-            "disparity": shard["disparity"][i].astype(np.float32) / 256.0, "nonocc": shard["nonocc"][i] > 0,
-            "sgbm": np.where(sg > 0, sg, np.nan).astype(np.float32), "u_max": float(shard["u_max"][i])}
+    f = {"left": np.asarray(shard["left"][i]), "right": np.asarray(shard["right"][i]),
+         "disparity": shard["disparity"][i].astype(np.float32) / 256.0, "nonocc": shard["nonocc"][i] > 0,
+         "sgbm": np.where(sg > 0, sg, np.nan).astype(np.float32), "u_max": float(shard["u_max"][i])}
+    if "fill" in shard:
+        f["fill"] = shard["fill"][i].astype(np.float32) / 16.0
+    return f
+
+
+def initial_disparity(f: dict) -> np.ndarray:
+    """The network's d0 for a decoded frame: SGBM where it matched; its holes from the frame's ``fill`` (a
+    network's disparity, :func:`add_fill`) when the shard has one, else from the background side."""
+    if "fill" in f:
+        return np.where(np.isfinite(f["sgbm"]), f["sgbm"], f["fill"]).astype(np.float32)
+    return fill_background(f["sgbm"])
+
+
+def add_fill(root: str | Path, weights_path: str | Path, threads: int = 2) -> int:
+    """Writes ``fill.npy`` (the given stereo network's disparity of every frame) into every shard under ``root``
+    that has none; returns the number of frames run."""
+    import torch
+
+    from services.depth import weights
+    from services.depth.stereo_net import predict_disparity
+
+    meta = Path(root) / "fill.json"
+    if meta.is_file() and json.loads(meta.read_text())["weights"] != str(weights_path):
+        raise SystemExit(f"{root}: its fill came from {json.loads(meta.read_text())['weights']}, not {weights_path} "
+                         "(delete the fill.npy files and fill.json first)")
+    torch.set_num_threads(threads)
+    net, _ = weights.load(weights_path)
+    meta.write_text(json.dumps({"weights": str(weights_path)}))
+    done = 0
+    for split in ("train", "val"):
+        for d in shard_dirs(root, split):
+            if (d / "fill.npy").is_file():
+                continue
+            left, right = np.load(d / "left.npy", mmap_mode="r"), np.load(d / "right.npy", mmap_mode="r")
+            fill = np.stack([np.clip(np.rint(predict_disparity(net, lt, rt)[0] * 16), 0, 65535).astype(np.uint16)
+                             for lt, rt in zip(left, right)])
+            np.save(d / "fill.tmp.npy", fill)
+            (d / "fill.tmp.npy").rename(d / "fill.npy")
+            done += len(fill)
+            print(f"[stereo_shards] {d}: fill from {Path(weights_path).name} ({done} frames)", flush=True)
+    return done
 
 
 def refine_batch(shards: list[dict], rng: np.random.Generator, batch: int, crop: tuple[int, int]):
@@ -49,7 +93,7 @@ def refine_batch(shards: list[dict], rng: np.random.Generator, batch: int, crop:
         h, w = f["left"].shape
         y, x = int(rng.integers(0, h - ch + 1)), int(rng.integers(0, w - cw + 1))
         sl = np.s_[y:y + ch, x:x + cw]
-        d0 = fill_background(f["sgbm"])[sl]
+        d0 = initial_disparity(f)[sl]
         gain, off = rng.uniform(0.8, 1.2), rng.uniform(-15, 15)
         lr = rng.uniform(0.95, 1.05)
         left = np.clip(f["left"][sl] * gain + off, 0, 255)
@@ -93,3 +137,14 @@ def validation_frames(shards: list[dict], per_shard: int = 8):
             f = frame(sh, i)
             h, w = f["left"].shape
             yield {k: (v[: h // 16 * 16, : w // 16 * 16] if isinstance(v, np.ndarray) else v) for k, v in f.items()}
+
+
+if __name__ == "__main__":
+    import argparse
+
+    p = argparse.ArgumentParser(description="add a stereo network's disparity (fill.npy) to every shard")
+    p.add_argument("data", help="folder of make_stereo_data")
+    p.add_argument("--fill-weights", default="services/depth/weights/stereo.pt")
+    p.add_argument("--threads", type=int, default=2)
+    a = p.parse_args()
+    add_fill(a.data, a.fill_weights, a.threads)

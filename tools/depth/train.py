@@ -151,19 +151,32 @@ def evaluate(net, kind, scenes, n_src, device, gain=1.0, seed=7):
 REFINE_GAIN_DOMAIN = "disparity sigma [px] (median |u - u_gt| / (gain sigma_u) = ln 2 on val, all pixels)"
 
 
+def check_hole_fill(root: Path, hole_fill: str) -> dict:
+    """The data's precomputed hole fill (``fill.json`` of tools/depth/stereo_shards.add_fill) must be the one the
+    network is trained for: the weights given by --hole-fill, or none. Returns what to record in the weights' JSON."""
+    meta_path = root / "fill.json"
+    data_fill = json.loads(meta_path.read_text())["weights"] if meta_path.is_file() else ""
+    if hole_fill and Path(data_fill).resolve() != Path(hole_fill).resolve():
+        raise SystemExit(f"--hole-fill {hole_fill}: {root} has {'a fill from ' + data_fill if data_fill else 'no fill'}"
+                         f" (python -m tools.depth.stereo_shards {root} --fill-weights {hole_fill})")
+    if data_fill and not hole_fill:
+        raise SystemExit(f"{root} has SGBM's holes filled by {data_fill}: train with --hole-fill {data_fill}, or use "
+                         "data without fill.npy")
+    return {"hole_fill_weights": hole_fill} if hole_fill else {}
+
+
 def evaluate_refine(net, shards, device, rule: str = "median") -> tuple[float, dict]:
     """The SGBM-guided network on validation frames: (disparity-domain gain by ``rule``
     (services.depth.uncertainty.gain_from_ratios), metrics before and after it)."""
-    from services.depth.sgbm import fill_background
     from tools.depth.stereo_bench import disparity_metrics
-    from tools.depth.stereo_shards import validation_frames
+    from tools.depth.stereo_shards import initial_disparity, validation_frames
 
     errs, sigmas, rows = [], [], []
     with torch.inference_mode():
         for f in validation_frames(shards):
             t = lambda a: torch.from_numpy(np.ascontiguousarray(a))[None].to(device)
             u, su = net.refine(t(f["left"]).float()[:, None], t(f["right"]).float()[:, None],
-                               t(fill_background(f["sgbm"])).float(), t(np.isfinite(f["sgbm"])))
+                               t(initial_disparity(f)).float(), t(np.isfinite(f["sgbm"])))
             u, su = u[0].cpu().numpy(), su[0].cpu().numpy()
             rows.append(disparity_metrics(u, su, f["disparity"], f["nonocc"]))
             errs.append(np.abs(u - f["disparity"]).ravel())
@@ -197,6 +210,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--real-weight", type=float, default=0.5, help="weight of the real pairs' proxy loss")
     p.add_argument("--checkpoint-minutes", type=float, default=10.0,
                    help="write <out>_partial.pt (uncalibrated) this often while training; 0: never")
+    p.add_argument("--hole-fill", default="", help="stereo_refine: the stereo network (weights) whose disparity fills "
+                   "SGBM's holes, as precomputed in the data (python -m tools.depth.stereo_shards DATA --fill-weights W)"
+                   "; held inside the new weights (arch_args hole_fill: stereo_net). Default: from the background side")
     p.add_argument("--init", default="", help="start from these weights (same architecture), e.g. to fine-tune")
     p.add_argument("--loader-workers", type=int, default=0, help="stereo_refine: processes that cut the training "
                    "crops (0: in the training loop; a GPU needs several). Shards rendered after the start are not used")
@@ -229,13 +245,26 @@ def main(argv: list[str] | None = None) -> int:
             raise SystemExit(f"--net stereo: {root}/train has scenes without right views (rendered --left-only, "
                              "for the MVS network)")
     arch_args = {"n_planes": 32, "min_depth": 0.3, "max_depth": 15.0} if a.net == "mvs" else {"max_disparity": 96}
+    fill_meta = {}
+    if a.net == "stereo_refine":
+        fill_meta = check_hole_fill(root, a.hole_fill)
+        if a.hole_fill:
+            arch_args["hole_fill"] = "stereo_net"
+    elif a.hole_fill:
+        raise SystemExit("--hole-fill is for --net stereo_refine")
     net = weights.build(a.net, arch_args).to(a.device).train()
     if a.init:
         init, init_meta = weights.load(a.init, a.device)
         if init_meta["arch"] != a.net:
             raise SystemExit(f"--init {a.init}: architecture {init_meta['arch']!r}, not {a.net!r}")
-        net.load_state_dict(init.state_dict())
-        net.train()
+        state = {k: v for k, v in init.state_dict().items() if not k.startswith("filler.")}
+        missing, unexpected = net.load_state_dict(state, strict=False)
+        if unexpected or any(not k.startswith("filler.") for k in missing):
+            raise SystemExit(f"--init {a.init}: weights do not fit ({unexpected or missing})")
+    if a.hole_fill:
+        filler, _ = weights.load(a.hole_fill, a.device)
+        net.filler.load_state_dict(filler.state_dict())
+    net.train()
     opt = torch.optim.AdamW(net.parameters(), lr=a.lr, weight_decay=1e-4)
     budget, wall_cap = a.minutes * 60.0, a.max_wall_minutes * 60.0
     curve_path = Path(a.out).with_suffix(".curve.csv")
@@ -310,7 +339,7 @@ def main(argv: list[str] | None = None) -> int:
         "device_name": torch.cuda.get_device_name() if cuda else None,
         "batch": a.batch, "loader_workers": a.loader_workers,
         "threads": a.threads, "data": {"root": str(root), "train_scenes": [s["name"] for s in train],
-                                       "val_scenes": [s["name"] for s in val], **data_meta,
+                                       "val_scenes": [s["name"] for s in val], **data_meta, **fill_meta,
                                        "real_pairs": {"folders": a.real_pairs, "pairs": len(real),
                                                       "weight": a.real_weight} if real else None},
         "val_uncalibrated": val_raw, "val_calibrated": val_cal, "curve": curve_path.name,
