@@ -40,7 +40,7 @@ class FrontendConfig:
                                   "tracked features first and detect and match new ones after (off the latency "
                                   "path; the window takes keyframes only, so it sees the same features). Needs "
                                   "kf_max_interval_s <= backend.max_keyframe_interval_s")
-    skip_detection_when_behind: bool = param(False, "a live frontend whose next frame is already waiting when it "
+    skip_detection_when_behind: bool = param(True, "a live frontend whose next frame is already waiting when it "
                                              "takes a frame leaves out that frame's deferred detection (keyframes "
                                              "always detect; the window sees keyframes only), so it catches up "
                                              "instead of skipping frames; lockstep runs are never behind")
