@@ -45,6 +45,14 @@ def shift_right_image(right: torch.Tensor, disp: torch.Tensor) -> torch.Tensor:
 HOLE_FILLS = ("background", "stereo_net")
 
 
+def initial_disparity(sgbm: np.ndarray, fill: np.ndarray | None = None) -> np.ndarray:
+    """The network's start d0: SGBM's disparity (NaN = no match) where it matched; its holes from ``fill`` (a
+    network's disparity, ``hole_fill="stereo_net"``) when given, else from the background side."""
+    if fill is None:
+        return fill_background(sgbm)
+    return np.where(np.isfinite(sgbm), sgbm, fill).astype(np.float32)
+
+
 class RefineStereoNet(nn.Module):
     def __init__(self, max_disparity: int = 96, width: int = 64, hole_fill: str = "background") -> None:
         """``hole_fill``: what SGBM's holes start from: ``background`` (:func:`fill_background`) or ``stereo_net``
@@ -102,9 +110,8 @@ class RefineStereoNet(nn.Module):
         for k, (lt, rt) in enumerate(zip(left[:, 0], right[:, 0])):
             to8 = lambda t: np.clip(t.detach().cpu().numpy(), 0, 255).astype(np.uint8)
             sg = sgbm_disparity(to8(lt), to8(rt), SgbmParams(num_disparities=rng))
-            m = np.isfinite(sg)
-            d0s.append(fill_background(sg) if fill is None else np.where(m, sg, fill[k]).astype(np.float32))
-            ms.append(m)
+            d0s.append(initial_disparity(sg, None if fill is None else fill[k]))
+            ms.append(np.isfinite(sg))
         d0 = torch.from_numpy(np.stack(d0s)).to(left.device)
         matched = torch.from_numpy(np.stack(ms)).to(left.device)
         return self.refine(left, right, d0, matched)

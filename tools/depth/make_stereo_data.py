@@ -30,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
+from tools.depth.stereo_shards import KEYS
+
 SPLIT_SEED = {"train": 10_000, "val": 20_000}
 HEIGHTS = (256, 288, 320, 352)
 WIDTHS = (320, 384, 448, 512)
@@ -38,7 +40,6 @@ SERVICE_RANGE = 96
 
 def render_shard(job: tuple[str, str, int, int, int, str | None]) -> str:
     out, split, seed, index, n, real_dir = job
-    from services.depth.sgbm import SgbmParams, sgbm_disparity
     from tools.depth.layered_stereo import random_frame
     from tools.depth.materials import cached_photos
 
@@ -48,18 +49,10 @@ def render_shard(job: tuple[str, str, int, int, int, str | None]) -> str:
     rng = np.random.default_rng([seed, SPLIT_SEED[split], index])
     h, w = int(rng.choice(HEIGHTS)), int(rng.choice(WIDTHS))
     photos = cached_photos(real_dir)
-    arrays = {k: [] for k in ("left", "right", "disparity", "nonocc", "sgbm", "u_max", "sgbm_range")}
+    arrays = {k: [] for k in KEYS}
     for _ in range(n):
         f = random_frame(rng, photos, h, w)
-        rng_sgbm = SERVICE_RANGE if rng.random() < 0.5 else int(np.ceil((f["u_max"] + 1) / 16) * 16)
-        sg = sgbm_disparity(f["left"], f["right"], SgbmParams(num_disparities=rng_sgbm))
-        arrays["left"].append(f["left"])
-        arrays["right"].append(f["right"])
-        arrays["disparity"].append(np.clip(np.rint(f["disparity"] * 256), 0, 65535).astype(np.uint16))
-        arrays["nonocc"].append(f["nonocc"].astype(np.uint8))
-        arrays["sgbm"].append(np.where(np.isfinite(sg), np.rint(np.nan_to_num(sg) * 16), 0).astype(np.uint16))
-        arrays["u_max"].append(np.float32(f["u_max"]))
-        arrays["sgbm_range"].append(np.int16(rng_sgbm))
+        _add_frame(arrays, rng, f["left"], f["right"], f["disparity"], f["nonocc"], f["u_max"])
     _write_shard(final, arrays)
     return f"{final} {n} frames {h}x{w}"
 
@@ -84,13 +77,11 @@ def occlusion_free(disparity: np.ndarray) -> np.ndarray:
 def room_shard(job: tuple[str, list[str], int]) -> str:
     """Procedural room scenes (make_dataset's npz files, all 512x384) as training shard ``rooms_<index>``."""
     out, scene_paths, index = job
-    from services.depth.sgbm import SgbmParams, sgbm_disparity
-
     final = Path(out) / "train" / f"rooms_{index:04d}"
     if (final / "u_max.npy").is_file():
         return f"{final} kept"
     rng = np.random.default_rng([index, 31_000])
-    arrays = {k: [] for k in ("left", "right", "disparity", "nonocc", "sgbm", "u_max", "sgbm_range")}
+    arrays = {k: [] for k in KEYS}
     for scene_path in scene_paths:
         with np.load(scene_path) as z:
             s = dict(z)
@@ -100,18 +91,26 @@ def room_shard(job: tuple[str, list[str], int]) -> str:
         for left, right, z in zip(s["left"], s["right"], s["depth"]):
             ok = np.isfinite(z) & (z > 0)
             disp = np.where(ok, fb / np.where(ok, z, 1.0), np.nan).astype(np.float32)
-            u_max = float(np.nanmax(disp))
-            rng_sgbm = SERVICE_RANGE if rng.random() < 0.5 else int(np.ceil((u_max + 1) / 16) * 16)
-            sg = sgbm_disparity(left, right, SgbmParams(num_disparities=rng_sgbm))
-            arrays["left"].append(left)
-            arrays["right"].append(right)
-            arrays["disparity"].append(np.clip(np.rint(np.nan_to_num(disp) * 256), 0, 65535).astype(np.uint16))
-            arrays["nonocc"].append(occlusion_free(disp).astype(np.uint8))
-            arrays["sgbm"].append(np.where(np.isfinite(sg), np.rint(np.nan_to_num(sg) * 16), 0).astype(np.uint16))
-            arrays["u_max"].append(np.float32(u_max))
-            arrays["sgbm_range"].append(np.int16(rng_sgbm))
+            _add_frame(arrays, rng, left, right, disp, occlusion_free(disp), float(np.nanmax(disp)))
     _write_shard(final, arrays)
     return f"{final} {len(arrays['left'])} frames from {len(scene_paths)} scenes"
+
+
+def _add_frame(arrays: dict[str, list], rng: np.random.Generator, left: np.ndarray, right: np.ndarray,
+               disparity: np.ndarray, nonocc: np.ndarray, u_max: float) -> None:
+    """Appends one pair to a shard's arrays, encoded, with SGBM run at the service's 96 px or (at random) the frame's
+    range rounded up to 16."""
+    from services.depth.sgbm import SgbmParams, sgbm_disparity
+
+    rng_sgbm = SERVICE_RANGE if rng.random() < 0.5 else int(np.ceil((u_max + 1) / 16) * 16)
+    sg = sgbm_disparity(left, right, SgbmParams(num_disparities=rng_sgbm))
+    arrays["left"].append(left)
+    arrays["right"].append(right)
+    arrays["disparity"].append(np.clip(np.rint(np.nan_to_num(disparity) * 256), 0, 65535).astype(np.uint16))
+    arrays["nonocc"].append(nonocc.astype(np.uint8))
+    arrays["sgbm"].append(np.where(np.isfinite(sg), np.rint(np.nan_to_num(sg) * 16), 0).astype(np.uint16))
+    arrays["u_max"].append(np.float32(u_max))
+    arrays["sgbm_range"].append(np.int16(rng_sgbm))
 
 
 def _write_shard(final: Path, arrays: dict[str, list]) -> None:

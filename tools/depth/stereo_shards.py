@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from services.depth.sgbm import fill_background
+from services.depth.refine_net import initial_disparity as refine_initial_disparity
 
 KEYS = ("left", "right", "disparity", "nonocc", "sgbm", "u_max", "sgbm_range")
 OPTIONAL = ("fill",)  # (N,H,W) uint16 in 1/16 px: a network's disparity for SGBM's holes (add_fill)
@@ -44,11 +44,9 @@ def frame(shard: dict, i: int) -> dict[str, np.ndarray]:
 
 
 def initial_disparity(f: dict) -> np.ndarray:
-    """The network's d0 for a decoded frame: SGBM where it matched; its holes from the frame's ``fill`` (a
-    network's disparity, :func:`add_fill`) when the shard has one, else from the background side."""
-    if "fill" in f:
-        return np.where(np.isfinite(f["sgbm"]), f["sgbm"], f["fill"]).astype(np.float32)
-    return fill_background(f["sgbm"])
+    """The network's d0 for a decoded frame (:func:`services.depth.refine_net.initial_disparity`), its holes from
+    the frame's ``fill`` (:func:`add_fill`) when the shard has one."""
+    return refine_initial_disparity(f["sgbm"], f.get("fill"))
 
 
 def add_fill(root: str | Path, weights_path: str | Path, threads: int = 2) -> int:
