@@ -7,7 +7,7 @@ import torch
 
 from services.depth import weights
 from services.depth.mvs_net import MVSNet, plane_sweep_cost
-from services.depth.net_blocks import SCALE, convex_upsample, normalise_image
+from services.depth.net_blocks import SCALE, box_mean3, convex_upsample, normalise_image
 from services.depth.stereo_net import StereoNet, correlation_volume
 from services.depth.views import select_sources
 
@@ -114,6 +114,18 @@ def test_normalise_image_gives_zero_mean_unit_std_per_image():
     for b in range(2):
         assert np.allclose(out[b], (ref[b] - ref[b].mean()) / ref[b].std(ddof=1), atol=1e-5)
     assert torch.all(normalise_image(torch.full((1, 1, 4, 4), 7.0)) == 0)  # a flat image: no division by 0
+
+
+@pytest.mark.parametrize("shape", [(2, 3, 7, 9), (1, 1, 1, 5), (1, 1, 2, 2), (1, 4, 1, 1)])
+def test_box_mean3_is_the_3x3_mean_over_pixels_inside_the_image(shape):
+    x = torch.randn(shape, dtype=torch.float64)
+    h, w = shape[-2:]
+    expect = torch.empty_like(x)
+    for i in range(h):  # the definition, pixel by pixel
+        for j in range(w):
+            expect[..., i, j] = x[..., max(i - 1, 0):i + 2, max(j - 1, 0):j + 2].mean(dim=(-2, -1))
+    assert torch.allclose(box_mean3(x), expect, atol=1e-12)
+    assert torch.allclose(box_mean3(x), torch.nn.functional.avg_pool2d(x, 3, 1, 1, count_include_pad=False), atol=1e-12)
 
 
 def test_weights_round_trip_with_provenance(tmp_path):

@@ -70,6 +70,14 @@ def test_shift_right_image_matches_an_integer_shift():
     assert torch.allclose(half[..., 1:], 0.5 * (right[..., 1:] + right[..., :-1]))
 
 
+def test_refine_net_input_layer_equals_the_1x1_convolution_of_the_folded_features():
+    torch.manual_seed(0)
+    net = RefineStereoNet(max_disparity=16, width=16)
+    feats = torch.randn(2, net.inp[0].in_channels // 16, 32, 48)
+    expect = net.inp[0](torch.nn.functional.pixel_unshuffle(feats, 4))  # the layer as defined: 1x1 on the folded
+    assert torch.allclose(net._fold_in(feats), expect, atol=1e-5)
+
+
 @pytest.mark.e2e  # several seconds of CPU: out of the unit tier (tests/README.md)
 def test_refine_net_starts_at_sgbm_and_learns():
     torch.manual_seed(0)

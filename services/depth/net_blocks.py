@@ -5,7 +5,9 @@
   giving per-hypothesis logits, an uncertainty feature and RAFT-style convex upsampling weights;
 - :func:`convex_upsample`: x4 upsampling of a coarse map as a learned convex combination of its 3x3
   neighbourhood (keeps edges sharp, never overshoots);
-- :func:`normalise_image`: per-image standardisation of uint8 or float images.
+- :func:`normalise_image`: per-image standardisation of uint8 or float images;
+- :func:`box_mean3`: 3x3 mean over the pixels inside the image (``avg_pool2d(x, 3, 1, 1, count_include_pad=False)``
+  as two separable sums, ~4x cheaper on a CPU).
 """
 from __future__ import annotations
 
@@ -30,6 +32,19 @@ def normalise_image(img: torch.Tensor) -> torch.Tensor:
     # the variance as a plain sum of squares: torch's std over several dims costs ~12x more on a CPU
     var = d.square().sum(dim=(1, 2, 3), keepdim=True) / max(img[0].numel() - 1, 1)
     return d / var.sqrt().clamp(min=1e-3)
+
+
+def box_mean3(x: torch.Tensor) -> torch.Tensor:
+    """(..., H, W) -> the mean of each pixel's 3x3 neighbourhood, counting only pixels inside the image (the border
+    mean is over 6, the corner mean over 4)."""
+    h, w = x.shape[-2:]
+    p = F.pad(x, (1, 1, 1, 1))
+    s = p[..., :, :-2] + p[..., :, 1:-1] + p[..., :, 2:]
+    s = s[..., :-2, :] + s[..., 1:-1, :] + s[..., 2:, :]
+    n_h = torch.full((h, 1), 3.0, dtype=x.dtype, device=x.device)
+    n_w = torch.full((1, w), 3.0, dtype=x.dtype, device=x.device)
+    n_h[0], n_h[-1], n_w[:, 0], n_w[:, -1] = min(h, 2), min(h, 2), min(w, 2), min(w, 2)
+    return s / (n_h * n_w)
 
 
 class Encoder(nn.Module):

@@ -25,7 +25,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from services.depth.net_blocks import conv, normalise_image
+from services.depth.net_blocks import box_mean3, conv, normalise_image
 from services.depth.sgbm import SgbmParams, fill_background, sgbm_disparity
 
 OFFSETS = (-2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0)  # [px] around the initial disparity
@@ -81,17 +81,23 @@ class RefineStereoNet(nn.Module):
     def features(self, left: torch.Tensor, right: torch.Tensor, d0: torch.Tensor, matched: torch.Tensor) -> torch.Tensor:
         ln, rn = normalise_image(left), normalise_image(right)
         d0 = d0[:, None]
-        chans = [ln, ln - shift_right_image(rn, d0), d0 / 32.0, matched[:, None].float()]
-        for o in OFFSETS:
-            chans.append(F.avg_pool2d((ln - shift_right_image(rn, d0 + o)).abs(), 3, 1, 1, count_include_pad=False))
-        return torch.cat(chans, 1)
+        residual = ln - shift_right_image(rn, d0)
+        costs = torch.cat([(residual if o == 0 else ln - shift_right_image(rn, d0 + o)).abs() for o in OFFSETS], 1)
+        return torch.cat([ln, residual, d0 / 32.0, matched[:, None].float(), box_mean3(costs)], 1)
+
+    def _fold_in(self, feats: torch.Tensor) -> torch.Tensor:
+        """The input layer's 1x1 convolution of the features folded 4x4 into channels (pixel unshuffle), done as
+        the one stride-4 4x4 convolution it equals (weight (out, C*16, 1, 1) viewed as (out, C, 4, 4)): the same
+        weights and result, without the folded copy, ~7x cheaper on a CPU."""
+        w = self.inp[0].weight
+        return F.conv2d(feats, w.view(w.shape[0], feats.shape[1], FOLD, FOLD), self.inp[0].bias, stride=FOLD)
 
     def refine(self, left: torch.Tensor, right: torch.Tensor, d0: torch.Tensor, matched: torch.Tensor
                ) -> tuple[torch.Tensor, torch.Tensor]:
         """Images (B,1,H,W), filled SGBM disparity d0 (B,H,W) [px], matched (B,H,W) bool -> u, sigma_u (B,H,W)."""
         if left.shape[-1] % 16 or left.shape[-2] % 16:
             raise ValueError(f"image size {tuple(left.shape[-2:])} must be a multiple of 16")
-        x0 = self.inp(F.pixel_unshuffle(self.features(left, right, d0, matched), FOLD))
+        x0 = self.inp[1:](self._fold_in(self.features(left, right, d0, matched)))
         x1 = self.down1(x0)
         x2 = self.down2(x1)
         y1 = self.up2(torch.cat([F.interpolate(x2, size=x1.shape[-2:], mode="bilinear", align_corners=False), x1], 1))
