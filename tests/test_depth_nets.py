@@ -74,6 +74,19 @@ def test_plane_sweep_finds_the_fronto_parallel_plane():
     assert torch.allclose(cost[0, 3, :, 4:-4], torch.full((h, w - 8), 1 / 8), atol=1e-5)  # mean over 8 channels
 
 
+def test_plane_sweep_is_the_same_whatever_the_planes_per_pass():
+    torch.manual_seed(5)
+    K = torch.tensor([[[312.0, 0, 47.5], [0, 312.0, 15.5], [0, 0, 1]]])
+    f_ref = torch.randn(1, 8, 8, 24).contiguous(memory_format=torch.channels_last)  # as the encoder gives them
+    f_src = torch.randn(1, 2, 8, 8, 24)
+    T = torch.eye(4).repeat(1, 2, 1, 1)
+    T[0, 0, 0, 3], T[0, 1, 1, 3] = 0.1, -0.05
+    depths = torch.tensor([1.0, 2.0, 3.0, 3.9, 5.0, 8.0])
+    whole = plane_sweep_cost(f_ref, f_src, K, T, depths, planes_per_pass=len(depths))
+    for n in (1, 4, 5):  # 4 and 5: a last pass with fewer planes
+        assert torch.allclose(plane_sweep_cost(f_ref, f_src, K, T, depths, planes_per_pass=n), whole, atol=1e-6)
+
+
 def test_convex_upsample_keeps_constants_and_range():
     x = torch.full((1, 2, 5, 7), 3.0)
     up = convex_upsample(x, torch.randn(1, 9 * 16, 5, 7))
