@@ -58,8 +58,9 @@ def plane_sweep_cost(f_ref: torch.Tensor, f_src: torch.Tensor, K: torch.Tensor, 
         zs = torch.where(z > 1e-3, z, torch.ones_like(z))
         u = (K[:, None, None, 0, 0] * p[..., 0] / zs + K[:, None, None, 0, 2] + 0.5) / SCALE - 0.5
         v = (K[:, None, None, 1, 1] * p[..., 1] / zs + K[:, None, None, 1, 2] + 0.5) / SCALE - 0.5
-        grid = torch.stack([(u + 0.5) / w * 2 - 1, (v + 0.5) / h * 2 - 1], -1).to(f_src.dtype)  # (B,D,hw,2)
+        grid = torch.stack([(u + 0.5) / w * 2 - 1, (v + 0.5) / h * 2 - 1], -1)  # (B,D,hw,2)
         seen = ((z > 1e-3) & (grid.abs() <= 1).all(-1)).view(b, n_d, h, w).to(cost.dtype)
+        grid = grid.to(f_src.dtype)
         src = f_src[:, j].contiguous()
         corr = []
         for k in range(0, n_d, planes_per_pass):

@@ -24,8 +24,7 @@ def shard_dirs(root: str | Path, split: str) -> list[Path]:
 def load_shards(root: str | Path, split: str) -> list[dict[str, np.ndarray]]:
     """Every complete shard of ``split`` (:func:`shard_dirs`) as a dict of memory-mapped arrays (plus 'name')."""
     d = Path(root) / split
-    shards = [{k: np.load(s / f"{k}.npy", mmap_mode="r") for k in KEYS if (s / f"{k}.npy").is_file()}
-              | {k: np.load(s / f"{k}.npy", mmap_mode="r") for k in OPTIONAL if (s / f"{k}.npy").is_file()}
+    shards = [{k: np.load(s / f"{k}.npy", mmap_mode="r") for k in (*KEYS, *OPTIONAL) if (s / f"{k}.npy").is_file()}
               | {"name": s.name} for s in shard_dirs(root, split)]
     if not shards:
         raise SystemExit(f"{d}: no complete shard (render them: python -m tools.depth.make_stereo_data)")
@@ -49,21 +48,29 @@ def initial_disparity(f: dict) -> np.ndarray:
     return refine_initial_disparity(f["sgbm"], f.get("fill"))
 
 
+def fill_source(root: str | Path) -> str:
+    """The weights whose disparity fills SGBM's holes in the data under ``root`` (its ``fill.json``), '' if none."""
+    meta = Path(root) / "fill.json"
+    return json.loads(meta.read_text())["weights"] if meta.is_file() else ""
+
+
+def same_weights(a: str | Path, b: str | Path) -> bool:
+    return Path(a).resolve() == Path(b).resolve()
+
+
 def add_fill(root: str | Path, weights_path: str | Path, threads: int = 2) -> int:
     """Writes ``fill.npy`` (the given stereo network's disparity of every frame) into every shard under ``root``
     that has none; returns the number of frames run."""
-    import torch
-
     from services.depth import weights
     from services.depth.stereo_net import predict_disparity
 
-    meta = Path(root) / "fill.json"
-    if meta.is_file() and json.loads(meta.read_text())["weights"] != str(weights_path):
-        raise SystemExit(f"{root}: its fill came from {json.loads(meta.read_text())['weights']}, not {weights_path} "
+    source = fill_source(root)
+    if source and not same_weights(source, weights_path):
+        raise SystemExit(f"{root}: its fill came from {source}, not {weights_path} "
                          "(delete the fill.npy files and fill.json first)")
     torch.set_num_threads(threads)
     net, _ = weights.load(weights_path)
-    meta.write_text(json.dumps({"weights": str(weights_path)}))
+    (Path(root) / "fill.json").write_text(json.dumps({"weights": str(weights_path)}))
     done = 0
     for split in ("train", "val"):
         for d in shard_dirs(root, split):

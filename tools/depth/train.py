@@ -154,9 +154,10 @@ REFINE_GAIN_DOMAIN = "disparity sigma [px] (median |u - u_gt| / (gain sigma_u) =
 def check_hole_fill(root: Path, hole_fill: str) -> dict:
     """The data's precomputed hole fill (``fill.json`` of tools/depth/stereo_shards.add_fill) must be the one the
     network is trained for: the weights given by --hole-fill, or none. Returns what to record in the weights' JSON."""
-    meta_path = root / "fill.json"
-    data_fill = json.loads(meta_path.read_text())["weights"] if meta_path.is_file() else ""
-    if hole_fill and Path(data_fill).resolve() != Path(hole_fill).resolve():
+    from tools.depth.stereo_shards import fill_source, same_weights
+
+    data_fill = fill_source(root)
+    if hole_fill and not (data_fill and same_weights(data_fill, hole_fill)):
         raise SystemExit(f"--hole-fill {hole_fill}: {root} has {'a fill from ' + data_fill if data_fill else 'no fill'}"
                          f" (python -m tools.depth.stereo_shards {root} --fill-weights {hole_fill})")
     if data_fill and not hole_fill:
