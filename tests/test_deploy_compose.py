@@ -1,7 +1,8 @@
 """docker/compose.yaml: valid for docker-compose, every command a real sigmaslam CLI command, viewer on localhost.
 
-The compose file is validated with Debian's ``docker-compose config`` (no Docker engine needed);
-the command checks parse each command with the subcommand's own argument parser.
+The compose files are validated with Debian's ``docker-compose config`` (no Docker engine needed);
+the command checks parse each command with the subcommand's own argument parser. The stack itself runs in
+``python -m tools.compose_smoke`` (.ci/run; a Docker engine needed).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from tests.helpers_zenoh import REPO
 
 COMPOSE = REPO / "docker" / "compose.yaml"
 GPU = REPO / "docker" / "compose.gpu.yaml"
+HOST = REPO / "docker" / "compose.host.yaml"
 PIPELINE = ("router", "player", "frontend", "backend", "depth", "mapping", "viewer", "recorder")
 
 
@@ -43,6 +45,11 @@ def _resolved(*files: Path) -> dict:
 @pytest.fixture(scope="module")
 def compose() -> dict:
     return _resolved(COMPOSE)
+
+
+@pytest.fixture(scope="module")
+def host_compose() -> dict:
+    return _resolved(COMPOSE, HOST)
 
 
 def _argv(command: object) -> list[str]:
@@ -87,8 +94,9 @@ def test_one_service_per_process(compose: dict) -> None:
             assert svc["depends_on"]["router"]["condition"] == "service_healthy", name
 
 
-def test_every_command_is_a_sigmaslam_cli_command(compose: dict) -> None:
-    for name, argv in _commands(compose):
+@pytest.mark.parametrize("variant", ["bridge", "host"])
+def test_every_command_is_a_sigmaslam_cli_command(variant: str, compose: dict, host_compose: dict) -> None:
+    for name, argv in _commands(compose if variant == "bridge" else host_compose):
         args = _parse(argv)
         config = getattr(args, "config", None) or next((a for a in argv if a.endswith(".yaml")), None)
         assert config is not None, f"{name}: no config file in {argv}"
@@ -147,3 +155,53 @@ def test_dockerfiles_install_torch_then_the_project() -> None:
         assert f"COPY {folder} {folder}" in cpu and f"COPY {folder} {folder}" in cuda
     ignored = (REPO / ".dockerignore").read_text().split()
     assert "data/*" in ignored and "!data/euroc" in ignored  # generated data stays out, the bundled files go in
+
+
+def test_player_waits_for_everything_that_takes_its_data(compose: dict) -> None:
+    takers = {"frontend", "backend", "depth", "mapping", "recorder"}
+    player = compose["services"]["player"]
+    assert {n for n, d in player["depends_on"].items() if d["condition"] == "service_healthy"} >= takers | {"router"}
+    assert set(_parse(_argv(player["command"])).wait_for.split(",")) >= takers
+
+
+def test_services_run_as_the_invoking_user_or_the_images(compose: dict) -> None:
+    """Debian's docker-compose resolves the default (the image's user); SIGMASLAM_UID/GID give another."""
+    for name, svc in compose["services"].items():
+        assert svc["user"] == "10001:10001", name
+    raw = yaml.safe_load(COMPOSE.read_text())
+    assert raw["x-sigmaslam"]["user"] == "${SIGMASLAM_UID:-10001}:${SIGMASLAM_GID:-10001}"
+
+
+def test_host_variant_keeps_everything_on_loopback(compose: dict, host_compose: dict) -> None:
+    assert sorted(host_compose["services"]) == sorted(compose["services"])
+    for name, svc in host_compose["services"].items():
+        assert svc["network_mode"] == "host" and svc["ipc"] == "host", name
+        assert svc["build"]["network"] == "host", name
+        # the same command as the bridge variant, with the host config
+        base = compose["services"][name]
+        swap = [a.replace("configs/docker.yaml", "configs/docker-host.yaml") for a in _argv(base["command"])]
+        assert _argv(svc["command"]) == swap, name
+        assert _argv(svc["healthcheck"]["test"]) == [
+            a.replace("configs/docker.yaml", "configs/docker-host.yaml") for a in _argv(base["healthcheck"]["test"])]
+        assert svc["healthcheck"]["interval"] == base["healthcheck"]["interval"], name
+    cfg = load_system_config(REPO / "configs" / "docker-host.yaml")
+    assert cfg.viewer.host == "127.0.0.1" and cfg.transport.shared_memory
+    for endpoint in (*cfg.transport.connect, *cfg.transport.listen, *cfg.transport.router_listen):
+        assert endpoint.startswith("tcp/127.0.0.1:"), endpoint
+
+
+def test_image_runs_as_an_unprivileged_user_with_writable_caches() -> None:
+    for name in ("Dockerfile", "Dockerfile.cuda"):
+        text = (REPO / "docker" / name).read_text()
+        assert "USER sigmaslam" in text and "--uid 10001" in text, name
+        assert "NUMBA_CACHE_DIR=/tmp/" in text and "HOME=/tmp" in text, name  # numba's cache=True, any uid
+        assert 'ENTRYPOINT ["sigmaslam-entrypoint"]' in text, name
+        for arg in ("PIP_INDEX_URL", "PIP_EXTRA_INDEX_URL", "PIP_FIND_LINKS", "PIP_CONSTRAINT"):
+            assert f"ARG {arg}\n" in text, (name, arg)  # no default: pip's own unless given
+        assert '${TORCH_INDEX:+--index-url "${TORCH_INDEX}"}' in text, name
+
+
+def test_entrypoint_runs_the_command_when_the_folders_are_writable(tmp_path: Path) -> None:
+    r = subprocess.run(["sh", str(REPO / "docker" / "entrypoint.sh"), "sh", "-c", "exit 7"],
+                       env={**os.environ, "SIGMASLAM_WRITABLE": str(tmp_path)}, capture_output=True, text=True)
+    assert r.returncode == 7, r.stderr
