@@ -20,7 +20,7 @@ from tools.compose_smoke.stack import Stack, compose_command, containers, logs
 
 REPO = Path(__file__).resolve().parents[2]
 IMAGE = "sigmaslam:cpu"
-FILES = (REPO / "docker" / "compose.yaml", REPO / "docker" / "compose.host.yaml")
+FILES = (REPO / "docker" / "compose.host.yaml",)
 SERVICES = ("router", "player", "frontend", "backend", "depth", "mapping", "viewer", "recorder")
 ROUTER_PORT, VIEWER_PORT = 7447, 8080  # on the host's loopback (configs/docker-host.yaml)
 SERVICE_UID = 10001  # the image's user (docker/Dockerfile)
@@ -70,7 +70,7 @@ def build_image(log_path: Path) -> dict:
         index = torch_index()
         if index is not None:
             args["TORCH_INDEX"] = index
-        cmd = ["docker", "build", "--network", "host", "-f", "docker/Dockerfile", "-t", IMAGE,
+        cmd = ["docker", "build", "--force-rm", "--network", "host", "-f", "docker/Dockerfile", "-t", IMAGE,
                *(a for k, v in sorted(args.items()) for a in ("--build-arg", f"{k}={v}")), "."]
         _log("building: " + " ".join(cmd))
         t0 = time.monotonic()
@@ -79,7 +79,7 @@ def build_image(log_path: Path) -> dict:
                                     errors="replace")
             for line in proc.stdout:
                 log.write(line)
-                if line.startswith("Step "):
+                if line.startswith(("Step ", "Successfully tagged")):
                     print("  " + line.rstrip()[:150], flush=True)
             rc = proc.wait()
     if rc != 0:
@@ -187,7 +187,7 @@ def run_stack(compose: list[str], env: dict[str, str], work: Path, timeout_s: fl
     stack.down()  # what an interrupted earlier run left
     t0 = time.monotonic()
     try:
-        _log(f"up: {' '.join(stack.base)} up (log {stack.log_path})")
+        _log(f"up: {' '.join(stack.base)} up --no-build (log {stack.log_path})")
         stack.up()
         figures = watch(stack, timeout_s)
         time.sleep(2.0)  # the recorder closes a chunk every second: the final trajectory is on disk
