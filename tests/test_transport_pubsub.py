@@ -156,3 +156,28 @@ def test_shm_pool_exhaustion_falls_back_to_plain_bytes():
         assert pub.shm_fallbacks == 1 and pub.sent_shm == 1 and pub.sent == 2
         sub.close()
         pub.close()
+
+
+def test_no_shm_pool_where_memory_cannot_be_locked_sends_plain_bytes(monkeypatch, caplog):
+    """An unprivileged process under a small RLIMIT_MEMLOCK (containers) cannot make the pool: it publishes anyway."""
+    import zenoh.shm
+
+    class NoPool:
+        @staticmethod
+        def default_backend(pool_bytes):
+            raise zenoh.ZError("Unable to create POSIX shm segment: OS error 12")
+
+    monkeypatch.setattr(zenoh.shm, "ShmProvider", NoPool)
+    pool = (1 << 20) + 4096  # a size no other test's pool has: this process's provider cache is keyed by size
+    with router(shm_pool_bytes=pool, shm_threshold_bytes=1024) as cfg, open_session(cfg) as rx, open_session(cfg) as tx:
+        got = []
+        sub = Subscriber(rx, cfg.namespace + "/d", DepthFrame, handler=got.append)
+        pub = Publisher(tx, cfg.namespace + "/d", DepthFrame, cfg)
+        assert pub.wait_for_subscribers(5)
+        arr = np.ones((64, 64), np.float32)
+        pub.publish(DepthFrame(header=Header(stamp_ns=0), depth=arr, sigma=arr, K=np.eye(3), T_WC=np.eye(4), source="t"))
+        assert wait_for(lambda: len(got) == 1, 5)
+        assert pub.sent == 1 and pub.sent_shm == 0
+        assert "no shared memory in this process" in caplog.text
+        sub.close()
+        pub.close()

@@ -4,7 +4,7 @@ Publishing: a message is encoded with :mod:`shared.codec`. Payloads of at least
 ``TransportConfig.shm_threshold_bytes`` go through Zenoh shared memory when
 ``TransportConfig.shared_memory`` is on: the message is encoded into a reusable scratch buffer and
 copied once into a buffer of the process's SHM pool, which Zenoh hands to local subscribers by
-reference. Smaller payloads (or a full pool) go as plain bytes.
+reference. Smaller payloads (or a full pool, or none where the pool cannot be locked in memory) go as plain bytes.
 
 Sequence numbers: messages are frozen, so a publisher never rewrites ``header.seq``; the caller sets
 it, typically from :attr:`Publisher.next_seq` (the number of messages this publisher sent so far).
@@ -41,7 +41,10 @@ _shm_providers: dict[int, object] = {}
 
 
 def shm_provider(pool_bytes: int):
-    """The process-wide Zenoh SHM provider with a pool of ``pool_bytes`` (created on first use).
+    """The process-wide Zenoh SHM provider with a pool of ``pool_bytes`` (created on first use), or None when the
+    pool cannot be made here: Zenoh locks the pool in memory, and an unprivileged process may lock only
+    RLIMIT_MEMLOCK (``ulimit -l``; often 8 MiB, and so in containers). Large payloads then go as plain bytes;
+    one warning says why.
 
     Creating the pool and touching its pages the first time costs tens of ms, so the pool's pages are
     written once here, at publisher creation, instead of during the first publications.
@@ -49,12 +52,26 @@ def shm_provider(pool_bytes: int):
     from zenoh import shm
 
     with _shm_lock:
-        provider = _shm_providers.get(pool_bytes)
-        if provider is None:
+        if pool_bytes in _shm_providers:
+            return _shm_providers[pool_bytes]
+        try:
             provider = shm.ShmProvider.default_backend(pool_bytes)
+        except zenoh.ZError as exc:
+            provider = None
+            log.warning("no shared memory in this process: a pool of %d MiB cannot be made (%s); the process may "
+                        "lock %s in memory (ulimit -l). Large messages go as plain bytes", pool_bytes >> 20, exc,
+                        _memlock_limit())
+        else:
             _prefault(provider, pool_bytes)
-            _shm_providers[pool_bytes] = provider
+        _shm_providers[pool_bytes] = provider
         return provider
+
+
+def _memlock_limit() -> str:
+    import resource
+
+    soft = resource.getrlimit(resource.RLIMIT_MEMLOCK)[0]
+    return "any amount" if soft == resource.RLIM_INFINITY else f"{soft >> 10} KiB"
 
 
 def _prefault(provider, pool_bytes: int, block: int = 1 << 20) -> None:
@@ -140,8 +157,11 @@ class Publisher:
 
         if self._shm_policy is None:
             self._shm_policy = shm.GarbageCollect(shm.Defragment())
+        provider = shm_provider(self.cfg.shm_pool_bytes)
+        if provider is None:  # no pool in this process (said once, when it was tried)
+            return False
         try:
-            buf = shm_provider(self.cfg.shm_pool_bytes).alloc(p.size, self._shm_policy)
+            buf = provider.alloc(p.size, self._shm_policy)
         except zenoh.ZError as exc:
             self.shm_fallbacks += 1
             if self.shm_fallbacks == 1 or self.shm_fallbacks % 100 == 0:
