@@ -146,7 +146,7 @@ def test_volumes_for_datasets_outputs_and_recordings(compose: dict) -> None:
 def test_dockerfiles_install_torch_then_the_project() -> None:
     cpu = (REPO / "docker" / "Dockerfile").read_text()
     cuda = (REPO / "docker" / "Dockerfile.cuda").read_text()
-    assert "FROM python:3.11-slim-bookworm" in cpu and "libusb-1.0-0" in cpu
+    assert "FROM python:3.11-slim-bookworm" in cpu and "libusb-1.0-0" in cpu and "libegl1" in cpu
     assert "ARG TORCH_INDEX=https://download.pytorch.org/whl/cpu" in cpu
     assert "whl/cu" in cuda
     for text in (cpu, cuda):

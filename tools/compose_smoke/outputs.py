@@ -7,10 +7,17 @@ file, where the final trajectory and the count of frames played and of states pu
 
 from __future__ import annotations
 
+import re
 from collections import Counter
 from pathlib import Path
 
 NAMESPACE = "sigmaslam/robot0"  # configs/docker.yaml
+
+
+def frames_sent(player_log: str) -> int | None:
+    """The camera frames the player sent, from its closing line (``player: 501 frames sent ...``)."""
+    m = re.search(r"player: (\d+) frames sent", player_log)
+    return int(m[1]) if m else None
 
 
 def recording_figures(path: Path, namespace: str = NAMESPACE) -> dict:
@@ -26,7 +33,7 @@ def recording_figures(path: Path, namespace: str = NAMESPACE) -> dict:
         for _schema, channel, _message in make_reader(f).iter_messages(topics=list(wanted)):
             counts[wanted[channel.topic]] += 1
     final = [m for _, _, m in read_recording(path, [f"{namespace}/estimator/trajectory_final"])]
-    return {"frames_played": counts["sensors/frame"], "states": counts["estimator/state"],
+    return {"frames_recorded": counts["sensors/frame"], "states_recorded": counts["estimator/state"],
             "depth_frames": counts["depth/stereo"], "submap_messages": counts["map/submap"],
             "final_trajectory_poses": len(final[-1].stamps_ns) if final else 0,
             "final_keyframes": int(final[-1].keyframes) if final else 0}

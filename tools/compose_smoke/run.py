@@ -227,6 +227,7 @@ def smoke(work: Path, timeout_s: float, keep_recording: bool) -> dict:
         env = prepare_folders(work, dataset)
         summary.update(run_stack(compose, env, work, timeout_s))
         problems, figures = outputs.check(Path(env["SIGMASLAM_OUTPUTS"]), Path(env["SIGMASLAM_RECORDINGS"]))
+        figures["frames_sent"] = outputs.frames_sent((work / "logs" / "player.log").read_text())
         summary.update(figures)
         if not keep_recording and figures.get("recording"):
             Path(figures["recording"]).unlink()
