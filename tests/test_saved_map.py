@@ -14,7 +14,7 @@ from services.backend.loop.saved_map import (LOOP, ODOMETRY, SparseMapError, bui
                                              save_sparse)
 from services.backend.loop.verification import FeatureSet
 from services.backend.loop.vocabulary import DEFAULT_PATH, Vocabulary
-from shared.geometry import inv_T, so3_exp
+from shared.geometry import inv_T, so3_exp, so3_log
 
 pytestmark = pytest.mark.unit
 
@@ -134,3 +134,50 @@ def test_align_maps_finds_the_offset_between_two_maps_of_one_place():
     far = _scene_map(seed=4, every=10)
     far.descriptors[:] = np.random.default_rng(5).integers(0, 256, far.descriptors.shape, dtype=np.uint8)
     assert align_maps(a, far, voc, LoopConfig()).T_ab is None
+
+
+def test_a_map_saved_by_the_loop_closer_places_a_new_view_after_the_file_round_trip(tmp_path):
+    """What relocalisation in a saved map rests on, through the file: keyframes made by the loop closer in a window
+    frame W (a yaw and a shift from the truth) are saved, loaded by a second closer, and a view the first session
+    never had (half a keyframe interval later, from another session's frame) is matched to them by PnP at its true
+    pose in W. Also checked: each saved landmark projects onto its saved feature at its keyframe's saved pose."""
+    from services.backend.estimator import BackendCamera
+    from services.backend.loop.history import KeyframeRecord
+    from services.backend.loop.loop_closer import PRIOR_KEY_BASE, LoopCloser
+
+    rng = np.random.default_rng(3)
+    tr, pts, cams = sim.Trajectory(), sim.landmarks_cylinder(600, seed=6), sim.rig(2)
+    codes = rng.integers(0, 256, (len(pts), 32), dtype=np.uint8)
+    bcams = [BackendCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams]
+    T_WG = _T([0.0, 0.0, 0.8], [1.5, -0.5, 0.2])  # the first session's window frame W from the truth
+    cfg = LoopConfig(min_inliers=15)
+    first = LoopCloser(cfg, bcams)
+
+    def features(T_GS):
+        ids, c, uv = sim.observe(T_GS, pts, cams, 0.5, rng, 40)
+        flips = np.packbits(rng.random((len(ids), 256)) < 0.03, axis=1)
+        return FeatureSet(ids.astype(np.int64), c.astype(np.int64), uv, codes[ids] ^ flips)
+
+    times = np.arange(0.5, 12.0, 0.3)
+    for k, (t, T_GS) in enumerate(zip(times, tr.T_WS(times))):
+        stamp, fs = int(t * 1e9), features(T_GS)
+        first.add_keyframe_features(stamp, fs)
+        seen = {int(i): T_WG[:3, :3] @ pts[i] + T_WG[:3, 3] for i in fs.landmark_ids}
+        first.add_record(KeyframeRecord(k, stamp, T_WG @ T_GS, np.zeros(3), None, {i: [] for i in seen}, seen))
+    saved = load_sparse(save_sparse(first.sparse_map({"source": "sim"}), tmp_path / "sparse.npz"))
+    assert len(saved) == len(times)
+    for i in range(len(saved)):
+        fs, p_W = saved.features(i)
+        for c, cam in enumerate(cams):
+            sel = (fs.camera_index == c) & np.isfinite(p_W[:, 0])
+            T_CW = inv_T(saved.T_WS[i] @ cam.T_SC)
+            uv = cam.project(p_W[sel] @ T_CW[:3, :3].T + T_CW[:3, 3])
+            assert np.abs(uv - fs.uv[sel]).max() < 3.0, i  # 0.5 px noise
+    second = LoopCloser(LoopConfig(min_inliers=15), bcams)
+    second.load_prior(saved)
+    t_new = times[14] + 0.15
+    T_GS_new = tr.T_WS(np.array([t_new]))[0]
+    found = second.add_keyframe_features(int(t_new * 1e9), features(T_GS_new))
+    assert found and found[0].old_state >= PRIOR_KEY_BASE, dict(second.counts)
+    err = inv_T(T_WG @ T_GS_new) @ found[0].T_WS_query
+    assert np.linalg.norm(err[:3, 3]) < 0.03 and np.degrees(np.linalg.norm(so3_log(err[:3, :3]))) < 0.5

@@ -37,8 +37,10 @@ from services.app.synth.scene import build_scene
 # made again (services/app/synth/api.py). 2: the trajectory fitted to the recorded IMU (shared/imu_consistency.py).
 # 3: the IMU's fine motion on top of that fit (imu_consistency.follow_imu): images that agree with the recorded IMU.
 # 4: coarser texture levels sampled where cv2.pyrDown put them (they were 0.5 / 1.5 / 3.5 texels off at levels
-# 1 / 2 / 3, so texture slid along surfaces as the camera's distance changed).
-GENERATOR_VERSION = 4
+# 1 / 2 / 3, so texture slid along surfaces as the camera's distance changed). 5: one scene per site whatever the
+# replica's trajectory (services/app/synth/scene.py): the room had been sized with the replica's own positions, and a
+# tenth of a millimetre of room moved every patch's texture, so two replicas of one room showed different rooms.
+GENERATOR_VERSION = 5
 
 
 @dataclasses.dataclass(frozen=True)

@@ -7,10 +7,16 @@ at least ``clearance_m`` from every ground-truth position. Every planar patch (a
 repeat. The triangle mesh is exact: it is what the renderer ray-casts and what mapping is scored against.
 
 Per triangle: atlas pixel coordinates of its 3 corners (``tri_uv``), a Lambertian shading factor
-(``tri_shade``). Deterministic in (name, seed).
+(``tri_shade``). Deterministic in (name, seed): every replica of a site is rendered in the same scene, whatever
+its own trajectory, so that a map made in one replica can be found again from another (``sigmaslam eval
+relocalise``). The atlas is packed in shelves, so a patch one texel wider moves the texture of every later patch: the
+room's size must not depend on a replica's trajectory. A replica's trajectory inside the site's room only removes the
+objects it would pass through (their atlas tiles stay allocated, so every other patch keeps its texture); one that
+leaves the room gets a room of its own.
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -84,6 +90,7 @@ class _Builder:
         self.verts: list[np.ndarray] = []
         self.uv: list[np.ndarray] = []  # (4, 2) atlas pixel coords
         self.shade: list[float] = []
+        self.left_out: set[int] = set()  # quads allocated in the atlas but not part of the mesh (leave_out)
         self._x = self._y = self._row_h = 0
 
     def _alloc(self, w_m: float, h_m: float) -> np.ndarray:
@@ -158,29 +165,43 @@ class _Builder:
             self.uv.append(org + local * self.tpm)
             self.shade.append(self._shade(np.array([0.0, 0.0, 1.0]), albedo))
 
+    def leave_out(self, first: int) -> None:
+        """Leave the quads from index ``first`` on (the object just added) out of the mesh; their atlas areas stay
+        taken, so the patches after them keep their textures."""
+        self.left_out.update(range(first, len(self.verts)))
+
     def finish(self, name: str, seed: int, style: str, room_min, room_max, textures: bool = True) -> Scene:
-        q = np.stack(self.verts)  # (Q, 4, 3)
-        nq = len(q)
         rows = int(np.ceil((self._y + self._row_h + 1) / self.tile_px))
         atlas = (make_atlas(rows, self.atlas_width // self.tile_px, self.tile_px, style, seed) if textures
                  else np.full((rows * self.tile_px, self.atlas_width), 128, np.uint8))
-        uv = np.stack(self.uv)  # (Q, 4, 2)
+        kept = [i for i in range(len(self.verts)) if i not in self.left_out]
+        q = np.stack([self.verts[i] for i in kept])  # (Q, 4, 3)
+        nq = len(q)
+        uv = np.stack([self.uv[i] for i in kept])  # (Q, 4, 2)
         base = (np.arange(nq) * 4)[:, None]
         tris = np.concatenate([base + [0, 1, 2], base + [0, 2, 3]]).astype(np.int32)
         tri_uv = np.concatenate([uv[:, [0, 1, 2]], uv[:, [0, 2, 3]]]).astype(np.float32)
-        shade = np.concatenate([self.shade, self.shade]).astype(np.float32)
+        shade_q = [self.shade[i] for i in kept]
+        shade = np.concatenate([shade_q, shade_q]).astype(np.float32)
         return Scene(name, seed, q.reshape(-1, 3), tris, tri_uv, shade, atlas, np.asarray(room_min, float),
                      np.asarray(room_max, float), self.tpm)
 
 
 def site_positions(site: str, extra: list[np.ndarray] | None = None) -> np.ndarray:
     """Ground-truth positions (N, 3) of all known trajectories of ``site`` (plus ``extra`` ones)."""
+    pts = [_site_ground_truth(site)] + [np.asarray(e, float).reshape(-1, 3) for e in (extra or [])]
+    return np.concatenate(pts)
+
+
+@functools.lru_cache(maxsize=4)
+def _site_ground_truth(site: str) -> np.ndarray:
+    """The positions of the site's sequences (read once per process; read-only)."""
     from shared.euroc import read_euroc_csv
     from shared.paths import euroc_files
 
-    pts = [read_euroc_csv(euroc_files(s)["groundtruth"]).p_WS for s in SITES[site]]
-    pts += [np.asarray(e, float).reshape(-1, 3) for e in (extra or [])]
-    return np.concatenate(pts)
+    pts = np.concatenate([read_euroc_csv(euroc_files(s)["groundtruth"]).p_WS for s in SITES[site]])
+    pts.setflags(write=False)
+    return pts
 
 
 def _box_distance(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
@@ -192,20 +213,46 @@ def _box_distance(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
 def build_scene(name: str, seed: int = 0, positions: np.ndarray | None = None, clearance_m: float = 0.5,
                 tile_px: int = 256, extra_positions: np.ndarray | None = None, textures: bool = True) -> Scene:
     """Build scene ``name`` (see :data:`SCENES`) around the site's GT positions, or ``positions`` (N, 3)
-    instead; ``extra_positions`` (the replica's own trajectory) are kept clear and inside the room too.
-    ``textures=False`` skips the texture atlas (uniform grey): geometry only, much faster."""
+    instead; ``extra_positions`` (the replica's own trajectory) are kept clear and inside the room too: inside the
+    site's room they remove the objects closer than ``clearance_m`` and change nothing else (module doc); outside it
+    the room and its objects are made around both. ``textures=False`` skips the texture atlas (uniform grey):
+    geometry only, much faster."""
     if name not in SCENES:
         raise KeyError(f"unknown scene {name!r}; known: {', '.join(SCENES)}")
-    site, style, n_obj, scale, light_off = SCENES[name]
-    pts = site_positions(site) if positions is None else np.asarray(positions, float).reshape(-1, 3)
-    if extra_positions is not None:
-        pts = np.concatenate([pts, np.asarray(extra_positions, float).reshape(-1, 3)])
-    pts = pts[:: max(1, len(pts) // 20000)]
-    rng = np.random.default_rng([seed, light_off])
+    site = SCENES[name][0]
+    pts = _thin(site_positions(site) if positions is None else np.asarray(positions, float).reshape(-1, 3))
+    extra = None if extra_positions is None else _thin(np.asarray(extra_positions, float).reshape(-1, 3))
+    if extra is not None and not _inside(extra, *_room(site, pts)):
+        pts, extra = _thin(np.concatenate([pts, extra])), None  # a room of its own around both
+    return _furnish(name, seed, pts, clearance_m, tile_px, textures, keep_clear=extra)
+
+
+def _thin(pts: np.ndarray) -> np.ndarray:
+    """At most ~20 000 of ``pts`` (every k-th): enough for the room's extent and the objects' clearance."""
+    return pts[:: max(1, len(pts) // 20000)]
+
+
+def _room(site: str, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The room (lo, hi corners [m]) around positions ``pts`` of ``site``: a margin around them, the floor at z <= 0."""
     margin = SITE_MARGIN_M[site]
     lo, hi = pts.min(0) - margin, pts.max(0) + margin
     lo[2] = min(0.0, pts[:, 2].min() - 0.5)
     hi[2] = pts[:, 2].max() + (1.5 if site == "vicon" else 3.0)
+    return lo, hi
+
+
+def _inside(pts: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
+    """Whether every position lies in the room, with the site margin's worth of air to the walls left at half."""
+    return bool(np.all(pts >= lo + 0.5) and np.all(pts <= hi - 0.5))
+
+
+def _furnish(name: str, seed: int, pts: np.ndarray, clearance_m: float, tile_px: int, textures: bool,
+             keep_clear: np.ndarray | None) -> Scene:
+    """The room around ``pts`` with its objects placed clear of ``pts``; objects closer than ``clearance_m`` to
+    ``keep_clear`` are left out afterwards, keeping the atlas layout (and so every other patch's texture)."""
+    site, style, n_obj, scale, light_off = SCENES[name]
+    rng = np.random.default_rng([seed, light_off])
+    lo, hi = _room(site, pts)
     light = np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(1.0, 2.0)])
     b = _Builder(tile_px, SITE_TEXELS_PER_M[site], light)
     size = hi - lo
@@ -239,9 +286,11 @@ def build_scene(name: str, seed: int = 0, positions: np.ndarray | None = None, c
         if c[0] - r < lo[0] or c[1] - r < lo[1]:
             continue
         top = sz * (1.3 if kind == "stack" else 1.0)  # a stack carries a second box of 0.3 sz
-        if _box_distance(pts, c - [r, r, 0], c + [r, r, top]) < clearance_m:
+        box_lo, box_hi = c - [r, r, 0], c + [r, r, top]
+        if _box_distance(pts, box_lo, box_hi) < clearance_m:
             continue
         alb = rng.uniform(0.7, 1.2)
+        first = len(b.verts)
         if kind in ("box", "stack"):
             b.box(c, (sx, sy, sz), yaw, alb)
             if kind == "stack" and c[2] + 1.3 * sz < hi[2]:
@@ -263,4 +312,6 @@ def build_scene(name: str, seed: int = 0, positions: np.ndarray | None = None, c
             for z in np.linspace(0.05, sz - 0.03, int(rng.integers(3, 6))):
                 b.box(c + [0, 0, z], (sx - 0.07, sy, 0.03), yaw, alb * 0.9, bottom=True)
         placed += 1
+        if keep_clear is not None and _box_distance(keep_clear, box_lo, box_hi) < clearance_m:
+            b.leave_out(first)
     return b.finish(name, seed, style, lo, hi, textures)
