@@ -128,19 +128,24 @@ def _seconds_to_ns(text: str) -> int:
     return sign * (abs(int(whole or "0")) * 10**9 + int((frac + "000000000")[:9]))
 
 
-def write_tum(path: str | Path, poses: PoseSeries) -> None:
-    """Write TUM with exact ns stamps (``sec.nnnnnnnnn``)."""
+def _comment_lines(comment: str) -> str:
+    return "".join(f"# {line}\n" for line in comment.splitlines())
+
+
+def write_tum(path: str | Path, poses: PoseSeries, comment: str = "") -> None:
+    """Write TUM with exact ns stamps (``sec.nnnnnnnnn``); ``comment``: lines written first, each after ``# ``
+    (e.g. the frame the poses are in)."""
     with open(path, "w") as f:
-        f.write("# t[s] x y z qx qy qz qw\n")
+        f.write(_comment_lines(comment) + "# t[s] x y z qx qy qz qw\n")
         for t, p, q in zip(poses.stamps_ns, poses.p_WS, poses.q_WS_wxyz[:, [1, 2, 3, 0]]):
             t = int(t)
             f.write(f"{t // 10**9}.{t % 10**9:09d} " + " ".join(f"{x:.9f}" for x in (*p, *q)) + "\n")
 
 
-def write_euroc_csv(path: str | Path, poses: PoseSeries) -> None:
-    """Write EuRoC-style pose CSV: t_ns, p xyz [m], q wxyz."""
+def write_euroc_csv(path: str | Path, poses: PoseSeries, comment: str = "") -> None:
+    """Write EuRoC-style pose CSV: t_ns, p xyz [m], q wxyz; ``comment`` as in :func:`write_tum`."""
     with open(path, "w") as f:
-        f.write("#timestamp [ns], p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], "
+        f.write(_comment_lines(comment) + "#timestamp [ns], p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], "
                 "q_RS_w [], q_RS_x [], q_RS_y [], q_RS_z []\n")
         for t, p, q in zip(poses.stamps_ns, poses.p_WS, poses.q_WS_wxyz):
             f.write(f"{int(t)}," + ",".join(f"{x:.9f}" for x in (*p, *q)) + "\n")

@@ -1,7 +1,8 @@
 """Saved maps through ``sigmaslam run`` (real processes over Zenoh): a first run writes DIR/map/sparse.npz; a second
 run over another stretch of the same flight in the same room, started with ``--map``, relocalises against it and
 publishes in the first run's frame, so its poses match the ground truth under the first run's alignment alone;
-``sigmaslam map info`` reads both maps; ``--localise-only`` writes no sparse map; a missing map is a clear error.
+``sigmaslam map info`` reads both maps; ``--localise-only`` writes no sparse map; a missing map is a clear error; a
+run that never relocalises (in another room) still writes its trajectory, in its own frame ('odom'), and exits 0.
 
 Reduced form (default): V1_02's real motion, 0-8 s mapped, 4-12 s localised (simulated IMU, the test box room).
 ``SIGMASLAM_E2E=full``: 0-20 s mapped, 10-30 s localised, real IMU."""
@@ -77,3 +78,15 @@ def test_a_second_run_localises_in_the_first_runs_map(tmp_path):
     assert not (tmp_path / "run_c" / "map" / "sparse.npz").exists()
     rc, log = _run(["run", str(data_b), "--out", str(tmp_path / "run_d"), "--map", str(tmp_path / "nothing")])
     assert rc == 2 and "no saved map" in log, log[-2000:]
+
+    # a run that never relocalises (another room: nothing of the map in sight) keeps its trajectory, in its own frame
+    data_e = e2e_dataset.make_dataset(tmp_path / "e", "V1_02", start_s=b0, seconds=4.0, real_imu=FULL, seed=7)
+    rc, log = _run(["run", str(data_e), "--out", str(tmp_path / "run_e"), "--map", str(tmp_path / "run_a"), *common])
+    assert rc == 0 and "never relocalised" in log, log[-3000:]
+    text = (tmp_path / "run_e" / "trajectory_causal.txt").read_text()
+    assert text.startswith("# frame: odom"), text[:200]
+    stats = json.loads((tmp_path / "run_e" / "stats.json").read_text())
+    assert stats["trajectory_frame"] == "odom" and stats["localisation"]["time_to_relocalise_s"] is None, stats
+    traj_e = read_tum(tmp_path / "run_e" / "trajectory_causal.txt")
+    assert len(traj_e.stamps_ns) >= 0.8 * stats["localisation"]["states_before_relocalisation"] > 40
+    assert json.loads((tmp_path / "run_e" / "ate.json").read_text())["ate_rmse_m"] < 0.1

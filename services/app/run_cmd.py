@@ -47,7 +47,8 @@ from pathlib import Path
 import numpy as np
 
 from services.app.cli import SUBCOMMANDS
-from services.app.run_outputs import loop_summary, wait_final, write_final, write_refined_extrinsics
+from services.app.run_outputs import (frame_comment, loop_summary, wait_final, write_final,
+                                     write_refined_extrinsics)
 from services.app.supervisor import ServiceSpec, Supervisor, validate
 from services.system_config import load_system_config
 from shared import topics
@@ -234,13 +235,19 @@ def _collect(node: Node, col: _Collector, sup_thread: threading.Thread, settle_s
     return "stopped"
 
 
-def _trajectory(states) -> PoseSeries:
-    # no pose in 'initialising' and 'reset'; poses before a relocalisation in a saved map are in another frame
-    good = [s for s in states if s.status not in ("initialising", "reset") and s.header.frame_id != UNALIGNED_FRAME]
+def _trajectory(states) -> tuple[PoseSeries, str]:
+    """The causal trajectory to write and its frame. No pose in 'initialising' and 'reset'. A run localising in a
+    saved map publishes in its own frame (:data:`UNALIGNED_FRAME`) until it relocalises and in the map's ('W') from
+    then on: the trajectory is its states in the map's frame, or, when it never relocalised, all its states in its
+    own frame, so that no run loses its trajectory."""
+    posed = [s for s in states if s.status not in ("initialising", "reset")]
+    good, frame = [s for s in posed if s.header.frame_id != UNALIGNED_FRAME], "W"
+    if not good and posed:
+        good, frame = posed, UNALIGNED_FRAME
     stamps = np.array([s.header.stamp_ns for s in good], np.int64)
     order = np.argsort(stamps, kind="stable")
     T = np.array([s.T_WS for s in good]).reshape(-1, 4, 4)[order]
-    return series_from_matrices(stamps[order], T)
+    return series_from_matrices(stamps[order], T), frame
 
 
 def stats_summary(col: _Collector) -> dict:
@@ -412,13 +419,16 @@ def main(args: argparse.Namespace) -> int:
             sup.request_stop()
             sup_thread.join(timeout=cfg.supervisor.longest_stop_s() + cfg.supervisor.shutdown_timeout_s + 5)
     wall = time.monotonic() - t_start
-    traj = _trajectory(col.states)
+    traj, frame = _trajectory(col.states)
+    comment = frame_comment(frame, bool(saved))
     for name in ("trajectory_causal", "trajectory"):
-        write_tum(out / f"{name}.txt", traj)
-        write_euroc_csv(out / f"{name}.csv", traj)
+        write_tum(out / f"{name}.txt", traj, comment)
+        write_euroc_csv(out / f"{name}.csv", traj, comment)
     summary = stats_summary(col)
-    summary.update({"end_reason": why, "wall_s": wall, "poses": len(traj.stamps_ns)})
-    final_traj = write_final(out, final) if final is not None else None
+    summary.update({"end_reason": why, "wall_s": wall, "poses": len(traj.stamps_ns), "trajectory_frame": frame})
+    final_traj = write_final(out, final, bool(saved)) if final is not None else None
+    if final is not None:
+        summary["final_trajectory_frame"] = final.header.frame_id
     if col.extrinsics is not None:
         summary["extrinsics_refined"] = write_refined_extrinsics(out, cfg.rig, col.extrinsics)
     if cfg.backend.estimate_time_offset and col.time_offset_s is not None:
@@ -431,10 +441,14 @@ def main(args: argparse.Namespace) -> int:
     (out / "stats.json").write_text(json.dumps(summary, indent=2))
     if (loc := summary["localisation"]) is not None:
         t = loc["time_to_relocalise_s"]
-        print("[sigmaslam run] saved map: " + (f"relocalised {t:.1f} s into the run; " if t is not None else
-                                                 "never relocalised; ")
-              + f"{loc['states_in_map_frame']} states in the map's frame, {loc['states_before_relocalisation']} "
-              "before (not in the trajectory files)", flush=True)
+        if t is not None:
+            print(f"[sigmaslam run] saved map: relocalised {t:.1f} s into the run; {loc['states_in_map_frame']} "
+                  f"states in the map's frame (the trajectory files), {loc['states_before_relocalisation']} before "
+                  "(in the run's own frame 'odom', not written)", flush=True)
+        else:
+            print(f"[sigmaslam run] saved map: this run never relocalised in it, so it did not join the map; its "
+                  f"trajectory files hold its {loc['states_before_relocalisation']} states in its own frame "
+                  f"'{UNALIGNED_FRAME}' (its first pose's), not the map's", flush=True)
     lat = summary["state_latency_ms"]
     lat_text = f"pose latency p50 {lat['median']:.0f} ms, p99 {lat['p99']:.0f} ms" if lat.get("n") else "no latency"
     fb = summary["frontend_backend_median_ms"]

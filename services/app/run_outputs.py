@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from shared.euroc import series_from_matrices, PoseSeries, write_euroc_csv, write_tum
+from shared.map_folder import UNALIGNED_FRAME
 from transport.queues import Empty
 
 
@@ -33,12 +34,23 @@ def final_series(msg) -> PoseSeries:
     return series_from_matrices(msg.stamps_ns, msg.T_WS)
 
 
-def write_final(out: Path, msg) -> PoseSeries:
-    """DIR/trajectory_final.txt (TUM) and .csv (EuRoC); DIR/trajectory.txt/.csv become the final one too."""
+def frame_comment(frame_id: str, saved_map: bool) -> str:
+    """The header line of a trajectory file naming the frame of its poses (a run's world frame 'W', which with a
+    saved map is the map's, or a run's own frame 'odom' before it relocalised in a saved map)."""
+    if frame_id == UNALIGNED_FRAME:
+        return (f"frame: {UNALIGNED_FRAME} (this run's own frame, its first pose's: it never relocalised in the saved "
+                "map)")
+    return "frame: W (the saved map's world frame)" if saved_map else "frame: W (this run's world frame)"
+
+
+def write_final(out: Path, msg, saved_map: bool = False) -> PoseSeries:
+    """DIR/trajectory_final.txt (TUM) and .csv (EuRoC); DIR/trajectory.txt/.csv become the final one too. The header
+    names the frame (:func:`frame_comment`)."""
     traj = final_series(msg)
+    comment = frame_comment(msg.header.frame_id, saved_map)
     for name in ("trajectory_final", "trajectory"):
-        write_tum(out / f"{name}.txt", traj)
-        write_euroc_csv(out / f"{name}.csv", traj)
+        write_tum(out / f"{name}.txt", traj, comment)
+        write_euroc_csv(out / f"{name}.csv", traj, comment)
     return traj
 
 
