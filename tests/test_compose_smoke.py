@@ -37,3 +37,10 @@ def test_local_pip_sources_are_served_on_loopback_and_nothing_else(tmp_path: Pat
 def test_remote_sources_pass_unchanged_and_start_no_server() -> None:
     with PipSources({"index-url": "https://pypi.example/simple"}, port=0) as src:
         assert src.build_args == {"PIP_INDEX_URL": "https://pypi.example/simple"} and src._server is None
+
+
+def test_frames_sent_from_the_players_closing_line() -> None:
+    from tools.compose_smoke.outputs import frames_sent
+
+    log = "x INFO transport.node: player: joined\nplayer: 501 frames sent (0 lockstep timeouts)\n"
+    assert frames_sent(log) == 501 and frames_sent("player crashed") is None

