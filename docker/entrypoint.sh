@@ -19,8 +19,9 @@ done
 
 if [ -d /data/dataset ] && ! [ -d /data/dataset/mav0 ]; then
   echo "sigmaslam: /data/dataset (SIGMASLAM_DATASET on the host) is not an EuRoC ASL folder: it has no mav0/." \
-       "Render the default replica first (.venv/bin/sigmaslam synth --default, from the repository root) or set" \
-       "SIGMASLAM_DATASET to a sequence's folder. docs/deployment.md, 'Docker compose'." >&2
+       "Render the default replica first (.venv/bin/sigmaslam synth --default, from the repository root; an empty" \
+       "folder there was made by the engine, owned by root: remove it first) or set SIGMASLAM_DATASET to a" \
+       "sequence's folder. docs/deployment.md, 'Docker compose'." >&2
   exit 78
 fi
 
