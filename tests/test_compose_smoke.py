@@ -44,3 +44,13 @@ def test_frames_sent_from_the_players_closing_line() -> None:
 
     log = "x INFO transport.node: player: joined\nplayer: 501 frames sent (0 lockstep timeouts)\n"
     assert frames_sent(log) == 501 and frames_sent("player crashed") is None
+
+
+def test_no_engine_and_no_way_to_start_one_is_a_skip(tmp_path: Path, monkeypatch) -> None:
+    """Without a docker client (or dockerd, or root) the smoke test skips, saying why, instead of failing."""
+    from tools.compose_smoke import engine, run
+
+    monkeypatch.setattr(engine.shutil, "which", lambda name: None)
+    monkeypatch.setattr(run, "compose_command", lambda: ["docker-compose"])
+    with pytest.raises(run.Skipped, match="no docker client"):
+        run.smoke(tmp_path, timeout_s=1.0, keep_recording=False)

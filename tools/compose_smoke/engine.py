@@ -44,6 +44,10 @@ class Engine:
         return self.proc is not None
 
     def __enter__(self) -> Engine:
+        return self.start()
+
+    def start(self) -> Engine:
+        """Make sure an engine answers: the running one, else one started here (EngineUnavailable if neither)."""
         if answers():
             return self
         if shutil.which("docker") is None:

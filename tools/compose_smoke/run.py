@@ -15,7 +15,7 @@ from pathlib import Path
 
 from tools.compose_smoke import base_image, outputs
 from tools.compose_smoke.engine import Engine, EngineUnavailable
-from tools.compose_smoke.pip_sources import PipSources
+from tools.compose_smoke.pip_sources import PipSources, pip_config
 from tools.compose_smoke.stack import Stack, compose_command, containers, logs
 
 REPO = Path(__file__).resolve().parents[2]
@@ -207,8 +207,9 @@ def smoke(work: Path, timeout_s: float, keep_recording: bool) -> dict:
     (work / "logs").mkdir(parents=True, exist_ok=True)
     summary: dict = {"compose": " ".join(compose)}
     t0 = time.monotonic()
+    engine = Engine(work / "logs" / "dockerd.log")
     try:
-        engine = Engine(work / "logs" / "dockerd.log").__enter__()
+        engine.start()
     except EngineUnavailable as exc:
         raise Skipped(f"no Docker engine: {exc}") from exc
     try:
@@ -216,7 +217,7 @@ def smoke(work: Path, timeout_s: float, keep_recording: bool) -> dict:
         summary["engine_s"] = round(time.monotonic() - t0, 1)
         t = time.monotonic()
         try:
-            summary["base_image"] = base_image.ensure_base(cert=PipSources(port=0).settings.get("cert"))
+            summary["base_image"] = base_image.ensure_base(cert=pip_config().get("cert"))
         except base_image.BaseImageError as exc:
             raise SmokeFailed(str(exc)) from exc
         summary["base_image_s"] = round(time.monotonic() - t, 1)
