@@ -35,7 +35,7 @@ def test_short_row_runs_the_four_nodes_with_depth_and_mapping(default_replica):
     assert run.runner.emitted["depth/stereo"] == run.runner.emitted["depth/fused"] == len(stamps)
 
     # the mapping integrated each posed depth frame; its fields and the depth reached the back end's o2p terms
-    mapping = nodes["mapping"].loop
+    mapping = nodes["mapping"]
     posed = sum(not np.allclose(m.T_WC, np.eye(4)) for m in stereo)
     assert posed >= len(stereo) - 1 and mapping.counts["integrated"] == posed, dict(mapping.counts)
     assert run.runner.emitted.get("map/field", 0) >= 1

@@ -7,7 +7,8 @@ import numpy as np
 import open3d as o3d
 
 from services.mapping.config import MappingConfig, SubmapConfig
-from services.mapping.node import MappingLoop
+from services.mapping.node import make_node
+from shared import topics
 from shared import messages as m
 from shared.codec import Header
 from tools.raycast_depth import DepthRenderer, intrinsics, look_at, room_scene
@@ -23,17 +24,16 @@ def frames(n=6):
 
 
 def run(cfg: MappingConfig):
-    loop = MappingLoop(cfg)
+    loop = make_node(cfg)
     renderer = DepthRenderer(room_scene())
     published = []
     for stamp, T_WC in frames():
         loop.on_state(m.EstimatorState(header=Header(stamp_ns=stamp, frame_id="W"), T_WS=T_WC, v_W=np.zeros(3),
                                        gyro_bias=np.zeros(3), acc_bias=np.zeros(3), covariance=np.eye(15)))
         d = renderer.render(K, W, H, T_WC)
-        loop.on_depth(m.DepthFrame(header=Header(stamp_ns=stamp, frame_id="cam0"), depth=d,
-                                   sigma=np.full_like(d, 0.02), K=K, T_WC=np.eye(4), source="fused"))
-        loop.process_waiting()
-        published += loop.points_messages()
+        out = loop.on_depth(m.DepthFrame(header=Header(stamp_ns=stamp, frame_id="cam0"), depth=d,
+                                         sigma=np.full_like(d, 0.02), K=K, T_WC=np.eye(4), source="fused"))
+        published += [e.msg for e in out if e.topic is topics.MAP_O2P_POINTS]
     return loop, published
 
 

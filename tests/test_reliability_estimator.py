@@ -99,23 +99,23 @@ def test_mapping_freezes_its_submaps_when_the_back_end_resets():
     """After a 'reset' state the old submaps stop following keyframes (the new back end's ids mean other
     keyframes, in another world frame) and the next depth frame starts a new submap."""
     from services.mapping.config import MappingConfig
-    from services.mapping.node import MappingLoop
+    from services.mapping.node import make_node
     from shared.codec import Header
     from shared.messages import Keyframes
 
-    loop = MappingLoop(MappingConfig())
+    loop = make_node(MappingConfig())
     state, frame = _state, _depth_frame
     for t in (1, 2, 3):
         loop.on_state(state(t))
         loop.on_depth(frame(t))
-    loop.process_waiting()
+    loop.integrate_waiting()
     loop.on_keyframes(Keyframes(header=Header(stamp_ns=3), ids=np.array([0]), stamps_ns=np.array([1]),
                                 T_WS=np.eye(4)[None]))
     assert len(loop.mapper.submaps) == 1 and loop.mapper.submaps[0].keyframe_id == 0
     loop.on_state(state(10, "reset"))
     loop.on_state(state(11, x=5.0))  # the new back end's world frame
     loop.on_depth(frame(11))
-    loop.process_waiting()
+    loop.integrate_waiting()
     assert len(loop.mapper.submaps) == 2 and loop.counts["estimator_resets"] == 1
     old, new = loop.mapper.submaps
     assert new.n_frames == 1 and np.allclose(new.T_WM[0, 3], 5.0)
@@ -130,18 +130,18 @@ def test_mapping_skips_frames_the_estimator_had_no_pose_for_and_waits_for_the_ot
     """A depth frame at the stamp of an 'initialising' state is skipped at once and counted apart (it can never get a
     pose); a frame whose state is merely late waits for it and is integrated when it comes."""
     from services.mapping.config import MappingConfig
-    from services.mapping.node import MappingLoop
+    from services.mapping.node import make_node
 
-    loop = MappingLoop(MappingConfig(pose_wait_s=60.0))
+    loop = make_node(MappingConfig(pose_wait_s=60.0))
     state, frame = _state, _depth_frame
     loop.on_state(state(1, "initialising"))
     loop.on_depth(frame(1))
     loop.on_depth(frame(2))  # its state has not come yet
-    loop.process_waiting()
+    loop.integrate_waiting()
     assert loop.counts["skipped_no_estimate"] == 1 and loop.counts["integrated"] == 0
     assert len(loop.waiting) == 1 and loop.counts["dropped_no_pose"] == 0
     loop.on_state(state(2, "tracking"))
-    loop.process_waiting()
+    loop.integrate_waiting()
     assert loop.counts["integrated"] == 1 and not loop.waiting and loop.counts["skipped_no_estimate"] == 1
 
 
@@ -151,15 +151,16 @@ def test_mapping_checkpoints_in_a_thread_and_skips_one_that_falls_due_while_writ
     import threading
 
     from services.mapping import node as mapping_node
+    from services.mapping import store as mapping_store
     from services.mapping.config import MappingConfig
     from services.mapping.io import load_map
 
-    release, real_write = threading.Event(), mapping_node.write_map_arrays
-    monkeypatch.setattr(mapping_node, "write_map_arrays",
+    release, real_write = threading.Event(), mapping_store.write_map_arrays
+    monkeypatch.setattr(mapping_store, "write_map_arrays",
                         lambda arrays, path: (release.wait(10.0), real_write(arrays, path))[1])
     now = [0.0]
-    nd = mapping_node.MappingNode(MappingConfig(checkpoint_period_s=1.0, mesh_period_s=100.0), str(tmp_path),
-                                  clock=lambda: now[0])
+    nd = mapping_node.make_node(MappingConfig(checkpoint_period_s=1.0, mesh_period_s=100.0), str(tmp_path),
+                                clock=lambda: now[0])
 
     def frame(t):
         nd.on_state(_state(t, x=0.01 * t))
@@ -168,12 +169,12 @@ def test_mapping_checkpoints_in_a_thread_and_skips_one_that_falls_due_while_writ
     frame(1)
     now[0] = 1.5
     frame(2)  # the checkpoint falls due: snapshot of 2 frames, the writer waits for `release`
-    assert nd._writer is not None and nd._writer.is_alive()
+    assert nd.store.writing
     now[0] = 3.0
     frame(3)  # integrated while the first checkpoint is being written; the second is skipped
-    assert nd.loop.counts["integrated"] == 3 and nd.loop.counts["checkpoints_skipped_busy"] == 1
+    assert nd.counts["integrated"] == 3 and nd.counts["checkpoints_skipped_busy"] == 1
     release.set()
-    nd.wait_for_checkpoint()
+    nd.store.wait()
     saved = load_map(tmp_path / "map" / "dense.npz")
     assert sum(sm.n_frames for sm in saved.submaps) == 2  # the snapshot, not the map as it was when written
     nd.close()  # the final map: all three frames
@@ -185,9 +186,9 @@ def test_map_snapshots_copy_only_the_submaps_that_changed(tmp_path):
     arrays) and copies the current one again; the snapshot loads back as the map it was taken of."""
     from services.mapping.config import MappingConfig
     from services.mapping.io import map_arrays, write_map_arrays, load_map
-    from services.mapping.node import MappingLoop
+    from services.mapping.node import make_node
 
-    loop = MappingLoop(MappingConfig())
+    loop = make_node(MappingConfig())
     K, depth = _K_SMALL, _DEPTH_2M
     sigma = np.full_like(depth, 0.05)
     loop.mapper.integrate(depth, sigma, K, np.eye(4), np.eye(4), 1)

@@ -8,7 +8,7 @@
     run.runner.times      # per (node, handler): wall and CPU time of every call
 
     run = run_in_process(dataset, cfg, depth=True, mapping=True)   # the whole pipeline (sigmaslam eval ablation)
-    run.nodes["mapping"].loop.mapper                                 # the map as the mapping node holds it
+    run.nodes["mapping"].mapper                                      # the map as the mapping node holds it
     run.mesh_causal       # the map's vertices in W just before it followed the final trajectory
 
 The nodes are the services' own (services/<process>/node.py; the frontend process's is services/frontend/process_node.py,
@@ -73,9 +73,9 @@ def pipeline_nodes(cfg, cams, depth: bool = False, mapping: bool = False,
 
         nodes["depth"] = DepthNode(cfg.depth, pipeline_for_rig(cfg.depth, cams))
     if mapping:
-        from services.mapping.node import MappingNode
+        from services.mapping.node import make_node
 
-        nodes["mapping"] = MappingNode(cfg.mapping, None, **({} if clock is None else {"clock": clock}))
+        nodes["mapping"] = make_node(cfg.mapping, None, **({} if clock is None else {"clock": clock}))
     return nodes
 
 
@@ -129,9 +129,9 @@ class _Collector:
         node = self.nodes.get("mapping")
         if node is None or self.mesh_causal is not None:
             return
-        node.loop.process_waiting()  # what arrived is in the map
-        node.loop.remesh(None)
-        self.mesh_causal = np.asarray(node.loop.mapper.world_mesh()[0], float)
+        node.integrate_waiting()  # what arrived is in the map
+        node.remesh(None)
+        self.mesh_causal = np.asarray(node.mapper.world_mesh()[0], float)
 
     def __call__(self, topic, msg) -> None:
         self._loop_time(topic)

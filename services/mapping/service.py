@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import logging
 
-from services.mapping.node import MappingNode
+from services.mapping.node import make_node
 from services.system_config import load_system_config
 from shared import topics
 from transport.runner import run_node
@@ -27,7 +27,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def main(args: argparse.Namespace) -> int:
     sys_cfg = load_system_config(args.config, args.set)
     cfg = sys_cfg.mapping  # depth_topic and pose_source were checked by the loader
-    node = MappingNode(cfg, args.out or cfg.output_dir)
+    from shared.supervision import restart_count
+
+    node = make_node(cfg, args.out or cfg.output_dir, restarts=restart_count())
     from services.mapping.integrate import warm_up
 
     warm_up(cfg.sensor)

@@ -186,7 +186,7 @@ def run_row(row: str, dataset: Path, overrides: list[str], seconds: float, heuri
         raise RuntimeError(f"no frame reached the back end ({run.frames} camera frames)")
     t_loop = np.array(run.loop_s) if len(run.loop_s) == len(t_call) else np.zeros_like(t_call)
     t_be = t_call - t_loop  # the back end's own per-frame time, without the loop closer's work
-    depth, mapping = run.nodes["depth"], run.nodes["mapping"].loop
+    depth, mapping = run.nodes["depth"], run.nodes["mapping"]
     pipe, dc = depth.pipe, cfg.depth
     published = [s for s in run.states if s.status not in ("initialising", "reset")]
     res = {"row": row, "frames": run.frames, "states": len(published),
