@@ -234,10 +234,14 @@ def smoke(work: Path, timeout_s: float, keep_recording: bool) -> dict:
             Path(figures["recording"]).unlink()
         if problems:
             raise SmokeFailed("; ".join(problems))
+        summary["passed"] = True
+        return summary
+    except SmokeFailed as exc:
+        summary["failed"] = str(exc).splitlines()[0]
+        raise
+    finally:
         summary["total_s"] = round(time.monotonic() - t0, 1)
         (work / "summary.json").write_text(json.dumps(summary, indent=1))
-        return summary
-    finally:
         if engine.started:
             _log("stopping the engine started for the test")
         engine.stop()
