@@ -15,7 +15,7 @@ from pathlib import Path
 from shared.config import from_dict, load_yaml, merge, param, parse_override
 from services.app.config import SupervisorConfig
 from services.backend.config import BackendConfig
-from services.backend.o2p_config import O2PConfig
+from services.backend.o2p.config import O2PConfig
 from services.depth.config import DepthConfig
 from services.frontend.config import FrontendConfig
 from services.backend.loop.config import LoopConfig

@@ -239,7 +239,7 @@ class Landmarks(Message):
 @register(101)
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class EstimatorWindow(Message):
-    """What the per-frame fast path (services/backend/odometry.py) needs of the back end's window after a keyframe's
+    """What the per-frame fast path (services/frontend/odometry.py) needs of the back end's window after a keyframe's
     optimisation: the newest keyframe's state and the window's triangulated landmarks, both in the estimator's own
     frame W (header.frame_id = 'W', header.stamp_ns = that keyframe's time), and the loop closer's correction
     T_W'W into the frame states are published in (identity without loop closure)."""

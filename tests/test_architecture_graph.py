@@ -10,14 +10,14 @@ import pytest
 from services.app.processes import DOC, PROCESS_NODES, graph_block
 from services.backend.node import BackendNode
 from services.depth.node import DepthNode
-from services.frontend.process_node import FrontendProcessNode
+from services.frontend.node import FrontendNode
 from services.mapping.node import MappingNode
 from shared import topics
 from shared.dataflow import Emit, Input, ProcessNode, UndeclaredTopic, graph
 from shared.messages import Header, StreamEnd
 
 SERVICES = Path(__file__).resolve().parents[1] / "services"
-RUNNER_DRIVEN = (FrontendProcessNode, BackendNode, DepthNode, MappingNode)
+RUNNER_DRIVEN = (FrontendNode, BackendNode, DepthNode, MappingNode)
 
 
 def test_the_page_shows_the_declared_graph():

@@ -43,13 +43,13 @@ def test_a_backlog_of_keyframes_keeps_only_the_newest():
 def test_the_back_end_counts_the_keyframes_it_skips():
     """BackendNode.shed (live: called with what waits before each feature frame) keeps what shed_backlog keeps
     and counts the keyframes among the skipped frames (stats/backend keyframes_skipped)."""
-    from services.backend.node import BackendNode
+    from services.backend.node import make_node
     from services.system_config import load_system_config
     from shared.rig import load_rig_config
 
     cfg = load_system_config(None, ["loop.enabled=false", "backend.max_backlog_frames=3",
                                     "backend.max_backlog_keyframes=2"])
-    node = BackendNode(cfg, load_rig_config(cfg.rig))
+    node = make_node(cfg, load_rig_config(cfg.rig))
     kept, skipped = node.shed([F(0, True), F(1), F(2, True)])  # within the bounds: nothing skipped
     assert len(kept) == 3 and skipped == 0 and node.skipped_keyframes == 0
     frames = [F(i, is_keyframe=i % 2 == 0) for i in range(10)]  # keyframes 0, 2, 4, 6, 8

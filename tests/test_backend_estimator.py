@@ -6,7 +6,7 @@ import pytest
 
 import vio_sim as sim
 from services.backend.config import BackendConfig
-from services.backend.estimator import BackendCamera, BackendInputError, WindowedVioEstimator
+from services.backend.window.estimator import VioCamera, VioInputError, WindowedVioEstimator
 
 IMU_NOISE = dict(gyro_nd=1.7e-4, acc_nd=2e-3, gyro_rw=1.9e-5, acc_rw=3e-3)  # EuRoC ADIS16448 datasheet
 GYRO_BIAS = np.array([0.002, -0.001, 0.003])
@@ -19,7 +19,7 @@ def _run(t_end, cams, cfg=None, t0=0.5, blank=(np.inf, np.inf), init_gt=True, se
     rng = np.random.default_rng(seed)
     tr = tr or sim.Trajectory()
     pts = sim.landmarks_cylinder(300, seed=2)
-    est = WindowedVioEstimator(cfg or BackendConfig(compute_covariance=True), [BackendCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams])
+    est = WindowedVioEstimator(cfg or BackendConfig(compute_covariance=True), [VioCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams])
     st, om, ac = sim.imu(tr, 0.0, t_end + 0.1, 200.0, rng, gyro_bias=GYRO_BIAS, acc_bias=ACC_BIAS, **IMU_NOISE)
     if init_gt:
         T0 = tr.T_WS(np.array([t0]))[0]
@@ -173,20 +173,20 @@ def test_window_size_stays_bounded():
 
 def test_bad_input_is_a_clear_error_or_a_counted_drop():
     cams = sim.rig(2)
-    est = WindowedVioEstimator(BackendConfig(), [BackendCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams])
+    est = WindowedVioEstimator(BackendConfig(), [VioCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams])
     est.initialise(0, np.eye(3), np.zeros(3), np.zeros(3), np.zeros(3), static=True)
-    with pytest.raises(BackendInputError, match="disagree"):
+    with pytest.raises(VioInputError, match="disagree"):
         est.process_frame(0, np.arange(3), np.zeros(3), np.zeros((2, 2)))
     r = est.process_frame(0, np.arange(2), np.array([0, 7]), np.array([[10.0, 10.0], [np.nan, 1.0]]))
     assert r is not None and est.dropped_observations == 1
-    with pytest.raises(BackendInputError, match="not after"):
+    with pytest.raises(VioInputError, match="not after"):
         est.process_frame(0, np.zeros(0), np.zeros(0), np.zeros((0, 2)))
     with pytest.raises(ValueError, match="at least one camera"):
         WindowedVioEstimator(BackendConfig(), [])
 
 
 def test_results_convert_to_messages():
-    from services.backend.outputs import keyframes_message, state_message
+    from services.backend.window.stage import keyframes_message, state_message
     from shared.codec import decode, encode
 
     _, res, _, _, _ = _run(1.6, sim.rig(2))
@@ -199,7 +199,7 @@ def test_results_convert_to_messages():
 
 
 def test_keyframes_carry_window_landmarks_close_to_ground_truth():
-    from services.backend.outputs import landmarks_message
+    from services.backend.window.stage import landmarks_message
     from shared.codec import decode, encode
 
     cfg = BackendConfig(compute_covariance=False)
@@ -257,7 +257,7 @@ def _standing_still_run(still_stereo: bool, scale: float) -> tuple[int, float]:
                          gyro_bias=np.array([0.002, -0.001, 0.003]), acc_bias=np.array([0.08, -0.05, 0.04]))
     times = np.arange(0.2, 3.0, 0.1)
     est = WindowedVioEstimator(BackendConfig(still_stereo=still_stereo),
-                               [BackendCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams])
+                               [VioCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams])
     T0 = tr.T_WS(times[:1])[0]
     est.initialise(int(round(times[0] * 1e9)), T0[:3, :3], tr.velocity(times[:1])[0], np.zeros(3), np.zeros(3),
                    static=scale == 0, p_W=T0[:3, 3])
@@ -288,7 +288,7 @@ def test_window_prior_resets_carries_and_keeps_its_covariance_without_marginals(
     counted."""
     import gtsam
     from gtsam.symbol_shorthand import B, V, X
-    from services.backend.priors import WindowPrior
+    from services.backend.window.priors import WindowPrior
 
     values = gtsam.Values()
     for n in (0, 1):

@@ -7,8 +7,8 @@ import pytest
 
 import vio_sim as sim
 from services.backend.config import BackendConfig
-from services.backend.estimator import BackendCamera, WindowedVioEstimator
-from services.backend.extrinsics import carried_covariance
+from services.backend.window.estimator import VioCamera, WindowedVioEstimator
+from services.backend.window.extrinsics import carried_covariance
 from shared.geometry import pose_error
 from tools.vio.extrinsics_bench import perturb_extrinsics
 
@@ -23,7 +23,7 @@ def _run(cams, T_SC_given, refine: bool, t_end=14.0, t0=0.5, rate=10.0, seed=1):
     tr = sim.Trajectory()
     pts = sim.landmarks_cylinder(300, seed=2)
     cfg = BackendConfig(refine_extrinsics=refine)
-    est = WindowedVioEstimator(cfg, [BackendCamera(T, c.undistort, c.K[0, 0]) for c, T in zip(cams, T_SC_given)])
+    est = WindowedVioEstimator(cfg, [VioCamera(T, c.undistort, c.K[0, 0]) for c, T in zip(cams, T_SC_given)])
     st, om, ac = sim.imu(tr, 0.0, t_end + 0.1, 200.0, rng, gyro_nd=1.7e-4, acc_nd=2e-3, gyro_rw=1.9e-5, acc_rw=3e-3,
                          gyro_bias=GYRO_BIAS, acc_bias=ACC_BIAS)
     T0 = tr.T_WS(np.array([t0]))[0]
@@ -91,8 +91,7 @@ def _window(T_SC):
 
 def test_the_fast_path_and_the_frontend_take_the_refined_extrinsics_and_refuse_another_rigs():
     """... and the frontend takes the time offset estimate from the same message."""
-    from services.backend.odometry_node import OdometryNode
-    from services.frontend.node import FrontendNode
+    from services.frontend.node import make_node
     from services.system_config import load_system_config
     from shared.camera import camera_from_sensor_yaml, camera_to_sensor_yaml
     from shared.codec import decode, encode
@@ -109,8 +108,8 @@ def test_the_fast_path_and_the_frontend_take_the_refined_extrinsics_and_refuse_a
     refined = perturb_extrinsics(np.array([c.T_SC for c in cams]), 0.5, 0.005, seed=1)
     msg = decode(encode(_window(refined)))  # the field survives the wire
     np.testing.assert_allclose(msg.T_SC, refined)
-    odo, fe = OdometryNode(cfg, cams), FrontendNode(cfg.frontend, cams)
-    odo.on_window(msg)
+    fe = make_node(cfg, cams)  # tracker and fast path: both take the window
+    odo = fe.fast_path
     fe.on_window(msg)
     np.testing.assert_allclose(odo.tracker.vision.T_SC, refined)
     np.testing.assert_allclose([c.T_SC for c in fe.tracker.cameras], refined)
@@ -142,8 +141,8 @@ def test_the_joint_marginal_prior_is_the_gaussian_it_was_built_from():
     import gtsam
     from gtsam.symbol_shorthand import B, V, X
 
-    from services.backend.extrinsics import extrinsic_key
-    from services.backend.priors import marginal_prior
+    from services.backend.window.extrinsics import extrinsic_key
+    from services.backend.window.priors import marginal_prior
 
     rng = np.random.default_rng(0)
     vals = gtsam.Values()

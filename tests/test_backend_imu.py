@@ -7,7 +7,7 @@ from gtsam.symbol_shorthand import B, V, X
 
 import vio_sim as sim
 from services.backend.config import BackendConfig
-from services.backend.imu_factors import ImuBuffer, ImuDataError, imu_factor, make_bias, make_params, predict
+from shared.vio.imu_factors import ImuBuffer, ImuDataError, imu_factor, make_bias, make_params, predict
 
 
 def _state(tr, t):

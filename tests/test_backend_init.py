@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import vio_sim as sim
-from services.backend.init import InitialisationError, initialise, moving_init, static_init
+from services.backend.window.init import InitialisationError, initialise, moving_init, static_init
 
 
 def _tilt_error_deg(R_est, R_gt):

@@ -4,7 +4,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from services.backend.observations import ObservationBook
+from services.backend.window.observations import ObservationBook
 
 pytestmark = pytest.mark.unit
 

@@ -1,4 +1,4 @@
-"""The per-frame fast path (services/backend/odometry.py, odometry_node.py): the same motion-only solve as the
+"""The per-frame fast path (services/frontend/odometry.py, fast_path.py): the same motion-only solve as the
 window estimator's, from the windows the back end publishes; ground truth on a synthetic rig; stale and late input."""
 
 import numpy as np
@@ -6,8 +6,8 @@ import pytest
 
 import vio_sim as sim
 from services.backend.config import BackendConfig
-from services.backend.estimator import BackendCamera, WindowedVioEstimator
-from services.backend.odometry import FrameTracker, StaleFrame
+from services.backend.window.estimator import VioCamera, WindowedVioEstimator
+from services.frontend.odometry import FrameTracker, StaleFrame
 from shared.codec import Header, decode, encode
 from shared.messages import EstimatorWindow
 
@@ -16,7 +16,7 @@ ACC_BIAS = np.array([0.05, -0.03, 0.02])
 
 
 def _window(est: WindowedVioEstimator, res, T_corr=np.eye(4), status="tracking") -> EstimatorWindow:
-    """What the back end publishes after a keyframe (BackendShell.window_message), through the codec."""
+    """What the back end publishes after a keyframe (WindowStage.window_message), through the codec."""
     ids, p_W = est.window_points()
     msg = EstimatorWindow(header=Header(stamp_ns=int(res.stamp_ns), seq=0, frame_id="W"), T_WS=res.T_WS,
                           v_W=res.v_W, gyro_bias=res.gyro_bias, acc_bias=res.acc_bias, T_corr=T_corr,
@@ -39,7 +39,7 @@ def _sim(t_end=6.0, rate=10.0, t0=0.5, seed=1):
 
 def test_fast_path_equals_the_estimators_own_motion_only_solve_and_tracks_ground_truth():
     tr, cams, (st, om, ac), times, frames, T0, v0 = _sim()
-    bcams = [BackendCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams]
+    bcams = [VioCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams]
     cfg = BackendConfig(fast_path_settle_s=0.0)  # the anchor pinned from the first window, as the estimator pins it
     est = WindowedVioEstimator(cfg, bcams)
     est.initialise(int(round(times[0] * 1e9)), T0[:3, :3], v0, np.zeros(3), np.zeros(3), static=True, p_W=T0[:3, 3])
@@ -70,7 +70,7 @@ def test_fast_path_equals_the_estimators_own_motion_only_solve_and_tracks_ground
 
 def test_window_order_stale_frames_and_missing_imu():
     tr, cams, (st, om, ac), times, frames, T0, v0 = _sim(t_end=2.0)
-    bcams = [BackendCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams]
+    bcams = [VioCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams]
     cfg = BackendConfig()
     fast = FrameTracker(cfg, bcams)
     stamp = int(round(times[3] * 1e9))
@@ -83,7 +83,7 @@ def test_window_order_stale_frames_and_missing_imu():
     assert fast.set_window(_window(est, res))
     with pytest.raises(StaleFrame):
         fast.track(int(round(times[2] * 1e9)), *frames[2])
-    from services.backend.imu_factors import ImuDataError
+    from shared.vio.imu_factors import ImuDataError
 
     with pytest.raises(ImuDataError):  # the fast path has been given no IMU at all
         fast.track(int(round(times[4] * 1e9)), *frames[4])
@@ -98,17 +98,16 @@ def test_window_order_stale_frames_and_missing_imu():
     assert np.allclose(kf.T_WS, res.T_WS)
 
 
-def test_node_applies_the_loop_correction_resets_and_waits_only_when_asked():
+def test_fast_path_applies_the_loop_correction_resets_and_waits_only_when_asked():
     import dataclasses
 
-    from services.backend.odometry_node import OdometryNode
+    from services.frontend.fast_path import FastPath
     from services.system_config import load_system_config
-    from shared import topics
     from shared.messages import FeatureFrame, ImuSample
     from shared.rig import RigConfig, load_rig_config
 
     tr, cams, (st, om, ac), times, frames, T0, v0 = _sim(t_end=2.0)
-    bcams = [BackendCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams]
+    bcams = [VioCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams]
     est = WindowedVioEstimator(BackendConfig(), bcams)
     s0 = int(round(times[0] * 1e9))
     est.initialise(s0, T0[:3, :3], v0, np.zeros(3), np.zeros(3), static=True, p_W=T0[:3, 3])
@@ -118,8 +117,8 @@ def test_node_applies_the_loop_correction_resets_and_waits_only_when_asked():
     T_corr = np.eye(4)
     T_corr[:3, 3] = [1.0, -2.0, 0.5]
 
-    node = OdometryNode(load_system_config(None, []), load_rig_config(RigConfig()))  # the bundled EuRoC rig ...
-    node.tracker = FrameTracker(node.bc, bcams)  # ... tracking on the synthetic rig the frames come from
+    node = FastPath(load_system_config(None, []).backend, load_rig_config(RigConfig()))  # the bundled EuRoC rig ...
+    node.tracker = FrameTracker(node.cfg, bcams)  # ... tracking on the synthetic rig the frames come from
     for s, w, a in zip(st, om, ac):
         node.on_imu(ImuSample(header=Header(stamp_ns=int(s), seq=0, frame_id="S"), omega_S=w, acc_S=a))
 
@@ -129,24 +128,23 @@ def test_node_applies_the_loop_correction_resets_and_waits_only_when_asked():
                             landmark_ids=ids, camera_index=c.astype(np.int16), uv=uv.astype(np.float32),
                             p_W_init=np.full((len(ids), 3), np.nan), is_keyframe=kf)
 
-    (e,) = node.on_features(frame(0, kf=True))
-    assert e.topic is topics.STATE and e.msg.status == "initialising"  # before the first window
+    e = node.state_of(frame(0, kf=True))
+    assert e.status == "initialising"  # before the first window
     node.on_window(_window(est, res, T_corr))
-    (e,) = node.on_features(frame(1))
+    e = node.state_of(frame(1))
     plain = node.tracker.track(int(round(times[1] * 1e9)), *frames[1])
-    assert np.allclose(e.msg.T_WS, T_corr @ plain.T_WS) and np.allclose(e.msg.v_W, plain.v_W)
-    assert np.isnan(e.msg.covariance).all() and e.msg.status == plain.status
-    assert node.on_features(frame(0, dt_ns=-10**7)) == [] and node.dropped == 1  # older than the anchor: dropped and counted
+    assert np.allclose(e.T_WS, T_corr @ plain.T_WS) and np.allclose(e.v_W, plain.v_W)
+    assert np.isnan(e.covariance).all() and e.status == plain.status
+    assert node.state_of(frame(0, dt_ns=-10**7)) is None and node.dropped == 1  # older than the anchor: dropped and counted
     reset = dataclasses.replace(_window(est, res), status="reset")
     node.on_window(reset)  # a restarted back end: the old window is forgotten
-    statuses = [node.on_features(frame(k))[0].msg.status for k in (3, 4)]
+    statuses = [node.state_of(frame(k)).status for k in (3, 4)]
     assert statuses == ["reset", "initialising"]  # 'reset' once, then no pose until the new back end's window
     node.on_window(_window(est, res, T_corr))
-    window_input = next(i for i in OdometryNode.inputs if i.topic is topics.WINDOW)
-    assert node.wait_stamp(window_input, 123) == -1  # live: never waits for a window
+    assert node.window_stamp() == -1  # live: never waits for a window
     node.waits_for_window = True
-    node.on_features(frame(2, kf=True))
-    assert node.wait_stamp(window_input, 456) == int(round(times[2] * 1e9))  # lockstep: that keyframe's window
+    node.state_of(frame(2, kf=True))
+    assert node.window_stamp() == int(round(times[2] * 1e9))  # lockstep: that keyframe's window
 
 
 
@@ -156,7 +154,7 @@ def _drift_from_a_wrong_anchor(cfg: BackendConfig, dv: np.ndarray, earlier_windo
     import dataclasses
 
     tr, cams, (st, om, ac), times, frames, T0, v0 = _sim(t_end=3.0, rate=20.0)
-    bcams = [BackendCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams]
+    bcams = [VioCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams]
     est = WindowedVioEstimator(BackendConfig(), bcams)
     est.initialise(int(round(times[0] * 1e9)), T0[:3, :3], v0, np.zeros(3), np.zeros(3), static=True,
                    p_W=T0[:3, 3])

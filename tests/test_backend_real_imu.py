@@ -8,7 +8,7 @@ import gtsam
 import numpy as np
 
 from services.backend.config import BackendConfig
-from services.backend.imu_factors import ImuBuffer, make_bias, make_params, predict
+from shared.vio.imu_factors import ImuBuffer, make_bias, make_params, predict
 from shared.paths import euroc_dir
 
 DATA = euroc_dir()  # the shared EuRoC folder, else the files bundled in data/euroc

@@ -3,7 +3,7 @@ convergence when the correction is fed back (the estimator on a synthetic flight
 import numpy as np
 import pytest
 
-from services.backend.time_offset import TimeOffsetEstimator, rotation_residual
+from services.backend.window.time_offset import TimeOffsetEstimator, rotation_residual
 from shared.geometry import so3_log
 
 pytestmark = pytest.mark.unit

@@ -15,13 +15,13 @@ def test_the_estimator_finds_the_offset_of_a_synthetic_rig_with_the_frontend_cor
     import vio_sim as sim
 
     from services.backend.config import BackendConfig
-    from services.backend.estimator import BackendCamera, WindowedVioEstimator
+    from services.backend.window.estimator import VioCamera, WindowedVioEstimator
 
     def run(estimate: bool, td=0.005, t0=0.5, t_end=20.0, rate=20.0):
         rng = np.random.default_rng(4)
         tr, pts, cams = _agile(), sim.landmarks_cylinder(300, seed=2), sim.rig(2)
         est = WindowedVioEstimator(BackendConfig(estimate_time_offset=estimate),
-                                   [BackendCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams])
+                                   [VioCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams])
         st, om, ac = sim.imu(tr, 0.0, t_end + 0.1, 200.0, rng, gyro_nd=1.7e-4, acc_nd=2e-3, gyro_rw=1.9e-5,
                              acc_rw=3e-3)
         T0 = tr.T_WS(np.array([t0]))[0]

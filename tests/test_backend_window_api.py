@@ -1,4 +1,4 @@
-"""The estimator's window is read and written only through its public API (services/backend/estimator.py): nothing
+"""The estimator's window is read and written only through its public API (services/backend/window/estimator.py): nothing
 outside estimator.py touches ``est._*``; the read API answers what initialisation and loop closure need, and the
 collaborators given to the constructor are called (extra factors every optimisation, listeners before each
 marginalisation)."""
@@ -13,7 +13,7 @@ from gtsam.symbol_shorthand import X
 
 import vio_sim as sim
 from services.backend.config import BackendConfig
-from services.backend.estimator import BackendCamera, WindowedVioEstimator
+from services.backend.window.estimator import VioCamera, WindowedVioEstimator
 
 ROOT = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").exists())
 ESTIMATOR_NAMES = {"est", "estimator"}  # how the code base names a WindowedVioEstimator
@@ -32,7 +32,7 @@ def _private_estimator_accesses(source: str, name: str) -> list[str]:
 
 
 def test_nothing_outside_the_estimator_touches_its_private_fields():
-    own = ROOT / "services" / "backend" / "estimator.py"
+    own = ROOT / "services" / "backend" / "window" / "estimator.py"
     files = [p for d in ("services", "tools", "tests", "examples") for p in sorted((ROOT / d).rglob("*.py")) if p != own]
     assert len(files) > 100
     hits = [h for p in files for h in _private_estimator_accesses(p.read_text(), str(p.relative_to(ROOT)))]
@@ -68,7 +68,7 @@ def test_read_api_and_constructor_collaborators():
     tr, cams, pts = sim.Trajectory(), sim.rig(2), sim.landmarks_cylinder(300, seed=2)
     extra, listener = _Extra(), _Listener()
     est = WindowedVioEstimator(BackendConfig(window_keyframes=4),
-                               [BackendCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams],
+                               [VioCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams],
                                extra_factors=[extra], on_marginalise=[listener])
     st, om, ac = sim.imu(tr, 0.0, 2.1, 200.0)
     t0 = 0.5

@@ -12,7 +12,8 @@ import pytest
 import frontend_scene as fs
 from services.frontend.config import FrontendConfig
 from services.frontend.gyro import GyroIntegrator
-from services.frontend.tracker import FrontendInputError, MultiCameraTracker
+from services.frontend.frames import FrontendInputError
+from services.frontend.tracker import MultiCameraTracker
 from shared.geometry import so3_exp
 
 DT = 0.05
@@ -189,7 +190,7 @@ def test_normalised_gain_removes_a_global_gain():
     """frontend.normalise_gain: two images of the same scene under gains 1 and 1.25 become the same image."""
     import numpy as np
 
-    from services.frontend.tracker import normalised_gain
+    from services.frontend.klt import normalised_gain
 
     rng = np.random.default_rng(0)
     base = rng.uniform(30, 170, (120, 160))
@@ -204,7 +205,7 @@ def test_normalised_gain_removes_a_global_gain():
 def test_gain_matched_scales_the_brighter_image_down():
     """gain_matched: of two images of one scene under gains 1 and 1.3, the brighter becomes the darker (to 1 DN)
     and the darker is left as it was (nothing saturates)."""
-    from services.frontend.tracker import gain_matched
+    from services.frontend.klt import gain_matched
 
     rng = np.random.default_rng(2)
     base = rng.uniform(20, 190, (120, 160))
@@ -395,12 +396,12 @@ def test_affine_refinement_keeps_tracks_on_their_points(stereo_seq, keyframes_on
 def test_a_frontend_process_behind_the_sensor_skips_its_oldest_frames():
     """Live, frames that wait beyond frontend.max_backlog_frames are skipped oldest first (the runner counts them as
     drops), so the pose latency stays bounded; 0 keeps every frame; a negative bound is refused."""
-    from services.frontend.process_node import FrontendProcessNode
+    from services.frontend.node import make_node
     from services.system_config import load_system_config
     from shared import topics
 
     cfg = load_system_config(None, [])
-    node = FrontendProcessNode(cfg, fs.rig())
+    node = make_node(cfg, fs.rig())
     trigger = next(i for i in node.inputs if i.role == "trigger")
     assert trigger.topic is topics.FRAME and getattr(node, trigger.shed) == node.shed  # the runner sheds through it
     pending = list(range(7))
@@ -408,7 +409,7 @@ def test_a_frontend_process_behind_the_sensor_skips_its_oldest_frames():
     bound = cfg.frontend.max_backlog_frames
     assert bound > 0 and kept == pending[-bound:] and skipped == 7 - bound
     assert node.shed(pending[:bound]) == (pending[:bound], 0)
-    unbounded = FrontendProcessNode(load_system_config(None, ["frontend.max_backlog_frames=0"]), fs.rig())
+    unbounded = make_node(load_system_config(None, ["frontend.max_backlog_frames=0"]), fs.rig())
     assert unbounded.shed(pending) == (pending, 0)
     with pytest.raises(ValueError, match="max_backlog_frames"):
         dataclasses.replace(FrontendConfig(), max_backlog_frames=-1)
@@ -416,26 +417,28 @@ def test_a_frontend_process_behind_the_sensor_skips_its_oldest_frames():
 
 @pytest.mark.parametrize("skip", [False, True])
 def test_the_frontend_node_skips_detection_only_when_behind_and_asked_to(stereo_seq, skip):
-    """FrontendNode.after_publish(behind=...): with frontend.skip_detection_when_behind, a frame taken while the
-    next one waited gets no new features; a frame taken on time always does, and so does every frame without
-    the setting."""
-    from services.frontend.node import FrontendNode
-    from shared.messages import EstimatorState, Header, MultiCameraFrame
+    """FrontendNode.after_publish: with frontend.skip_detection_when_behind, a frame taken while the next one waited
+    (the runner's ``backlog`` > 0) gets no new features; a frame taken on time always does, and so does every frame
+    without the setting. The frames are tracked alone (FrontendNode.track: no fast path, whose placeholder states
+    would say 'initialising')."""
+    from services.frontend.node import make_node
+    from services.system_config import load_system_config
+    from shared.messages import Header, MultiCameraFrame
 
     room, cams, poses, images = stereo_seq
-    cfg = dataclasses.replace(FrontendConfig(), kf_min_parallax_px=4.0, skip_detection_when_behind=skip)
-    node = FrontendNode(cfg, cams)
-    node.on_state(EstimatorState(header=Header(stamp_ns=0, seq=0, frame_id="W"), T_WS=np.eye(4), v_W=np.zeros(3),
-                                 gyro_bias=np.zeros(3), acc_bias=np.zeros(3), covariance=np.eye(15),
-                                 status="tracking"))  # detection is deferred only while the estimator tracks
+    cfg = load_system_config(None, ["frontend.kf_min_parallax_px=4.0",
+                                    f"frontend.skip_detection_when_behind={str(skip).lower()}"])
+    node = make_node(cfg, cams)
+    node.estimator_status = "tracking"  # detection is deferred only while the estimator tracks
     done = {True: 0, False: 0}
     for k, ims in enumerate(images):
         t = int(round(k * DT * 1e9))
-        node.on_frame(MultiCameraFrame(header=Header(stamp_ns=t, seq=k, frame_id="rig"), images=tuple(ims),
-                                       camera_names=tuple(node.names), stamps_ns=np.full(len(ims), t, np.int64)))
+        node.track(MultiCameraFrame(header=Header(stamp_ns=t, seq=k, frame_id="rig"), images=tuple(ims),
+                                    camera_names=tuple(node.names), stamps_ns=np.full(len(ims), t, np.int64)))
         behind = k % 4 == 1  # here every other frame is a keyframe: behind at half of the others
         pending = node.tracker.detection_pending
-        node.after_publish(behind=behind)
+        node.backlog = int(behind)
+        node.after_publish()
         assert not node.tracker.detection_pending
         done[behind] += pending
     assert done[True] > 0 and done[False] > 0

@@ -1,4 +1,4 @@
-"""Gravity alignment of a moving start's window (services/backend/gravity_align.py) on a procedural flight."""
+"""Gravity alignment of a moving start's window (services/backend/window/gravity_align.py) on a procedural flight."""
 
 import gtsam
 import numpy as np
@@ -7,8 +7,8 @@ from gtsam.symbol_shorthand import B, L, V, X
 
 import vio_sim as sim
 from services.backend.config import BackendConfig
-from services.backend.gravity_align import align_window, imu_deltas
-from services.backend.imu_factors import ImuBuffer, make_params
+from services.backend.window.gravity_align import align_window, imu_deltas
+from shared.vio.imu_factors import ImuBuffer, make_params
 from shared.geometry import so3_exp
 
 T_SC = np.eye(4)

@@ -11,7 +11,7 @@ import pytest
 from services.app.inprocess import run_in_process
 from services.backend.node import BackendNode
 from services.depth.node import DepthNode
-from services.frontend.process_node import FrontendProcessNode
+from services.frontend.node import FrontendNode
 from services.mapping.node import MappingNode
 from services.system_config import load_system_config
 from shared import topics
@@ -26,7 +26,7 @@ def test_short_row_runs_the_four_nodes_with_depth_and_mapping(default_replica):
     run = run_in_process(str(default_replica), cfg, depth=True, mapping=True, seconds=2.0,
                          taps=[lambda topic, msg: stereo.append(msg) if topic == topics.DEPTH_STEREO else None])
     nodes = run.nodes
-    assert [type(n) for n in nodes.values()] == [FrontendProcessNode, BackendNode, DepthNode, MappingNode]
+    assert [type(n) for n in nodes.values()] == [FrontendNode, BackendNode, DepthNode, MappingNode]
     assert 35 <= run.frames <= 41 and run.final is not None
 
     # the depth node's own pacing: at most one frame per 1 / depth.rate_hz of sensor time

@@ -15,7 +15,7 @@
 
 Every ``import`` counts, also those inside functions (lazy) or under ``TYPE_CHECKING``, and so does a string
 that names one of the project's modules (``importlib.import_module(name)``, ``python -m name``, the CLI's
-command registries). The only exceptions are in :data:`DEV_COMMANDS` and :data:`HOSTED_NODES`.
+command registries). The only exceptions are in :data:`DEV_COMMANDS`.
 """
 
 from __future__ import annotations
@@ -39,15 +39,6 @@ DEV_COMMANDS = {
     ("services/app/eval_cmd.py", "tools.eval.suite"),
     ("services/app/eval_cmd.py", "tools.eval.relocalise"),  # sigmaslam eval relocalise: saved-map figures  # sigmaslam eval suite: the paper's tables I, II, V
     ("services/app/eval_cmd.py", "tools.depth.stereo_bench"),  # sigmaslam eval stereo: real-photograph stereo
-}
-
-# A process that hosts another package's node: (file, module) pairs, each with its reason; keep this list tiny.
-HOSTED_NODES = {
-    # the frontend's OS process runs the back end's per-frame fast path (stop 33: a frame's state leaves the
-    # process that tracked it). The fast path's code stays with the estimator it shares with the back end's window
-    # (IMU pre-integration, motion-only solve, projection model); moving that shared estimator code below the
-    # process packages would remove this exception
-    ("services/frontend/process_node.py", "services.backend.odometry_node"),
 }
 
 _MODULE_NAME = re.compile(r"^(%s)(\.\w+)+$" % "|".join(PACKAGES))
@@ -119,8 +110,6 @@ def violations(rel_path: str, source: str, modules: set[str]) -> list[str]:
             why = f"process package services/{src_pkg} may not import {what} ({target})"
         if why and by_name and (rel_path, target) in DEV_COMMANDS:
             continue
-        if why and not by_name and (rel_path, target) in HOSTED_NODES:
-            continue
         if why:
             out.append(f"{rel_path}:{line}: {text}{' (names a module)' if by_name else ''}: {why}")
     return out
@@ -176,7 +165,7 @@ def test_the_check_sees_lazy_imports_strings_and_names_file_and_line():
     assert violations("shared/x.py", "from transport.queues import Empty\n", names) == [
         "shared/x.py:1: from transport.queues import Empty: shared shared.x may not import transport transport.queues"]
     # a schema imports only shared, transport and schemas; the application may import anything but tools
-    assert violations("services/backend/config.py", "from services.backend.estimator import X\n", names)
+    assert violations("services/backend/config.py", "from services.backend.window.estimator import X\n", names)
     assert not violations("services/system_config.py", "from services.mapping.config import MappingConfig\n", names)
     assert not violations("services/app/run_cmd.py", "from services.mapping.io import write_ply\n", names)
     assert violations("services/app/demo_cmd.py", "from tools.eval.suite import main\n", names)

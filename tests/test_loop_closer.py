@@ -13,7 +13,7 @@ import pytest
 
 import vio_sim as sim
 from services.backend.config import BackendConfig
-from services.backend.estimator import BackendCamera, WindowedVioEstimator
+from services.backend.window.estimator import VioCamera, WindowedVioEstimator
 from services.backend.loop.config import LoopConfig
 from services.backend.loop.history import KeyframeHistory, KeyframeRecord
 from services.backend.loop.loop_closer import LoopCloser
@@ -33,7 +33,7 @@ def _run(t_end, blank=(np.inf, np.inf), seed=5, threaded=False, acc_bias=(0.05, 
     pts = sim.landmarks_cylinder(600, seed=6)
     codes = rng.integers(0, 256, (len(pts), 32), dtype=np.uint8)
     cams = sim.rig(2)
-    bcams = [BackendCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams]
+    bcams = [VioCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams]
     closer = LoopCloser(cfg, bcams)
     if prior is not None:
         closer.load_prior(prior)
@@ -195,7 +195,7 @@ def _stored_closer(n_neighbours):
     of each one's features have no landmark position."""
     cams = sim.rig(2)
     closer = LoopCloser(LoopConfig(verify_neighbours=n_neighbours, min_inliers=5),
-                        [BackendCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams])
+                        [VioCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams])
     rng = np.random.default_rng(0)
     for k in range(1, 6):
         ids = np.arange(10 * k, 10 * k + 15, dtype=np.int64)  # 5 shared with the next keyframe

@@ -7,7 +7,7 @@ import numpy as np
 
 import vio_sim as sim
 from services.backend.config import BackendConfig
-from services.backend.estimator import BackendCamera, WindowedVioEstimator
+from services.backend.window.estimator import VioCamera, WindowedVioEstimator
 from services.backend.loop.config import LoopConfig
 from services.backend.loop.final_ba import bundle_adjust, follow_keyframes
 from services.backend.loop.history import KeyframeHistory
@@ -24,7 +24,7 @@ def _run(t_end=24.0, t0=0.5, rate=10.0, seed=3, sigma_px=1.0):
     cams = sim.rig(2)
     hist = KeyframeHistory()
     est = WindowedVioEstimator(BackendConfig(compute_covariance=False),
-                               [BackendCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams], on_marginalise=[hist])
+                               [VioCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams], on_marginalise=[hist])
     st, om, ac = sim.imu(tr, 0.0, t_end + 0.1, 200.0, rng, gyro_bias=(0.002, -0.001, 0.003),
                          acc_bias=(0.05, -0.03, 0.02), **IMU_NOISE)
     T0 = tr.T_WS(np.array([t0]))[0]

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from services.backend.cameras import camera_from_calib
+from shared.vio.cameras import camera_from_calib
 from services.frontend.config import FrontendConfig
 from services.backend.loop.place_recognition import PlaceDatabase
 from services.backend.loop.verification import FeatureSet, verify_pnp

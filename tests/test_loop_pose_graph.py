@@ -106,7 +106,7 @@ def test_covisibility_queries():
 
 
 def test_corrected_state_moves_pose_velocity_and_covariance_consistently():
-    from services.backend.loop.backend_loop import corrected_state
+    from shared.vio.states import corrected_state
     from shared.messages import EstimatorState, Header
 
     rng = np.random.default_rng(4)

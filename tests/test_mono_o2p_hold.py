@@ -1,4 +1,4 @@
-"""One camera: the occupancy-to-point factors wait for the window's metric hold (services/backend/o2p_terms.py,
+"""One camera: the occupancy-to-point factors wait for the window's metric hold (services/backend/o2p/terms.py,
 OccupancyTerms.window_factors, the terms being the estimator's extra-factor source). A real one-camera
 WindowedVioEstimator on a rig standing still: before its first still keyframe it has no scale, and depth frames and
 submaps of that time are never used, even later; once it stood still and ``o2p.mono_settle_s`` passed, a covisible
@@ -11,10 +11,10 @@ import pytest
 
 import vio_sim as sim
 from services.backend.config import BackendConfig
-from services.backend.estimator import BackendCamera, WindowedVioEstimator
-from services.backend.mono_init import metric_hold
-from services.backend.o2p_config import O2PConfig
-from services.backend.o2p_terms import OccupancyTerms
+from services.backend.window.estimator import VioCamera, WindowedVioEstimator
+from services.backend.window.mono_init import metric_hold
+from services.backend.o2p.config import O2PConfig
+from services.backend.o2p.terms import OccupancyTerms
 from services.mapping.export import field_message
 from services.mapping.mesh import ChunkMesher
 from services.mapping.submaps import Submap
@@ -34,7 +34,7 @@ def test_dense_factors_wait_for_the_metric_hold_of_a_one_camera_window(room):
     store, renderer, l_min = room
     cam = sim.rig(1)[0]
     terms = OccupancyTerms(O2PConfig(enabled=True, mono_settle_s=0.5))
-    est = WindowedVioEstimator(BackendConfig(), [BackendCamera(cam.T_SC, cam.undistort, cam.K[0, 0])],
+    est = WindowedVioEstimator(BackendConfig(), [VioCamera(cam.T_SC, cam.undistort, cam.K[0, 0])],
                                extra_factors=[terms])  # as the back end's composition root wires it
     still = sim.Trajectory(scale=0.0)  # standing still at the origin (rotors off: no vibration)
     st, om, ac = sim.imu(still, 0.0, 4.0, 200.0)

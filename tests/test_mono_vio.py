@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import e2e_dataset
-from services.backend.still import bearing_rotation, still_motion
+from services.backend.window.still import bearing_rotation, still_motion
 from shared.geometry import so3_exp
 from tools.vio.offline import run
 
@@ -56,7 +56,7 @@ def test_mono_vio_tracks_a_still_start_and_take_off(tmp_path):
 def test_alignment_recovers_scale_velocities_and_gravity():
     """Keyframes of a known accelerating, turning motion: camera centres divided by an unknown scale, the exact
     IMU deltas between them; the linear alignment returns the scale, every velocity and gravity."""
-    from services.backend.mono_init import align
+    from services.backend.window.mono_init import align
 
     rng = np.random.default_rng(3)
     g = np.array([0.3, -0.2, -9.79])  # in the first camera's frame (tilted)

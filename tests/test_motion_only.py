@@ -1,4 +1,4 @@
-"""The motion-only solve (services/backend/motion_only.py): its pose Jacobians against finite differences of gtsam's
+"""The motion-only solve (shared/vio/motion_only.py): its pose Jacobians against finite differences of gtsam's
 retraction, and its solution against gtsam's Levenberg-Marquardt on the same cost written as a graph (landmarks and
 keyframe as variables pinned by tight priors), with an IMU factor, outliers under the Cauchy loss and a point behind
 a camera."""
@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from gtsam.symbol_shorthand import B, L, V, X
 
-from services.backend.cameras import BackendCamera
+from shared.vio.cameras import VioCamera
 from services.backend.config import BackendConfig
-from services.backend.imu_factors import imu_factor, make_bias, make_params, predict
-from services.backend.motion_only import _residuals, optimise_latest
-from services.backend.vision_factors import ProjectionModel
+from shared.vio.imu_factors import imu_factor, make_bias, make_params, predict
+from shared.vio.motion_only import _residuals, optimise_latest
+from shared.vio.vision_factors import ProjectionModel
 from shared.geometry import so3_exp
 
 pytestmark = pytest.mark.unit
@@ -22,7 +22,7 @@ def _rig():
     T0, T1 = np.eye(4), np.eye(4)
     T0[:3, :3] = so3_exp(np.array([0.05, -0.1, 0.02]))
     T1[:3, :3], T1[:3, 3] = so3_exp(np.array([0.02, 0.05, -0.03])), [0.11, 0.0, 0.01]
-    return [BackendCamera(T_SC=T, undistort=lambda uv: uv, focal_px=460.0) for T in
+    return [VioCamera(T_SC=T, undistort=lambda uv: uv, focal_px=460.0) for T in
             (T0, T1)]
 
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from gtsam.symbol_shorthand import X
 
-from services.backend.o2p_factor import OccupancyToPoint, trilinear_derivatives
+from services.backend.o2p.factor import OccupancyToPoint, trilinear_derivatives
 from shared.occupancy.blocks import BlockStore
 from shared.occupancy.query import BlockField, interpolate, near_surface_field
 from shared.geometry import inv_T, make_T, so3_exp

@@ -1,4 +1,4 @@
-"""Consistency gates of the occupancy-to-point factors (services/backend/o2p_terms.py): a factor whose depth is
+"""Consistency gates of the occupancy-to-point factors (services/backend/o2p/terms.py): a factor whose depth is
 grossly inconsistent with the map at the current estimate never enters the graph (chi-square on its whitened
 error, counted), nor one whose points barely overlap the target's observed field; consistent ones pass."""
 
@@ -10,9 +10,10 @@ import pytest
 from gtsam.symbol_shorthand import X
 from scipy.stats import chi2
 
-from services.backend.o2p_config import O2PConfig
-from services.backend.o2p_factor import OccupancyToPoint
-from services.backend.o2p_terms import OccupancyTerms, consistency
+from services.backend.o2p.config import O2PConfig
+from services.backend.o2p.factor import OccupancyToPoint
+from services.backend.o2p.gates import consistency
+from services.backend.o2p.terms import OccupancyTerms
 from services.mapping.export import field_message
 from shared.occupancy.message import field_of_message
 from services.mapping.mesh import ChunkMesher
@@ -115,7 +116,7 @@ def test_points_barely_overlapping_the_observed_field_are_rejected(room):
 def test_map_to_map_term_is_gated_at_the_anchor_estimate(room):
     """The loop closer builds a map-to-map term at its graph's anchor poses: consistent there it is a factor;
     with submap m's points 20 % short of o's surfaces it is None (the closer counts and skips it)."""
-    from services.backend.o2p_terms import MapToMap
+    from services.backend.o2p.map_to_map import MapToMap
 
     msg, renderer = room
     field = field_of_message(msg)

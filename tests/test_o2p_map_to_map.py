@@ -9,7 +9,7 @@ import dataclasses
 import gtsam
 import numpy as np
 
-from services.backend.o2p_config import O2PConfig
+from services.backend.o2p.config import O2PConfig
 from services.backend.loop.config import LoopConfig
 from services.backend.loop.final_ba import bundle_adjust
 from services.backend.loop.history import KeyframeRecord
@@ -115,16 +115,16 @@ def test_final_bundle_adjustment_uses_map_to_map(o2p_room):
 def test_submap_anchor_uses_the_keyframe_pose_as_published():
     """The mapping's T_WM of a submap lives in the frame of the keyframe poses it last received, so the back end
     takes T_KM against the pose the last Keyframes message carried, not against a newer correction."""
-    from services.backend.node import BackendNode
+    from services.backend.node import make_node
     from services.system_config import load_system_config
     from shared.geometry import make_T, so3_exp
     from shared.messages import Header, Keyframes
     from shared.rig import load_rig_config
 
     cfg = load_system_config(None, ["loop.synchronous=true", "o2p.enabled=true"])
-    node = BackendNode(cfg, load_rig_config(cfg.rig))  # the composition root: the terms' anchoring is the loop's
-    lb = node.loop
-    assert node.shell.o2p.anchoring is lb.published
+    node = make_node(cfg, load_rig_config(cfg.rig))  # the composition root: the terms' anchoring is the loop's
+    lb = node.loop_closure
+    assert node.o2p.anchoring is lb.published
     try:
         T_window = make_T(so3_exp(np.array([0.0, 0.0, 0.3])), np.array([1.0, 2.0, 0.5]))  # the window's estimate
         lb.history.records.append(KeyframeRecord(5, 2 * S, T_window, np.zeros(3), gtsam.imuBias.ConstantBias(), {}, {}))

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from gtsam.symbol_shorthand import X
 
-from services.backend.o2p_config import O2PConfig
-from services.backend.o2p_terms import OccupancyTerms
+from services.backend.o2p.config import O2PConfig
+from services.backend.o2p.terms import OccupancyTerms
 from shared.occupancy.o2p_points import SubmapPointPool, select_depth_points
 from shared.occupancy.blocks import BlockStore
 from services.mapping.export import field_message
@@ -23,7 +23,7 @@ S = 1_000_000_000  # 1 s in ns
 
 
 class Anchors:
-    """A fixed SubmapAnchoring (services/backend/protocols.py), as the loop-closing back end's PublishedFrame
+    """A fixed SubmapAnchoring (services/backend/window/protocols.py), as the loop-closing back end's PublishedFrame
     answers: ``published`` creation stamp -> (keyframe state, its pose as published), ``C`` = T_W'W or None."""
 
     def __init__(self, published=None, C=None):

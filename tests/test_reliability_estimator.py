@@ -7,12 +7,12 @@ import pytest
 
 import vio_sim as sim
 from services.backend.config import BackendConfig
-from services.backend.estimator import BackendCamera, WindowedVioEstimator
-from services.backend.imu_factors import ImuDataError
+from services.backend.window.estimator import VioCamera, WindowedVioEstimator
+from shared.vio.imu_factors import ImuDataError
 
 
 def _estimator(cams):
-    return WindowedVioEstimator(BackendConfig(), [BackendCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams])
+    return WindowedVioEstimator(BackendConfig(), [VioCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams])
 
 
 def test_imu_gap_duplicates_backwards_and_nan_samples():

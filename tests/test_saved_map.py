@@ -141,14 +141,15 @@ def test_a_map_saved_by_the_loop_closer_places_a_new_view_after_the_file_round_t
     frame W (a yaw and a shift from the truth) are saved, loaded by a second closer, and a view the first session
     never had (half a keyframe interval later, from another session's frame) is matched to them by PnP at its true
     pose in W. Also checked: each saved landmark projects onto its saved feature at its keyframe's saved pose."""
-    from services.backend.estimator import BackendCamera
+    from services.backend.window.estimator import VioCamera
     from services.backend.loop.history import KeyframeRecord
-    from services.backend.loop.loop_closer import PRIOR_KEY_BASE, LoopCloser
+    from services.backend.loop.loop_closer import LoopCloser
+    from services.backend.loop.map_session import PRIOR_KEY_BASE
 
     rng = np.random.default_rng(3)
     tr, pts, cams = sim.Trajectory(), sim.landmarks_cylinder(600, seed=6), sim.rig(2)
     codes = rng.integers(0, 256, (len(pts), 32), dtype=np.uint8)
-    bcams = [BackendCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams]
+    bcams = [VioCamera(c.T_SC, c.undistort, c.K[0, 0]) for c in cams]
     T_WG = _T([0.0, 0.0, 0.8], [1.5, -0.5, 0.2])  # the first session's window frame W from the truth
     cfg = LoopConfig(min_inliers=15)
     first = LoopCloser(cfg, bcams)

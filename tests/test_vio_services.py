@@ -1,7 +1,8 @@
 """Frontend and backend services as real processes over Zenoh on loopback.
 
-Back end (a process) and its per-frame fast path (the node the frontend process runs, here on its own over Zenoh in
-a thread of the test, since the feature frames come from the test rather than from images): IMU and feature frames
+Back end (a process) and its per-frame fast path (the frontend node's collaborator, here on its own over Zenoh in a
+thread of the test, wrapped in a node of the test's own, since the feature frames come from the test rather than
+from images): IMU and feature frames
 of the procedural 3-camera scenario (tests/vio_sim.py) go in, states come out for every frame, close to the ground truth; a second without features gives IMU-only states and tracking
 resumes; a frame going back in time is a counted drop, not a crash. Frontend: rendered frames in, tracked
 features out with persistent ids."""
@@ -23,13 +24,45 @@ from shared import topics
 from shared.camera import CameraCalib, CameraModel, camera_to_sensor_yaml
 from shared.config import to_dict
 from shared.messages import FeatureFrame, Header, ImuSample, MultiCameraFrame
-from services.backend.odometry_node import OdometryNode
+from services.frontend.fast_path import FastPath
+from shared.backlog import shed_backlog
+from shared.dataflow import Emit, Input, ProcessNode
 from services.system_config import load_system_config
 from shared.metrics.ate import compute_ate
 from shared.rig import load_rig_config
 from transport.node import Node
 from transport.queues import Empty
 from transport.runner import run_node
+
+
+class FastPathNode(ProcessNode):
+    """The fast path driven by feature frames (frontend/frame) rather than images: the frontend node's
+    collaborator with the frontend's declared timing and waits."""
+
+    name = "fast_path"
+    inputs = (Input(topics.FEATURES, "on_features", role="trigger", shed="shed"),
+              Input(topics.IMU, "on_imu", wait_until_trigger_stamp=True),
+              Input(topics.WINDOW, "on_window", policy="latest", depth=2, wait_until_trigger_stamp=True))
+    outputs = (topics.STATE,)
+
+    def __init__(self, fast_path: FastPath) -> None:
+        self.fast_path, self.wait_s = fast_path, fast_path.cfg.imu_wait_s
+
+    def on_imu(self, sample: ImuSample) -> None:
+        self.fast_path.on_imu(sample)
+
+    def on_window(self, msg) -> None:
+        self.fast_path.on_window(msg)
+
+    def wait_stamp(self, inp, trigger_stamp_ns: int) -> int:
+        return self.fast_path.window_stamp() if inp.topic is topics.WINDOW else trigger_stamp_ns
+
+    def shed(self, pending):
+        return shed_backlog(pending, 20, is_keyframe=lambda f: False)
+
+    def on_features(self, frame: FeatureFrame) -> list[Emit]:
+        state = self.fast_path.state_of(frame)
+        return [] if state is None else [Emit(topics.STATE, state)]
 
 
 def _write_config(tmp_path, tcfg, calibs, **sections) -> str:
@@ -92,9 +125,10 @@ def test_backend_service_states_blank_second_and_bad_frame(tmp_path):
                                                                             "fast_path_waits_for_window": True})
         proc = _start("backend", config)
         cfg = load_system_config(config, [])
-        fast_path = OdometryNode(cfg, load_rig_config(cfg.rig))
+        fast_path = FastPath(cfg.backend, load_rig_config(cfg.rig))
         fast_stop = threading.Event()
-        fast = threading.Thread(target=run_node, args=(fast_path, cfg.transport), kwargs={"stopped": fast_stop.is_set},
+        fast = threading.Thread(target=run_node, args=(FastPathNode(fast_path), cfg.transport),
+                                kwargs={"stopped": fast_stop.is_set},
                                 daemon=True)
         fast.start()
         try:
@@ -105,7 +139,7 @@ def test_backend_service_states_blank_second_and_bad_frame(tmp_path):
                 kfs = node.subscriber(topics.KEYFRAMES, policy="all", depth=1000)
                 lms = node.subscriber(topics.LANDMARKS, policy="all", depth=1000)
                 _await_heartbeat(node, "backend")
-                _await_heartbeat(node, "odometry")
+                _await_heartbeat(node, "fast_path")
                 j = 0
                 got, sent = {}, {}
                 for i, (t, T) in enumerate(zip(times, gt)):

@@ -2,7 +2,7 @@
 
     python -m tools.eval_loop DATASET [--max-frames N] [--set loop.x=y] [--no-loop] [--out DIR]
 
-Frontend + back end with :class:`services.backend.loop.backend_loop.LoopClosingBackend`: the services' own nodes on the
+Frontend + back end with loop closure (:class:`services.backend.loop.stage.LoopClosure`): the services' own nodes on the
 in-process runner (services/app/inprocess.py), in the order of a lockstep run (keyframe descriptors before their
 frame). Prints the causal ATE of the raw window estimate and of the published (pose-graph corrected) poses, the
 non-causal ATE after the final BA, loop counts, and the back end's per-frame time (median, p99; wall and this
@@ -49,7 +49,7 @@ def run(dataset: str, overrides: list[str], max_frames: int = 0, loop: bool = Tr
     if run.time_offset_ms is not None:  # backend.estimate_time_offset
         res["time_offset_ms"] = run.time_offset_ms
     trajs = {"causal": series_from_matrices([s.header.stamp_ns for s in published], [s.T_WS for s in published])}
-    lb = run.nodes["backend"].loop
+    lb = run.nodes["backend"].loop_closure
     if lb is not None:
         res["final_ba_s"] = float(sum(t for t, _ in run.runner.times.get(("backend", "on_stream_end"), [])))
         res["loops"] = lb.counts

@@ -8,7 +8,7 @@ rectified left camera of the stereo network. For each frame after ``--warmup`` (
 frame never meets its own depth) the back end's frame-to-map points are selected
 (:func:`shared.occupancy.o2p_points.select_depth_points`, the lowest-sigma pixels of the stereo frame), o(k) is
 the oldest submap with >= M_min of them inside its near-surface field (covisibility by landmarks is left out),
-and the factor (:class:`services.backend.o2p_factor.OccupancyToPoint`) is evaluated at the ground-truth poses.
+and the factor (:class:`services.backend.o2p.factor.OccupancyToPoint`) is evaluated at the ground-truth poses.
 
 Per variant (map depth x point depth; GT = ray-cast scene mesh at the same pixels, with the stereo network's
 learned sigma so that map thickness and weights are those of the network):
@@ -36,7 +36,7 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
-from services.backend.o2p_factor import OccupancyToPoint
+from services.backend.o2p.factor import OccupancyToPoint
 from shared.occupancy.query import BlockField, near_surface_field
 from shared.geometry import inv_T, transform_points
 
@@ -48,7 +48,7 @@ def residuals(field: BlockField, l_min: float, p_A: np.ndarray, sigma_d: np.ndar
     f = OccupancyToPoint(field, l_min, p_A, sigma_d, T_WA=T_WA, T_WB=T_WB, grad_min=grad_min)
     ev = f.evaluate(T_WA, T_WB)
     # r = 3 L / sqrt(l_min^2 + 9 g^2 s^2) = e / sigma with e = L / g and sigma^2 = (l_min / 3 g)^2 + s^2
-    from services.backend.o2p_factor import trilinear_derivatives
+    from services.backend.o2p.factor import trilinear_derivatives
 
     q = transform_points(inv_T(T_WB) @ T_WA, p_A)  # the points in the target's frame
     L, g, _, _ = trilinear_derivatives(field, q)
@@ -107,7 +107,7 @@ def summarize(name: str, rows: list[dict], offsets: list[dict], T_SC: np.ndarray
 def oldest_target(fields: list[tuple[BlockField, np.ndarray]], p_A: np.ndarray, T_WA: np.ndarray, l_min: float,
                   min_points: int) -> int:
     """Index of the oldest field with >= ``min_points`` of the points inside it (o(k) without covisibility)."""
-    from services.backend.o2p_factor import trilinear_derivatives
+    from services.backend.o2p.factor import trilinear_derivatives
 
     for i, (field, T_WM) in enumerate(fields):
         q = transform_points(inv_T(T_WM) @ T_WA, p_A)

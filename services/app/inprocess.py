@@ -11,8 +11,7 @@
     run.nodes["mapping"].mapper                                      # the map as the mapping node holds it
     run.mesh_causal       # the map's vertices in W just before it followed the final trajectory
 
-The nodes are the services' own (services/<process>/node.py; the frontend process's is services/frontend/process_node.py,
-which holds the fast path), built from the system config in one place,
+The nodes are the processes' own (services/<process>/node.py), built from the system config in one place,
 :func:`pipeline_nodes`, and driven by :class:`shared.dataflow.InProcessRunner` in stamp order, the order a
 lockstep run over Zenoh gives: tools that need the pipeline without processes (offline VIO, loop evaluation, the
 ablation table) use this instead of wiring the algorithms by hand. Pacing is by stamps: the depth node handles a
@@ -28,8 +27,8 @@ from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
-from services.backend.node import BackendNode
-from services.frontend.process_node import FrontendProcessNode
+from services.backend.node import make_node as backend_node
+from services.frontend.node import make_node as frontend_node
 from services.player.config import PlayerConfig
 from shared import topics
 from shared.config import override
@@ -66,7 +65,7 @@ def pipeline_nodes(cfg, cams, depth: bool = False, mapping: bool = False,
     ``clock`` [s] paces its meshes and fields, the wall clock when None). The one place that says what the
     in-process pipeline is made of."""
     # the fast path before the back end: a keyframe's state comes from the previous window, as in a live run
-    nodes: dict[str, ProcessNode] = {"frontend": FrontendProcessNode(cfg, cams), "backend": BackendNode(cfg, cams)}
+    nodes: dict[str, ProcessNode] = {"frontend": frontend_node(cfg, cams), "backend": backend_node(cfg, cams)}
     if depth:
         from services.depth.node import DepthNode
         from services.depth.pipeline import pipeline_for_rig
@@ -109,7 +108,7 @@ class _Collector:
 
     def __init__(self, nodes: dict[str, ProcessNode]) -> None:
         self.nodes, self.states, self.final, self.mesh_causal = nodes, [], [], None
-        loop = getattr(nodes["backend"], "loop", None)
+        loop = nodes["backend"].loop_closure
         self.loop_runner = None if loop is None else loop.runner
         self.busy_before: list[float] = []
         self.loop_s: list[float] = []  # one entry per back-end frame call, in call order [s]

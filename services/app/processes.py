@@ -17,7 +17,7 @@ from pathlib import Path
 
 from services.backend.node import BackendNode
 from services.depth.node import DepthNode
-from services.frontend.process_node import FrontendProcessNode
+from services.frontend.node import FrontendNode
 from services.mapping.node import MappingNode
 from services.player.node import PlayerNode
 from services.recorder.node import RecorderNode
@@ -25,7 +25,7 @@ from services.viewer.node import ViewerNode
 from shared import topics
 from shared.dataflow import ProcessNode
 
-PROCESS_NODES: tuple[type[ProcessNode], ...] = (PlayerNode, FrontendProcessNode, BackendNode, DepthNode, MappingNode, ViewerNode,
+PROCESS_NODES: tuple[type[ProcessNode], ...] = (PlayerNode, FrontendNode, BackendNode, DepthNode, MappingNode, ViewerNode,
                                                 RecorderNode)
 EVERY_TOPIC_READER = RecorderNode  # reads every topic: left out of the drawing, said once
 DOC = Path(__file__).resolve().parents[2] / "docs" / "architecture.md"

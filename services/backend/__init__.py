@@ -1,5 +1,4 @@
-"""Visual-inertial back end: IMU pre-integration + Cauchy-robust reprojection factors in a keyframe window (gtsam).
-
-The algorithm core (:mod:`.estimator`, :mod:`.imu_factors`, :mod:`.init`) has no transport dependency; the
-service shell that subscribes to ``frontend/frame`` and publishes ``estimator/state`` lives beside it.
-"""
+"""The back-end process: a keyframe window of IMU pre-integration and Cauchy-robust reprojection factors (gtsam),
+grouped by concern: ``window/`` (the windowed estimator and its stage), ``o2p/`` (occupancy-to-point factors),
+``loop/`` (loop closure, pose graph, final bundle adjustment); ``node.py`` is the process's node and ``compose.py``
+builds its stages. No transport in here."""

@@ -1,24 +1,21 @@
-"""Configuration of the visual-inertial back end."""
+"""Configuration of the visual-inertial back end: the per-frame core's (:class:`shared.vio.config.VioConfig`, which
+the frontend's fast path reads too) and the keyframe window's own."""
 
 from __future__ import annotations
 
 import dataclasses
 
 from shared.config import param
+from shared.vio.config import VioConfig
 
 
 @dataclasses.dataclass(frozen=True)
-class BackendConfig:
-    """Windowed visual-inertial smoother (gtsam)."""
+class BackendConfig(VioConfig):
+    """Windowed visual-inertial smoother (gtsam): the core's settings (:class:`VioConfig`) and the window's."""
 
     # --- window and optimisation ---
     window_keyframes: int = param(8, "keyframes kept in the optimisation window (plus the latest frame)")
-    max_keyframe_interval_s: float = param(0.5, "a frame becomes a keyframe at the latest after this long", "s")
-    lm_max_iterations: int = param(6, "Levenberg-Marquardt iterations per frame (the window's, and the fast path's Gauss-Newton)")
-    lm_relative_error_tol: float = param(1e-4, "LM (and the fast path) stops when the relative cost decrease falls below this")
-    # --- vision ---
-    sigma_px: float = param(1.0, "reprojection noise (1 sigma) of a feature observation", "px")
-    cauchy_k: float = param(2.0, "Cauchy robust-loss scale, in units of sigma (whitened residual)")
+    # --- landmarks ---
     min_parallax_deg: float = param(1.0, "least ray angle between two observations to triangulate a landmark", "deg")
     max_reproj_error_px: float = param(4.0, "largest reprojection error of a triangulated or optimised landmark", "px")
     min_depth_m: float = param(0.1, "landmarks closer to a camera than this are rejected (cheirality)", "m")
@@ -26,7 +23,7 @@ class BackendConfig:
     max_landmarks: int = param(400, "landmarks kept in the window at most (oldest dropped first)")
     max_published_landmarks: int = param(2000, "landmarks in one estimator/landmarks message at most (those seen "
                                          "most recently, then most often, are kept)")
-    # --- monocular rig (rig.cameras names one camera; services/backend/still.py) ---
+    # --- monocular rig (rig.cameras names one camera; services/backend/window/still.py) ---
     mono_still_flow_px: float = param(1.0, "one camera: a frame whose features moved less than this (median, raw "
                                       "image motion) since the last keyframe stands still: relative-pose and "
                                       "zero-velocity factors keep the pose while nothing can be triangulated; "
@@ -40,7 +37,7 @@ class BackendConfig:
     mono_still_sigma_pos_m: float = param(2e-3, "one camera: translation sigma of the still relative-pose factor", "m")
     mono_still_sigma_vel_m_s: float = param(0.01, "one camera: sigma of the zero-velocity prior of a still frame", "m/s")
     mono_init_parallax_deg: float = param(2.0, "one camera, moving start: the window is rebuilt from two-view geometry "
-                                          "and the IMU (services/backend/mono_init.py) once the oldest and newest "
+                                          "and the IMU (services/backend/window/mono_init.py) once the oldest and newest "
                                           "keyframe's shared features have this median parallax", "deg")
     mono_init_min_features: int = param(30, "one camera, moving start: shared features needed for that rebuild")
     mono_init_speed_sigma_m_s: float = param(0.5, "one camera, moving start: until that rebuild, each new state gets a "
@@ -48,7 +45,7 @@ class BackendConfig:
                                              "(0 = none)", "m/s")
     mono_init_ransac_px: float = param(1.0, "one camera, moving start: RANSAC threshold of the two-view geometry and "
                                        "PnP of the rebuild", "px")
-    # --- online extrinsic refinement (services/backend/extrinsics.py) ---
+    # --- online extrinsic refinement (services/backend/window/extrinsics.py) ---
     refine_extrinsics: bool = param(False, "estimate each camera's extrinsic T_SC in the window, starting from the "
                                     "calibration file's (its prior sigmas below); the refined T_SC is used by the "
                                     "fast path and written by `sigmaslam run` (extrinsics_refined.yaml)")
@@ -59,7 +56,7 @@ class BackendConfig:
     extrinsic_walk_rot_deg: float = param(0.005, "random walk of the camera rotation per keyframe: bounds how "
                                           "confident the carried T_SC prior gets (extrinsics.py)", "deg")
     extrinsic_walk_trans_m: float = param(5e-5, "random walk of the camera position per keyframe", "m")
-    # --- online camera-IMU time offset (services/backend/time_offset.py) ---
+    # --- online camera-IMU time offset (services/backend/window/time_offset.py) ---
     estimate_time_offset: bool = param(True, "estimate the camera-IMU time offset td (an image stamped t was taken at "
                                        "IMU time t + td) from the keyframes' residuals against their image motion; "
                                        "the frontend moves its published tracks by -td x their image velocity (on by "
@@ -69,13 +66,6 @@ class BackendConfig:
     time_offset_rotation_sigma_deg: float = param(0.01, "noise of one keyframe interval's rotation, window against "
                                                   "gyro, in the offset's filter (time_offset.py)", "deg")
     time_offset_max_ms: float = param(50.0, "the estimate is clamped to +- this", "ms")
-    # --- IMU (continuous-time densities; an ImuCalib passed to the estimator overrides them) ---
-    gravity_m_s2: float = param(9.81, "magnitude of gravity along -z of W", "m/s^2")
-    gyro_noise_density: float = param(1.6968e-4 * 5, "gyro white-noise density (inflated over the datasheet)", "rad/s/sqrt(Hz)")
-    accel_noise_density: float = param(2.0e-3 * 5, "accelerometer white-noise density (inflated)", "m/s^2/sqrt(Hz)")
-    gyro_random_walk: float = param(1.9393e-5 * 5, "gyro bias random walk density", "rad/s^2/sqrt(Hz)")
-    accel_random_walk: float = param(3.0e-3 * 5, "accelerometer bias random walk density", "m/s^3/sqrt(Hz)")
-    integration_sigma: float = param(1e-4, "position integration noise density of the pre-integration", "m/s/sqrt(Hz)")
     # --- priors and initialisation ---
     prior_sigma_rot_rad: float = param(1e-3, "first state's roll/pitch/yaw prior after a static start", "rad")
     prior_sigma_tilt_moving_rad: float = param(0.03, "first state's roll/pitch prior after a moving start, until "
@@ -85,7 +75,7 @@ class BackendConfig:
                                                 "seconds and bends the trajectory)", "rad")
     moving_align_after_s: float = param(1.0, "several cameras, moving start: once the window's keyframes span this "
                                         "long (or fill the window), gravity and the velocities are measured from them and the IMU and the "
-                                        "window is turned to that gravity (services/backend/gravity_align.py; "
+                                        "window is turned to that gravity (services/backend/window/gravity_align.py; "
                                         "0 = never)", "s")
     moving_align_min_stereo: int = param(10, "... only when the newest keyframe sees at least this many landmarks in "
                                          "two cameras at once (without overlapping cameras vision has no scale of its "
@@ -107,7 +97,6 @@ class BackendConfig:
     marginals_landmark_sigma_m: float = param(10.0, "when the window's marginals are indeterminant (landmarks seen from "
                                               "one place only: a still body), they are computed again with priors "
                                               "of this sigma on the landmarks", "m")
-    min_landmarks_tracking: int = param(6, "fewer triangulated landmarks observed in a frame than this: status 'imu_only'")
     static_window_s: float = param(0.5, "IMU span inspected for a static start", "s")
     static_gyro_std: float = param(0.01, "a start is static when the gyro std stays below this", "rad/s")
     static_acc_std: float = param(0.15, "... and the accelerometer std below this", "m/s^2")
@@ -121,26 +110,8 @@ class BackendConfig:
                                                 "fixed window (ignored when compute_covariance is on)")
     # --- service ---
     budget_ms: float = param(18.0, "per-keyframe budget of the back end's window optimisation (stats topic)", "ms")
-    fast_path_budget_ms: float = param(8.0, "per-frame budget of the fast path's motion-only solve (in the "
-                                       "frontend's process, services/backend/odometry.py; stats topic)", "ms")
-    fast_path_settle_s: float = param(2.0, "for this long after the back end's first window (its start or a restart) "
-                                      "the fast path solves the anchor keyframe's velocity and accelerometer bias "
-                                      "with each frame, held by priors at the window's estimate, instead of pinning "
-                                      "them: a window just initialised has not settled them, and pinned they drift "
-                                      "the frames until the next window (0: always pinned)", "s")
-    fast_path_settle_velocity_sigma: float = param(0.05, "... prior sigma of the anchor's velocity then", "m/s")
-    fast_path_settle_acc_bias_sigma: float = param(0.1, "... of its accelerometer bias", "m/s^2")
-    fast_path_settle_gyro_bias_sigma: float = param(0.001, "... of its gyroscope bias", "rad/s")
-    fast_path_waits_for_window: bool = param(False, "the fast path waits (up to imu_wait_s) for the window of the "
-                                             "keyframe before each frame: reproducible lockstep runs (sigmaslam run "
-                                             "sets it without --realtime/--rate); off live, where no frame may wait")
-    imu_wait_s: float = param(0.5, "how long a feature frame waits for the IMU samples up to its time", "s")
     max_backlog_frames: int = param(4, "back end: when more feature frames than this wait, the oldest non-keyframes "
                                     "are skipped (it needs only keyframes; counted as drops); 0: never skip")
     max_backlog_keyframes: int = param(3, "back end: when more keyframes than this wait (its window optimisation "
                                        "slower than the keyframe rate for a while), the oldest are skipped too "
                                        "(counted as drops), so the fast path's window stays current; 0: never")
-    fast_path_max_backlog_frames: int = param(20, "fast path driven on its own (OdometryNode over Zenoh, tests): when "
-                                              "more feature frames than this wait, the oldest are "
-                                              "skipped (counted as drops): a stall of the process loses no frame up "
-                                              "to this many (a frame costs it ~6 ms CPU, so it catches up fast)")

@@ -13,7 +13,7 @@ import argparse
 import logging
 import time
 
-from services.backend.node import BackendNode
+from services.backend.node import make_node
 from shared.occupancy.query import warm_up as warm_up_queries
 from shared.supervision import restart_count
 from services.system_config import service_config_and_rig
@@ -32,7 +32,7 @@ def main(args: argparse.Namespace) -> int:
     if started is None:
         return 2
     cfg, cameras = started
-    node = BackendNode(cfg, cameras, restarted=restart_count() > 0)
+    node = make_node(cfg, cameras, restarted=restart_count() > 0)
     if cfg.o2p.enabled:  # before the first heartbeat: a player waiting for the back end starts after this
         t0 = time.monotonic()
         warm_up_queries()

@@ -1,4 +1,5 @@
 """Multi-camera feature frontend: corner detection, KLT tracking with an IMU rotation prior, cross-camera
 matching under the extrinsic epipolar constraint, RANSAC, landmark ids, keyframes, ORB descriptors.
 
-Algorithm only (no transport); ``services.frontend.service`` is the Zenoh shell."""
+With the per-frame fast path (every frame's state against the back end's newest window) in the same process;
+``node.py`` is the process's node. No transport in here."""

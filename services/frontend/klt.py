@@ -48,3 +48,22 @@ def predict_rotated(camera: CameraModel, uv: np.ndarray, R_C1C0: np.ndarray) -> 
     rays = camera.unproject(uv) @ np.asarray(R_C1C0, float).T
     pred, valid = camera.project(rays)
     return np.where(valid[:, None], pred, uv).astype(np.float32)
+
+
+def normalised_gain(image: np.ndarray, mean_dn: float) -> np.ndarray:
+    """``image`` (uint8) scaled so that its mean grey level is ``mean_dn`` (a global gain; saturates at 255)."""
+    m = float(image.mean())
+    if m <= 1.0:
+        return image
+    return cv2.convertScaleAbs(image, alpha=mean_dn / m)
+
+
+def gain_matched(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pair (a, b) of uint8 images with the brighter one scaled to the darker one's mean grey level (a global
+    gain, scaled down so nothing saturates): KLT between them then sees one brightness."""
+    ma, mb = float(a.mean()), float(b.mean())
+    if ma <= 1.0 or mb <= 1.0 or ma == mb:
+        return a, b
+    if ma > mb:
+        return cv2.convertScaleAbs(a, alpha=mb / ma), b
+    return a, cv2.convertScaleAbs(b, alpha=ma / mb)

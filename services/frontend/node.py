@@ -1,24 +1,35 @@
-"""The frontend as a transport-free process node: sensors/frame (+ sensors/imu gyro, estimator/state gyro bias)
--> frontend/frame (+ frontend/keyframe_features for loop closure).
+"""The frontend process as one transport-free node: sensors/frame + sensors/imu + estimator/window ->
+estimator/state (every frame), frontend/frame, frontend/keyframe_features.
 
-:class:`FrontendNode` wraps :class:`services.frontend.tracker.MultiCameraTracker`: the gyro samples between two
-frames give the rotation prior (bias-corrected with the estimator's latest gyro bias); a frame whose cameras do
-not match the rig, or that goes back in time, is dropped, counted and logged. Run over Zenoh by
-``sigmaslam frontend`` (services/frontend/service.py) or in one process by :class:`shared.dataflow.InProcessRunner`.
+:class:`FrontendNode` holds two collaborators: the multi-camera KLT tracker (services/frontend/tracker.py: images ->
+tracks, gyro-aided) and the fast path (services/frontend/fast_path.py: tracks -> the frame's state against the back
+end's newest window). A frame's state leaves the process that tracked it: no second hop on the path from image to
+pose. The state is published first, then the tracks (the back end's keyframe window reads them) and, at keyframes,
+their descriptors; the tracker takes its gyro bias from the state just computed. A frame whose cameras do not match
+the rig, or that goes back in time, is dropped, counted and logged. The back end's window optimisation,
+marginalisation and loop closure stay in the back end's process; the fast path picks up each new window when it comes
+(``estimator/window``). Run over Zenoh by ``sigmaslam frontend`` or in one process by
+:class:`shared.dataflow.InProcessRunner`.
 """
 
 from __future__ import annotations
 
 import logging
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from services.frontend.frames import FrontendInputError, TrackerOutput
 from services.frontend.gyro import GyroIntegrator
-from services.frontend.tracker import FrontendInputError, MultiCameraTracker, TrackerOutput
 from services.frontend.keyframe_features import keyframe_features_message
 from shared import topics
+from shared.backlog import shed_backlog
 from shared.dataflow import Emit, Input, ProcessNode, RejectedMessage
-from shared.messages import EstimatorState, EstimatorWindow, FeatureFrame, Header, ImuSample, MultiCameraFrame
+from shared.messages import EstimatorWindow, FeatureFrame, Header, ImuSample, MultiCameraFrame
+
+if TYPE_CHECKING:
+    from services.frontend.fast_path import FastPath
+    from services.frontend.tracker import MultiCameraTracker
 
 log = logging.getLogger("sigmaslam.frontend")
 
@@ -33,26 +44,29 @@ def feature_message(out: TrackerOutput, seq: int) -> FeatureFrame:
 
 
 class FrontendNode(ProcessNode):
-    """Per-frame logic of the frontend (images in, FeatureFrame out), without the transport."""
+    """Tracking and the fast path of one rig (``cfg``: the frontend config section)."""
 
     name = "frontend"
-    stage = "track"
+    stage = "track"  # a frame's whole path to its state: tracking, then the fast path (timed alone as 'fast_path')
     inputs = (
-        Input(topics.FRAME, "on_frame", role="trigger", note="images to track"),
-        Input(topics.IMU, "on_imu", wait_until_trigger_stamp=True, note="gyro rotation prior, up to the frame's time"),
-        Input(topics.STATE, "on_state", policy="latest", depth=1, note="the newest gyro bias"),
-        Input(topics.WINDOW, "on_window", policy="latest", depth=1,
-              when="backend.refine_extrinsics or backend.estimate_time_offset",
-              note="the refined camera extrinsics, the camera-IMU time offset"),
+        Input(topics.FRAME, "on_frame", role="trigger", shed="shed",
+              note="images to track (the oldest skipped beyond frontend.max_backlog_frames)"),
+        Input(topics.IMU, "on_imu", wait_until_trigger_stamp=True,
+              note="gyro rotation prior; pre-integration from the keyframe"),
+        Input(topics.WINDOW, "on_window", policy="latest", depth=2, wait_until_trigger_stamp=True,
+              note="the back end's newest keyframe and landmarks (waited for only in lockstep runs), refined "
+                   "extrinsics, time offset"),
     )
-    outputs = (topics.FEATURES, topics.KEYFRAME_FEATURES)
-    output_notes = {topics.FEATURES.key: "every frame", topics.KEYFRAME_FEATURES.key: "each keyframe, before its frame"}
+    outputs = (topics.STATE, topics.KEYFRAME_FEATURES, topics.FEATURES)
+    output_notes = {topics.STATE.key: "every frame, as soon as it is tracked",
+                    topics.KEYFRAME_FEATURES.key: "each keyframe, before its frame",
+                    topics.FEATURES.key: "every frame, after its state"}
 
-    def __init__(self, cfg, cameras, first_landmark_id: int = 0) -> None:
-        self.cfg = cfg
-        self.budget_ms, self.wait_s = cfg.budget_ms, cfg.imu_wait_s
-        self.tracker = MultiCameraTracker(cfg, cameras, first_landmark_id)
-        self.names = [c.name for c in cameras]
+    def __init__(self, cfg, tracker: MultiCameraTracker, fast_path: FastPath) -> None:
+        self.cfg, self.tracker, self.fast_path = cfg, tracker, fast_path
+        self.names = [c.name for c in tracker.cameras]
+        self.budget_ms = cfg.budget_ms + fast_path.budget_ms
+        self.wait_s = max(cfg.imu_wait_s, fast_path.cfg.imu_wait_s)
         self.gyro = GyroIntegrator()
         self.gyro_bias = np.zeros(3)
         self.estimator_status = ""  # the newest state's status: detection is deferred only while 'tracking'
@@ -60,12 +74,15 @@ class FrontendNode(ProcessNode):
         self.dropped = 0
         self.seq = 0
 
+    def shed(self, pending) -> tuple[list, int]:
+        return shed_backlog(pending, self.cfg.max_backlog_frames, is_keyframe=lambda f: False)
+
+    def wait_stamp(self, inp: Input, trigger_stamp_ns: int) -> int:
+        return self.fast_path.window_stamp() if inp.topic is topics.WINDOW else trigger_stamp_ns
+
     def on_imu(self, sample: ImuSample) -> None:
         self.gyro.add(int(sample.header.stamp_ns), sample.omega_S)
-
-    def on_state(self, state: EstimatorState) -> None:
-        self.gyro_bias = np.asarray(state.gyro_bias, float)
-        self.estimator_status = str(state.status)
+        self.fast_path.on_imu(sample)
 
     def on_window(self, window: EstimatorWindow) -> None:
         try:
@@ -75,26 +92,33 @@ class FrontendNode(ProcessNode):
                 self.tracker.set_time_offset(float(window.time_offset_s))
         except FrontendInputError as exc:
             raise RejectedMessage(f"estimator/window refused: {exc}") from None
+        self.fast_path.on_window(window)
 
     def on_frame(self, frame: MultiCameraFrame) -> list[Emit]:
-        msg = self.process(frame)
+        msg = self.track(frame)
         if msg is None:
             return []
-        out = []
+        tracks = []
         if msg.is_keyframe:  # descriptors first: the back end's loop closer wants them with the frame
             kff = keyframe_features_message(self.tracker, msg.header.stamp_ns, msg.header.seq)
             if kff is not None:
-                out.append(Emit(topics.KEYFRAME_FEATURES, kff))
-        out.append(Emit(topics.FEATURES, msg))
-        return out
+                tracks.append(Emit(topics.KEYFRAME_FEATURES, kff))
+        tracks.append(Emit(topics.FEATURES, msg))
+        with self.timer("fast_path", self.fast_path.budget_ms):
+            state = self.fast_path.state_of(msg)
+        if state is None:
+            return tracks
+        self.gyro_bias = np.asarray(state.gyro_bias, float)
+        self.estimator_status = str(state.status)
+        return [Emit(topics.STATE, state), *tracks]
 
     def counters(self) -> dict:
         return {"detections_skipped": lambda: self.tracker.totals["detection_skipped"]}
 
-    def after_publish(self, behind: bool = False) -> list[Emit]:
-        """New features of a frame whose detection waited until its features were sent; none when ``behind`` (the
-        next frame was waiting when this one was taken) and ``skip_detection_when_behind``."""
-        if behind and self.cfg.skip_detection_when_behind:
+    def after_publish(self) -> list[Emit]:
+        """New features of a frame whose detection waited until its features were sent; none when the next frame was
+        waiting when this one was taken and ``skip_detection_when_behind``."""
+        if self.backlog > 0 and self.cfg.skip_detection_when_behind:
             self.tracker.skip_deferred()
         if self.tracker.detection_pending:  # timed only when there is something to do (not after keyframes)
             with self.timer("detect_after"):
@@ -110,7 +134,8 @@ class FrontendNode(ProcessNode):
         except ValueError:
             raise FrontendInputError(f"frame cameras {names} do not include the rig's {self.names}") from None
 
-    def process(self, frame: MultiCameraFrame) -> FeatureFrame | None:
+    def track(self, frame: MultiCameraFrame) -> FeatureFrame | None:
+        """The frame's tracks (None: dropped, counted and logged)."""
         stamp = int(frame.header.stamp_ns)
         try:
             images = self.images_in_rig_order(frame)
@@ -127,3 +152,13 @@ class FrontendNode(ProcessNode):
         msg = feature_message(out, self.seq)
         self.seq += 1
         return msg
+
+
+def make_node(cfg, cameras, first_landmark_id: int = 0) -> FrontendNode:
+    """The frontend node of the system config ``cfg`` for the rig ``cameras`` (``first_landmark_id``: where its
+    landmark ids start; a restarted frontend starts a range of its own)."""
+    from services.frontend.fast_path import FastPath
+    from services.frontend.tracker import MultiCameraTracker
+
+    return FrontendNode(cfg.frontend, MultiCameraTracker(cfg.frontend, cameras, first_landmark_id),
+                        FastPath(cfg.backend, cameras))

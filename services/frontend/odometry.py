@@ -1,11 +1,11 @@
 """The per-frame fast path: every camera frame's state from the IMU and its tracks, against the back end's latest
 window held fixed, so that no frame waits for a keyframe's window optimisation.
 
-The back end (services/backend/estimator.py) optimises its keyframe window only at keyframes; after each it
+The back end (services/backend/window/estimator.py) optimises its keyframe window only at keyframes; after each it
 publishes the newest keyframe's state and the window's landmarks (``estimator/window``). For every frame, this
 tracker pre-integrates the IMU from that keyframe to the frame, predicts the state, and solves the frame's pose,
 velocity and bias alone against the IMU factor from the keyframe and the reprojection factors of the landmarks the
-window has triangulated, keyframe and landmarks pinned at the window's estimate (services/backend/motion_only.py,
+window has triangulated, keyframe and landmarks pinned at the window's estimate (shared/vio/motion_only.py,
 the solve the estimator uses between keyframes; for ``backend.fast_path_settle_s`` after the first window the
 keyframe's velocity and biases are solved too, held by priors, since a window just initialised has not settled them).
 A keyframe's own state therefore comes from this solve too, before
@@ -22,13 +22,13 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, V, X
 
-from services.backend.cameras import BackendCamera
-from services.backend.config import BackendConfig
-from services.backend.imu_factors import ImuBuffer, imu_factor, make_bias, make_params, predict
-from services.backend.motion_only import optimise_latest
-from services.backend.vision_factors import ProjectionModel
-from services.backend.window_rules import observation_arrays
+from shared.vio.cameras import VioCamera
+from shared.vio.imu_factors import ImuBuffer, imu_factor, make_bias, make_params, predict
+from shared.vio.motion_only import optimise_latest
+from shared.vio.vision_factors import ProjectionModel
+from shared.vio.window_rules import observation_arrays
 from shared.messages import EstimatorWindow
+from shared.vio.config import VioConfig
 
 KEYFRAME, FRAME = 0, 1  # state indices of the pinned keyframe and the frame being solved
 
@@ -54,7 +54,7 @@ class TrackedState:
 class FrameTracker:
     """Feed IMU with :meth:`add_imu`, the back end's windows with :meth:`set_window`, frames with :meth:`track`."""
 
-    def __init__(self, cfg: BackendConfig, cameras: list[BackendCamera]) -> None:
+    def __init__(self, cfg: VioConfig, cameras: list[VioCamera]) -> None:
         if not cameras:
             raise ValueError("the fast path needs at least one camera")
         self.cfg = cfg
@@ -119,7 +119,7 @@ class FrameTracker:
     def track(self, stamp_ns: int, landmark_ids: np.ndarray, camera_index: np.ndarray, uv: np.ndarray
               ) -> TrackedState | None:
         """The frame's state (None while no window has come); raises :class:`StaleFrame` for a frame before the
-        anchor, ``BackendInputError`` for arrays that disagree and ``ImuDataError`` when the IMU does not cover the
+        anchor, ``VioInputError`` for arrays that disagree and ``ImuDataError`` when the IMU does not cover the
         interval."""
         w = self.window
         if w is None:

@@ -1,5 +1,5 @@
-"""``sigmaslam frontend [CONFIG]``: the frontend process (services/frontend/process_node.py: the frontend node and
-the per-frame fast path) over Zenoh.
+"""``sigmaslam frontend [CONFIG]``: the frontend node (services/frontend/node.py: tracking and the per-frame fast
+path) over Zenoh.
 
 sensors/frame + sensors/imu + estimator/window -> estimator/state (every frame), frontend/frame,
 frontend/keyframe_features.
@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import logging
 
-from services.frontend.process_node import FrontendProcessNode
+from services.frontend.node import make_node
 from shared.supervision import restart_count
 from services.system_config import service_config_and_rig
 from transport.runner import run_node
@@ -29,7 +29,7 @@ def main(args: argparse.Namespace) -> int:
         return 2
     cfg, cameras = started
     # after a supervisor restart, landmark ids continue in a range of their own (2^40 ids per life)
-    node = FrontendProcessNode(cfg, cameras, first_landmark_id=restart_count() << 40)
+    node = make_node(cfg, cameras, first_landmark_id=restart_count() << 40)
     log.info("frontend: %d cameras %s", len(cameras), node.names)
     run_node(node, cfg.transport)
     return 0

@@ -20,35 +20,14 @@ import cv2
 import numpy as np
 
 from services.frontend import affine_klt, klt
+from services.frontend.frames import FrontendInputError, KeyframeDescriptors, TrackerOutput
+from services.frontend.klt import gain_matched, normalised_gain
 from services.frontend.config import FrontendConfig
 from services.frontend.detection import detect_spread
 from shared.lookup_camera import LookupCamera
 from services.frontend.epipolar import cross_camera_check, overlapping_pairs, ransac_inliers
 from shared.camera import CameraCalib
 from shared.geometry import inv_T
-
-
-def normalised_gain(image: np.ndarray, mean_dn: float) -> np.ndarray:
-    """``image`` (uint8) scaled so that its mean grey level is ``mean_dn`` (a global gain; saturates at 255)."""
-    m = float(image.mean())
-    if m <= 1.0:
-        return image
-    return cv2.convertScaleAbs(image, alpha=mean_dn / m)
-
-
-def gain_matched(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The pair (a, b) of uint8 images with the brighter one scaled to the darker one's mean grey level (a global
-    gain, scaled down so nothing saturates): KLT between them then sees one brightness."""
-    ma, mb = float(a.mean()), float(b.mean())
-    if ma <= 1.0 or mb <= 1.0 or ma == mb:
-        return a, b
-    if ma > mb:
-        return cv2.convertScaleAbs(a, alpha=mb / ma), b
-    return a, cv2.convertScaleAbs(b, alpha=ma / mb)
-
-
-class FrontendInputError(ValueError):
-    """Images that do not fit the rig (count, size, type) or time going backwards."""
 
 
 @dataclass
@@ -71,31 +50,6 @@ class _CameraState:
         self.vel = np.concatenate([self.vel, np.zeros((len(ids), 2), np.float32)])
         if self.templates is not None:
             self.templates.append(affine_klt.make_templates(self.image, uv, self.templates.side))
-
-
-@dataclass(frozen=True)
-class KeyframeDescriptors:
-    """ORB descriptors of the features of one keyframe (for loop-closure detection)."""
-
-    keyframe_id: int
-    stamp_ns: int
-    landmark_ids: np.ndarray  # (K,) int64
-    camera_index: np.ndarray  # (K,) int16
-    uv: np.ndarray  # (K,2) float32, distorted pixels
-    descriptors: np.ndarray  # (K,32) uint8, ORB
-
-
-@dataclass(frozen=True)
-class TrackerOutput:
-    """Observations of one multi-camera frame (the fields of a FeatureFrame) and counters."""
-
-    stamp_ns: int
-    landmark_ids: np.ndarray  # (M,) int64
-    camera_index: np.ndarray  # (M,) int16
-    uv: np.ndarray  # (M,2) float32
-    is_keyframe: bool
-    keyframe_id: int  # -1 if not a keyframe
-    counts: dict[str, int]
 
 
 class MultiCameraTracker:

@@ -17,7 +17,7 @@ import bisect
 import gtsam
 import numpy as np
 
-from services.backend.config import BackendConfig
+from shared.vio.config import VioConfig
 
 NS = 1e-9
 
@@ -26,7 +26,7 @@ class ImuDataError(ValueError):
     """IMU samples that cannot be integrated (out of order, missing over an interval, non-finite)."""
 
 
-def make_params(cfg: BackendConfig, gyro_noise_density: float | None = None, accel_noise_density: float | None = None,
+def make_params(cfg: VioConfig, gyro_noise_density: float | None = None, accel_noise_density: float | None = None,
                 gyro_random_walk: float | None = None, accel_random_walk: float | None = None
                 ) -> gtsam.PreintegrationCombinedParams:
     """Pre-integration parameters for gravity -g along z of W (``MakeSharedU``) with continuous noise densities.

@@ -11,14 +11,14 @@ import gtsam
 import gtsam_unstable
 import numpy as np
 
-from services.backend.cameras import BackendCamera
-from services.backend.motion_only import FixedPoints
+from shared.vio.cameras import VioCamera
+from shared.vio.motion_only import FixedPoints
 
 
 class ProjectionModel:
     """Factor maker for one rig: ``factor(xy, camera, pose_key, landmark_key)``."""
 
-    def __init__(self, cameras: list[BackendCamera], sigma_px: float, cauchy_k: float) -> None:
+    def __init__(self, cameras: list[VioCamera], sigma_px: float, cauchy_k: float) -> None:
         self.cameras = list(cameras)
         self.sigma_px, self.cauchy_k = float(sigma_px), float(cauchy_k)
         self._T_SC = np.array([c.T_SC for c in self.cameras], float)
@@ -36,7 +36,7 @@ class ProjectionModel:
     def factor_with_extrinsic(self, xy: np.ndarray, camera: int, pose_key: int, extrinsic_key: int,
                               landmark_key: int) -> gtsam.NonlinearFactor:
         """The same factor with the camera's extrinsic T_SC a variable (``extrinsic_key``, a Pose3) instead of fixed:
-        online extrinsic refinement (services/backend/extrinsics.py)."""
+        online extrinsic refinement (services/backend/window/extrinsics.py)."""
         return gtsam_unstable.ProjectionFactorPPPCal3_S2(xy, self._noise[camera], pose_key, extrinsic_key, landmark_key,
                                                          self._cal, False, False)
 
@@ -55,7 +55,7 @@ class ProjectionModel:
 
     def fixed_points(self, p_W: np.ndarray, xy: np.ndarray, camera: np.ndarray) -> FixedPoints:
         """The same reprojection terms for landmarks held fixed at ``p_W`` (M,3), observed at normalised ``xy``
-        (M,2) by ``camera`` (M,): what a motion-only solve (services/backend/motion_only.py) takes."""
+        (M,2) by ``camera`` (M,): what a motion-only solve (shared/vio/motion_only.py) takes."""
         sigma = np.array([self.sigma_px / c.focal_px for c in self.cameras])
         return FixedPoints(np.asarray(p_W, float).reshape(-1, 3), np.asarray(xy, float).reshape(-1, 2),
                            np.asarray(camera, np.int64).reshape(-1), self._T_SC, sigma, self.cauchy_k)

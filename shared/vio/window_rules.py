@@ -10,7 +10,7 @@ import numpy as np
 from gtsam.symbol_shorthand import B, L, V, X
 
 
-class BackendInputError(ValueError):
+class VioInputError(ValueError):
     """A frame whose arrays cannot be used (shape mismatch, time going backwards)."""
 
 
@@ -18,12 +18,12 @@ def observation_arrays(landmark_ids, camera_index, uv, n_cameras: int
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """A feature frame's observations as (ids (M,) int64, cameras (M,) int64, uv (M, 2) float, usable (M,) bool):
     usable where the camera index is one of the rig's ``n_cameras`` and the pixel is finite. Raises
-    :class:`BackendInputError` when the arrays disagree in length."""
+    :class:`VioInputError` when the arrays disagree in length."""
     ids = np.asarray(landmark_ids, np.int64).reshape(-1)
     cams = np.asarray(camera_index, np.int64).reshape(-1)
     uv = np.asarray(uv, float)
     if uv.shape != (len(ids), 2) or len(cams) != len(ids):
-        raise BackendInputError(f"observation arrays disagree: {len(ids)} ids, {len(cams)} camera indices, "
+        raise VioInputError(f"observation arrays disagree: {len(ids)} ids, {len(cams)} camera indices, "
                                 f"uv of shape {uv.shape}")
     return ids, cams, uv, (cams >= 0) & (cams < n_cameras) & np.all(np.isfinite(uv), axis=1)
 

@@ -208,9 +208,9 @@ def run_row(row: str, dataset: Path, overrides: list[str], seconds: float, heuri
         res["depth_frames_without_mvs"] = depth.no_mvs
     be = run.nodes["backend"]
     if cfg.o2p.enabled:
-        res["o2p_counts"] = dict(be.shell.o2p.counts)
-    if be.loop is not None:
-        res["loop"] = {k: int(v) for k, v in be.loop.counts.items()}
+        res["o2p_counts"] = dict(be.o2p.counts)
+    if be.loop_closure is not None:
+        res["loop"] = {k: int(v) for k, v in be.loop_closure.counts.items()}
     stamps = [int(s.header.stamp_ns) for s in published]
     T_pub = [np.asarray(s.T_WS) for s in published]
     res.update(_evaluate(dataset, stamps, T_pub, run.final, mapping.mapper if mesh else None, run.mesh_causal, out_dir))

@@ -79,7 +79,7 @@ def evaluate(map_dataset: str, dataset: str, out: Path, max_a: int = 0, max_b: i
     e_final = np.zeros(0)
     if rb.final is not None and rb.final.header.frame_id != UNALIGNED_FRAME:
         e_final = _errors(gt_b, np.asarray(rb.final.stamps_ns), al.apply(np.asarray(rb.final.T_WS)[:, :3, 3]))
-    loop = rb.nodes["backend"].loop
+    loop = rb.nodes["backend"].loop_closure
     rep = {"map_dataset": map_dataset, "dataset": dataset,
            "map_run": {"frames": ra.frames, "causal_ate_se3_m": res_a.rmse_m,
                        "keyframes": len(loop.runner.closer.prior) if loop.runner.closer.prior is not None else None},

@@ -22,7 +22,7 @@ import numpy as np
 from gtsam.symbol_shorthand import B, L, V, X
 
 from services.backend.loop.history import KeyframeRecord
-from services.backend.vision_factors import ProjectionModel
+from shared.vio.vision_factors import ProjectionModel
 from shared.geometry import inv_T, so3_exp, so3_log
 
 
@@ -45,11 +45,11 @@ def bundle_adjust(records: list[KeyframeRecord], cameras, sigma_px: float = 1.0,
                   loop_observations: list[tuple[int, int, np.ndarray, int, int]] = (), map_to_map=(), anchors=(),
                   T_init: np.ndarray | None = None, merge_loop_landmarks: bool = True,
                   prune_ratio: float = 0.0) -> FinalBaResult:
-    """``records`` of all keyframes (time order, no duplicates); ``cameras``: the estimator's BackendCamera
+    """``records`` of all keyframes (time order, no duplicates); ``cameras``: the estimator's VioCamera
     list; ``loops``: (old state, new state, T_old_new, covariance 6x6); ``loop_observations``: (state, camera,
     normalised xy, old landmark id, the feature's own landmark id) observations of old landmarks by loop keyframes
     (PnP inliers); ``merge_loop_landmarks``: merge each such own landmark into the old one; ``map_to_map``:
-    services.backend.o2p_terms.MapToMap terms (those whose anchors are among the keyframes join); ``anchors``:
+    services.backend.o2p.terms.MapToMap terms (those whose anchors are among the keyframes join); ``anchors``:
     (state, T_WS, covariance 6x6) poses of keyframes in a saved map's frame (their matches to the map's fixed
     keyframes): robust pose priors that place the whole run in the map's frame, the first keyframe's gauge prior
     then only weak; ``T_init``: moves the records' poses, velocities and landmarks (window frame) to where the

@@ -1,7 +1,7 @@
 """Keyframes that leave the estimator's window, kept for the pose graph, loop verification and final BA.
 
 A :class:`KeyframeHistory` is one of the estimator's marginalisation listeners (``WindowedVioEstimator(...,
-on_marginalise=[history])``, services/backend/protocols.py): :meth:`KeyframeHistory.on_marginalise` is called
+on_marginalise=[history])``, services/backend/window/protocols.py): :meth:`KeyframeHistory.on_marginalise` is called
 just before the oldest keyframe is marginalised, while the window's marginals still hold it, and hands each new
 record to the history's ``listeners`` (the loop closer), given at construction. It reads the window through the
 estimator's read API. Each record keeps the keyframe's state, its observations (normalised coordinates per

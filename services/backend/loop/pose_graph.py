@@ -6,7 +6,7 @@ estimated, with the covariance of that relative pose taken from the window's joi
 in visual-inertial odometry, only yaw and position drift) through an attitude factor of ``attitude_sigma_rad``,
 so that a loop or map-to-map term cannot tilt the trajectory (a tilt of a few tenths of a degree moves poses
 metres away by cm); accepted loops add relative-pose factors from PnP (robust, Cauchy); map-to-map
-occupancy-to-point terms (eq. 5-7, services/backend/o2p_terms.py) tie the keyframes anchoring two submaps. The graph
+occupancy-to-point terms (eq. 5-7, services/backend/o2p/terms.py) tie the keyframes anchoring two submaps. The graph
 is solved by Levenberg-Marquardt (in the loop closer's own thread, see services/backend/loop/loop_closer.py, so the
 estimator never waits for it).
 """
@@ -22,7 +22,7 @@ import numpy as np
 from shared.geometry import inv_T
 
 
-_UP = np.array([0.0, 0.0, 1.0])  # W's z axis, opposite to gravity (services/backend/imu_factors.py)
+_UP = np.array([0.0, 0.0, 1.0])  # W's z axis, opposite to gravity (shared/vio/imu_factors.py)
 
 
 def _sym(key: int) -> int:
@@ -64,7 +64,7 @@ class PoseGraph:
         self.odom: dict[int, np.ndarray] = {}  # key -> odometry (window) estimate T_WS
         self.keys: list[int] = []
         self.loops: list[LoopConstraint] = []
-        self.map_to_map: list = []  # services.backend.o2p_terms.MapToMap terms in the graph
+        self.map_to_map: list = []  # services.backend.o2p.terms.MapToMap terms in the graph
         self.last_map_to_map_reason = ""  # why the last term offered was rejected ('' accepted)
         self._prior = (prior_sigma_rad, prior_sigma_m)
         self._cauchy = loop_cauchy_k

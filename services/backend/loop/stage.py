@@ -1,20 +1,20 @@
-"""Loop closure inside the back end process: wraps a ``BackendShell`` (no transport in here).
+"""Loop closure as a stage of the back end (:class:`LoopClosure`; no transport in here).
 
-Built by the back end's composition root (services/backend/node.py) from parts made before the estimator: the
+Built by the back end's composition root (services/backend/compose.py) from parts made before the estimator: the
 keyframe history (the estimator's marginalisation listener), the :class:`ThreadedLoopCloser` it feeds and the
-:class:`PublishedFrame`.
+:class:`PublishedFrame`. The back-end node calls it around each frame the window takes:
 
-* the estimator's per-frame path only enqueues, so ``estimator/state`` is never delayed by verification or
+* the estimator's per-frame path only enqueues, so ``estimator/window`` is never delayed by verification or
   pose-graph solves;
-* corrects the keyframe poses by the pose graph's latest correction ``T_W'W`` (when ``loop.correct_state``; the
-  fast path applies the same correction to the published states); after a solve the keyframes message also
-  carries every corrected pose-graph node;
-* with occupancy-to-point factors on (the shell's ``o2p``), the :class:`PublishedFrame` is their submap anchoring:
-  it binds each closed submap to the keyframe anchoring it (:meth:`PublishedFrame.anchor_of`); the map-to-map
-  terms go to the pose graph;
-* keeps the published causal poses (:meth:`LoopClosingBackend.record_state`), and at the end of the stream (:meth:`LoopClosingBackend.finish`) runs
-  the final bundle adjustment over all keyframes with IMU, loop and map-to-map factors, giving the non-causal
-  trajectory.
+* :meth:`LoopClosure.after_frame` corrects the keyframe poses by the pose graph's latest correction ``T_W'W``
+  (when ``loop.correct_state``; the fast path applies the same correction to the published states); after a solve
+  the keyframes message also carries every corrected pose-graph node;
+* with occupancy-to-point factors on, the :class:`PublishedFrame` is their submap anchoring, the map-to-map terms
+  come in through :meth:`LoopClosure.add_map_to_map` and the verified revisits go back to them
+  (:meth:`LoopClosure.take_revisits`);
+* keeps the published causal poses (:meth:`LoopClosure.record_state`), and at the end of the stream
+  (:meth:`LoopClosure.finish`) runs the final bundle adjustment over all keyframes with IMU, loop and map-to-map
+  factors, giving the non-causal trajectory.
 """
 
 from __future__ import annotations
@@ -22,92 +22,30 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from typing import TYPE_CHECKING, Callable
 
 import numpy as np
-from gtsam.symbol_shorthand import X
 
 from services.backend.loop.config import LoopConfig
 from services.backend.loop.final_ba import bundle_adjust, follow_keyframes
 from services.backend.loop.history import KeyframeHistory
 from services.backend.loop.loop_thread import ThreadedLoopCloser
+from services.backend.loop.published_frame import PublishedFrame
 from services.backend.loop.verification import FeatureSet
-from shared.geometry import inv_T
+from services.backend.window.estimator import WindowedVioEstimator
 from shared.map_folder import SPARSE_FILE, UNALIGNED_FRAME, run_map_dir
 from shared.messages import EstimatorState, FinalTrajectory, Header, KeyframeFeatures, Keyframes, Landmarks
-
-if TYPE_CHECKING:
-    from services.backend.estimator import WindowedVioEstimator
 
 log = logging.getLogger("sigmaslam.loop")
 
 
-def corrected_state(msg: EstimatorState, T: np.ndarray) -> EstimatorState:
-    """``msg`` moved by the rigid correction T (= T_W'W): pose, velocity and the covariance's p/v blocks."""
-    R = T[:3, :3]
-    J = np.eye(15)
-    J[3:6, 3:6] = J[6:9, 6:9] = R
-    return EstimatorState(header=msg.header, T_WS=T @ msg.T_WS, v_W=R @ msg.v_W, gyro_bias=msg.gyro_bias,
-                          acc_bias=msg.acc_bias, covariance=J @ msg.covariance @ J.T, status=msg.status)
+class LoopClosure:
+    """Loop closure around the window of ``estimator``: ``history`` is its marginalisation listener and feeds
+    ``runner``; ``published`` is the frame the back end publishes in (the occupancy terms' anchoring); ``session``:
+    what the saved map says about this run (source, start time)."""
 
-
-class PublishedFrame:
-    """The frame W' the back end publishes in, as the loop closer moved it: the correction T_W'W applied to the
-    last state and the keyframe poses the last ``Keyframes`` messages carried. The occupancy terms' submap
-    anchoring (services/backend/protocols.py: SubmapAnchoring), since the mapping's submap poses and the depth poses
-    live in that frame.
-
-    ``window``: the estimator, read when a submap is anchored; a provider rather than the estimator itself, since
-    this is made before the estimator (whose extra factors, the occupancy terms, need this)."""
-
-    def __init__(self, history: KeyframeHistory, window: Callable[[], WindowedVioEstimator], correct_state: bool,
-                 anchor_tolerance_ms: float) -> None:
-        self.history, self.window = history, window
-        self.correct_state, self.anchor_tolerance_ms = correct_state, anchor_tolerance_ms
-        self.T_last = np.eye(4)  # the correction applied to the last state
-        self.keyframe_poses: dict[int, np.ndarray] = {}  # keyframe state -> its pose in the last Keyframes message
-
-    def anchor_of(self, stamp_ns: int, T_WM: np.ndarray) -> tuple[int, np.ndarray] | None:
-        """The keyframe a submap created at ``stamp_ns`` with pose ``T_WM`` (as the mapping has it now) follows:
-        the keyframe nearest its creation within ``o2p.anchor_tolerance_ms`` (state index) and ``T_KM``, taken
-        against that keyframe's pose as it was last published (the frame the mapping's T_WM lives in): the pose of
-        the last ``Keyframes`` message that carried it, not a newer correction the mapping has not seen yet."""
-        tol = self.anchor_tolerance_ms * 1e6
-        est = self.window()
-        best: tuple[float, int, np.ndarray] | None = None
-        for n in est.keyframes:  # still in the window
-            if est.values.exists(X(n)) and abs(est.stamps[n] - stamp_ns) <= tol:
-                if best is None or abs(est.stamps[n] - stamp_ns) < best[0]:
-                    best = (abs(est.stamps[n] - stamp_ns), n, est.values.atPose3(X(n)).matrix())
-        for r in reversed(self.history.records):  # marginalised, time order
-            if r.stamp_ns < stamp_ns - tol:
-                break
-            if abs(r.stamp_ns - stamp_ns) <= tol and (best is None or abs(r.stamp_ns - stamp_ns) < best[0]):
-                best = (abs(r.stamp_ns - stamp_ns), r.state, r.T_WS)
-        if best is None:
-            return None
-        _, n, T_WK = best
-        if self.correct_state:  # as published; never published (yet): moved by the last state's correction
-            T_WK = self.keyframe_poses.get(n, self.T_last @ T_WK)
-        return n, inv_T(T_WK) @ np.asarray(T_WM, float)
-
-    def correction(self) -> np.ndarray | None:
-        """T_W'W applied to the last published state (None without ``loop.correct_state``: W' = W)."""
-        return self.T_last.copy() if self.correct_state else None
-
-    def note_published(self, kfs: Keyframes) -> None:
-        """Remember the keyframe poses a ``Keyframes`` message carries (:meth:`anchor_of` reads them)."""
-        for n, T in zip(np.asarray(kfs.ids), np.asarray(kfs.T_WS)):
-            self.keyframe_poses[int(n)] = T
-
-
-class LoopClosingBackend:
-    """``shell`` (services/backend/node.py: BackendShell) with loop closure: ``history`` is the shell's estimator's
-    marginalisation listener and feeds ``runner``; ``published`` is the shell's occupancy terms' anchoring."""
-
-    def __init__(self, shell, cfg: LoopConfig, history: KeyframeHistory, runner: ThreadedLoopCloser,
-                 published: PublishedFrame) -> None:
-        self.shell, self.cfg = shell, cfg
+    def __init__(self, cfg: LoopConfig, estimator: WindowedVioEstimator, history: KeyframeHistory,
+                 runner: ThreadedLoopCloser, published: PublishedFrame, session: dict | None = None) -> None:
+        self.cfg, self.estimator = cfg, estimator
         self.history, self.runner, self.published = history, runner, published
         self._stamps: list[int] = []
         self._T_pub: list[np.ndarray] = []
@@ -121,7 +59,7 @@ class LoopClosingBackend:
         self._finished = False
         self._last_process = time.monotonic()
         self._last_save_ns: int | None = None
-        self.session = {}  # what the saved map says about this run (source, start time)
+        self.session = session or {}
         # where this run's sparse map goes (None: nowhere: no loop.map_output, or loop.localise_only)
         self._map_file = (run_map_dir(cfg.map_output) / SPARSE_FILE
                           if cfg.map_output and not cfg.localise_only else None)
@@ -147,7 +85,7 @@ class LoopClosingBackend:
         """The keyframes still in the estimator's window, for the saved map: without them a checkpoint would lag
         the drone by the window's span (8 keyframes, ~3-4 s), and a back end restarted in flight would look for
         itself in a map that ends where it was seconds before (tests/test_reliability_faults.py)."""
-        est = self.shell.estimator
+        est = self.estimator
         return self.history.capture_window(est) if len(est.keyframes) else []
 
     def save_map(self) -> bool:
@@ -172,18 +110,24 @@ class LoopClosingBackend:
             np.asarray(msg.landmark_ids, np.int64), np.asarray(msg.camera_index, np.int64),
             np.asarray(msg.uv, float), np.asarray(msg.descriptors, np.uint8)))
 
-    def process(self, frame):
-        """As ``BackendShell.process`` (a frame the estimator wants: services/backend/node.py), with the keyframe
-        poses corrected; the state stays in W (the fast path corrects the published ones by
-        :meth:`PublishedFrame.correction`). The published states of all frames come in through :meth:`record_state`."""
+    def before_frame(self) -> None:
+        """A frame the window takes is about to be processed (the end of the stream waits for the last one)."""
         self._last_process = time.monotonic()
-        if self.shell.o2p is not None:  # map-to-map terms of submaps closed since the last frame
-            for term in self.shell.o2p.pop_map_to_map():
-                self.runner.submit_map_to_map(term)
-            for lp in self.runner.take_verified():  # a revisit: the keyframe co-observes the old landmarks
-                if lp.observations:
-                    self.shell.o2p.note_loop(lp.query_stamp_ns, lp.observations[2])
-        msgs = self.shell.process(frame)
+
+    def add_map_to_map(self, term) -> None:
+        """A map-to-map term of a closed submap (services/backend/o2p/map_to_map.py) for the pose graph."""
+        self.runner.submit_map_to_map(term)
+
+    def take_revisits(self) -> list[tuple[int, np.ndarray]]:
+        """(keyframe stamp, the old landmark ids its verified loop matched) of the loops verified since the last
+        call: a revisit co-observes the old landmarks."""
+        return [(lp.query_stamp_ns, lp.observations[2]) for lp in self.runner.take_verified() if lp.observations]
+
+    def after_frame(self, msgs: tuple[EstimatorState, Keyframes | None] | None
+                    ) -> tuple[EstimatorState, Keyframes | None] | None:
+        """The window's messages of a frame with the keyframe poses corrected; the state stays in W (the fast path
+        corrects the published ones by :meth:`correction`). The published states of all frames come in through
+        :meth:`record_state`."""
         if msgs is None or msgs[0].status in ("initialising", "reset"):
             return msgs
         state, kfs = msgs
@@ -231,10 +175,13 @@ class LoopClosingBackend:
         # the pose only matters until a saved map's frame is reached (the closer aligns the session with it)
         self.runner.submit_status(stamp, state.status, None if self.runner.aligned else np.array(state.T_WS))
 
-    def take_landmarks(self) -> Landmarks | None:
-        """As ``BackendShell.take_landmarks``, moved by the correction applied to the last state."""
-        msg = self.shell.take_landmarks()
-        if msg is None or not self.cfg.correct_state:
+    def correction(self) -> np.ndarray | None:
+        """T_W'W applied to the last published state (None without ``loop.correct_state``: W' = W)."""
+        return self.published.correction()
+
+    def correct_landmarks(self, msg: Landmarks) -> Landmarks:
+        """The window's landmarks moved by the correction applied to the last state."""
+        if not self.cfg.correct_state:
             return msg
         T = self.published.T_last
         return Landmarks(header=msg.header, ids=msg.ids, p_W=msg.p_W @ T[:3, :3].T + T[:3, 3],
@@ -243,7 +190,7 @@ class LoopClosingBackend:
     def finish(self, seq: int = 0) -> FinalTrajectory | None:
         """Final bundle adjustment over every keyframe (None when too little was tracked)."""
         self.runner.drain()
-        est = self.shell.estimator
+        est = self.estimator
         window = self.history.capture_window(est)
         records = self.history.records + window
         closer = self.runner.closer

@@ -47,7 +47,7 @@ class O2PConfig:
                                        "gated_overlap; map-to-map terms need M_min only: consecutive submaps overlap "
                                        "little by design)")
     mono_settle_s: float = param(1.0, "one camera: dense factors wait this long after the window got its metric hold "
-                                 "(it stood still, or services/backend/mono_init.py rebuilt it); depth frames and "
+                                 "(it stood still, or services/backend/window/mono_init.py rebuilt it); depth frames and "
                                  "submaps begun before then are never used (their poses had no scale)", "s")
     max_pending_depth: int = param(32, "depth frames waiting for their window state at most (oldest dropped)")
     max_submaps: int = param(500, "finished submap fields kept at most (oldest dropped)")

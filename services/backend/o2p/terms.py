@@ -1,6 +1,6 @@
 """Which occupancy-to-point factors the back end's window gets (paper sec. IV-C), transport-free.
 
-Inputs (fed by the back-end service): finished submaps' near-surface fields (``map/field``), live stereo
+Inputs (fed by the back-end node, :meth:`OccupancyTerms.add_message`): finished submaps' near-surface fields (``map/field``), live stereo
 depth frames (``depth/stereo``), the landmark ids of every feature frame, and optionally the fused-depth
 points of finished submaps (map-to-map).
 
@@ -34,10 +34,10 @@ points of finished submaps (map-to-map).
   at the current estimate is rejected (counted ``gated_overlap`` / ``gated_chi2``, logged), not left to the
   Tukey loss, which only switches a factor off near the estimate where it was linearised.
 * **Metric hold** (one camera): until the window has a metric scale (it stood still, or
-  services/backend/mono_init.py rebuilt it) and ``mono_settle_s`` after, there are no dense factors, and depth
+  services/backend/window/mono_init.py rebuilt it) and ``mono_settle_s`` after, there are no dense factors, and depth
   frames and submaps begun before that are never used: their poses (and, for MVS, their depth) came from an
   estimate without scale (:meth:`OccupancyTerms.window_factors`: the terms are one of the estimator's extra-factor
-  sources, services/backend/protocols.py).
+  sources, services/backend/window/protocols.py).
 """
 
 from __future__ import annotations
@@ -49,60 +49,20 @@ import logging
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import X
-from scipy.special import chdtri  # chi-square quantile: chi2.ppf(p, k) = chdtri(k, 1 - p) (scipy.stats takes ~1.7 s to import)
 
-from services.backend.o2p_config import O2PConfig
-from services.backend.mono_init import metric_hold
-from services.backend.o2p_factor import OccupancyToPoint, trilinear_derivatives
-from services.backend.protocols import SubmapAnchoring
+from services.backend.o2p.config import O2PConfig
+from services.backend.window.mono_init import metric_hold
+from services.backend.o2p.factor import OccupancyToPoint, trilinear_derivatives
+from services.backend.o2p.gates import GateResult, consistency
+from services.backend.o2p.map_to_map import MapToMap
+from services.backend.window.protocols import SubmapAnchoring
+from shared.messages import DepthFrame, OccupancyField
 from shared.occupancy.message import field_of_message
 from shared.occupancy.o2p_points import select_depth_points  # noqa: F401 (also used by callers)
 from shared.occupancy.query import BlockField
 from shared.geometry import inv_T, transform_points
 
 log = logging.getLogger("sigmaslam.backend.o2p")
-
-
-@dataclasses.dataclass(frozen=True)
-class GateResult:
-    """The gates' view of one factor at the estimate where it would enter the graph."""
-
-    n_points: int
-    n_valid: int  # points inside the target's observed field (and off saturated free space)
-    chi2: float  # whitened squared error with the N_eff cap, as the graph would see it
-    dof: float  # min(n_valid, N_eff) (n_valid without a cap)
-    limit: float  # chi-square quantile at gate_chi2_p (inf without the gate)
-    reason: str  # '' when accepted, else 'too_few_inside' | 'overlap' | 'chi2'
-
-
-def consistency(f: OccupancyToPoint, T_WA: np.ndarray, T_WB: np.ndarray, cfg: O2PConfig,
-                min_fraction: float | None = None) -> GateResult:
-    """Overlap and chi-square gates of a freshly made factor ``f`` (before :meth:`OccupancyToPoint.factor`)
-    at poses T_WA (points) and T_WB (target), both body poses in the window's frame.
-
-    Overlap: >= ``min_points_in_field`` and >= ``min_fraction`` (default ``min_inside_fraction``; map-to-map
-    passes 0: a submap starts where the previous one's overlap fell below mapping.submaps.eps_vol, so most of
-    its points lie outside its target by design) of the points inside the observed field.
-    Chi-square: with n valid points and whitened residuals r_i (eq. 6-7), the factor's squared error is
-    s * sum r_i^2 with s = min(1, N_eff / n) (:meth:`OccupancyToPoint.row_scale`); for consistent depth, map
-    and poses it follows roughly a chi-square with min(n, N_eff) degrees of freedom (N_eff independent pieces of
-    information; the correlated remainder adds little spread), so above its ``gate_chi2_p`` quantile the points
-    do not lie on the map at this estimate."""
-    ev = f.evaluate(np.asarray(T_WA, float), np.asarray(T_WB, float))
-    n, nv = len(f.p_A), int(ev.valid.sum())
-    scale = f.row_scale(nv) / f.info_scale  # evaluate() ran with sqrt(info_scale) rows: the cap on top
-    stat = float(scale * np.sum(ev.r**2))
-    dof = float(min(nv, cfg.effective_points) if cfg.effective_points > 0 else nv)
-    limit = float(chdtri(max(dof, 1.0), 1.0 - cfg.gate_chi2_p)) if cfg.gate_chi2_p > 0 else float("inf")
-    if nv < cfg.min_points_in_field:
-        reason = "too_few_inside"
-    elif nv < (cfg.min_inside_fraction if min_fraction is None else min_fraction) * n:
-        reason = "overlap"
-    elif stat > limit:
-        reason = "chi2"
-    else:
-        reason = ""
-    return GateResult(n, nv, stat, dof, limit, reason)
 
 
 @dataclasses.dataclass
@@ -119,49 +79,11 @@ class _Submap:
     anchor: tuple[int, np.ndarray] | None = None  # (keyframe state, T_KM) once the submap closed
 
 
-@dataclasses.dataclass(frozen=True)
-class MapToMap:
-    """Map-to-map term of eq. 5: the points of submap m (in M_m) against the field of o(m), between the
-    keyframes anchoring the two submaps (``T_KM``: a submap's frame in its anchor keyframe's body frame)."""
-
-    submap: int
-    target: int
-    state_m: int
-    state_o: int
-    T_KM_m: np.ndarray
-    T_KM_o: np.ndarray
-    points_M: np.ndarray  # (N, 3) [m]
-    sigma: np.ndarray  # (N,) [m]
-    field: BlockField  # of o(m), in M_o
-    l_min: float
-    cfg: O2PConfig
-
-    def build(self, key_m: int, key_o: int, T_WK_m: np.ndarray, T_WK_o: np.ndarray) -> gtsam.NonlinearFactor | None:
-        """The factor between gtsam Pose3 keys of the two anchors (body poses), with its Tukey threshold set
-        by the points inside o's field at the given anchor poses; None when the gates (:func:`consistency`)
-        reject it there (fewer than M_min points inside, too little overlap, or chi-square)."""
-        return self.gated_build(key_m, key_o, T_WK_m, T_WK_o)[0]
-
-    def gated_build(self, key_m: int, key_o: int, T_WK_m: np.ndarray,
-                    T_WK_o: np.ndarray) -> tuple[gtsam.NonlinearFactor | None, GateResult]:
-        """:meth:`build` and the gates' verdict (``reason`` says why a None factor was rejected)."""
-        c = self.cfg
-        p_A = self.points_M @ self.T_KM_m[:3, :3].T + self.T_KM_m[:3, 3]
-        f = OccupancyToPoint(self.field, self.l_min, p_A, self.sigma, key_a=key_m, key_b=key_o, T_BM=self.T_KM_o,
-                             tukey_k=c.tukey_k, grad_min=c.grad_min, info_scale=c.info_scale,
-                             effective_points=c.effective_points)
-        g = consistency(f, T_WK_m, T_WK_o, c, min_fraction=0.0)
-        if g.reason:
-            log.info("o2p map-to-map %d -> %d rejected (%s): %d/%d points inside, chi2 %.1f (limit %.1f, dof %.0f)",
-                     self.submap, self.target, g.reason, g.n_valid, g.n_points, g.chi2, g.limit, g.dof)
-            return None, g
-        return f.factor(g.n_valid), g
-
 
 class OccupancyTerms:
     """Keeps map and depth inputs; :meth:`factors` answers the factors of the current window.
 
-    ``anchoring`` (the loop-closing back end's, services/backend/protocols.py): the keyframe each closed submap
+    ``anchoring`` (the loop-closing back end's, services/backend/window/protocols.py): the keyframe each closed submap
     follows (map-to-map terms) and the correction T_W'W of the published frame W', where depth poses and submap
     poses T_WM arrive, relative to the window's frame W. None without a loop closer: no map-to-map terms (counted
     ``map_to_map_no_pose_graph``), W' = W."""
@@ -255,6 +177,22 @@ class OccupancyTerms:
         sm.points_M, sm.sigma = np.asarray(points_M, float)[order], np.asarray(sigma, float)[order]
         if self.cfg.map_to_map:
             self._queue_map_to_map(sm)
+
+    def add_message(self, msg, est) -> None:
+        """``map/field`` (OccupancyField), ``depth/stereo`` (DepthFrame) or ``map/o2p_points`` (SubmapPoints); a
+        depth frame attaches to the window of ``est`` (the estimator). One that cannot be used is dropped
+        (counted ``dropped_bad_input``, logged)."""
+        try:
+            if isinstance(msg, DepthFrame):
+                T_WS = None if np.allclose(msg.T_WC, np.eye(4)) else msg.T_WC @ np.linalg.inv(msg.T_SC)
+                self.add_depth(msg.header.stamp_ns, msg.depth, msg.sigma, msg.K, msg.T_SC, T_WS, est.stamps, est.values)
+            elif isinstance(msg, OccupancyField):
+                self.add_field(msg)
+            else:
+                self.add_submap_points(msg.submap_id, msg.points_M, msg.sigma)
+        except ValueError as exc:
+            self.counts["dropped_bad_input"] += 1
+            log.warning("o2p input %s dropped: %s", type(msg).__name__, exc)
 
     def pop_map_to_map(self) -> list[MapToMap]:
         """Map-to-map terms queued since the last call (for the loop closer)."""
@@ -377,8 +315,8 @@ class OccupancyTerms:
                 if sm.id != exclude and np.isin(lms, sm.landmarks, assume_unique=True).sum() >= need]
 
     def window_factors(self, est) -> list[gtsam.NonlinearFactor]:
-        """As the estimator's extra-factor source (services/backend/protocols.py): :meth:`factors` of its
-        window once it has a metric hold (:func:`services.backend.mono_init.metric_hold`) and, with one camera,
+        """As the estimator's extra-factor source (services/backend/window/protocols.py): :meth:`factors` of its
+        window once it has a metric hold (:func:`services.backend.window.mono_init.metric_hold`) and, with one camera,
         ``mono_settle_s`` after it got one; nothing before. Depth frames and submaps older than that moment
         are never used."""
         if not est.stamps:

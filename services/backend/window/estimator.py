@@ -3,8 +3,8 @@
 Design choices:
 
 * **Window**: the last ``window_keyframes`` keyframes plus the latest frame; rebuilt from cached factors
-  (:mod:`services.backend.observations`) and solved by Levenberg-Marquardt at keyframes. A non-keyframe frame (``motion_only_between_keyframes``, no per-frame
-  covariance) solves only its own state against the window held fixed (:mod:`services.backend.motion_only`) and is
+  (:mod:`services.backend.window.observations`) and solved by Levenberg-Marquardt at keyframes. A non-keyframe frame (``motion_only_between_keyframes``, no per-frame
+  covariance) solves only its own state against the window held fixed (:mod:`shared.vio.motion_only`) and is
   dropped, so the number of states is bounded. Outlier rejection and the marginal covariance run at keyframes (NaN
   for other frames unless ``compute_covariance``).
 * **Marginalisation**: when the oldest keyframe leaves, the joint 15x15 marginal covariance of the next one's
@@ -15,14 +15,14 @@ Design choices:
   and enter ``GenericProjectionFactorCal3_S2`` with an identity calibration and ``body_P_sensor = T_SC_i``,
   noise sigma_px / f_i, wrapped in a Cauchy robust model (k in units of sigma). Normalised coordinates keep
   the distortion model out of the optimisation (any model the camera class supports works unchanged). With
-  ``refine_extrinsics`` the T_SC_i are variables of the window instead (:mod:`services.backend.extrinsics`).
+  ``refine_extrinsics`` the T_SC_i are variables of the window instead (:mod:`services.backend.window.extrinsics`).
 * **Landmarks** are added once seen in >= 2 window views (any cameras) with enough parallax, by linear
-  triangulation, rejected on cheirality, depth range and reprojection error (:mod:`services.backend.triangulation`);
+  triangulation, rejected on cheirality, depth range and reprojection error (:mod:`services.backend.window.triangulation`);
   after a keyframe's optimisation, observations with a reprojection error above the bound are removed, and the
   result carries the window's well-constrained landmarks (:meth:`WindowedVioEstimator.window_landmarks`).
 * **One camera** (mono-inertial): a frame standing still relative to its keyframe gets a relative-pose and a
-  zero-velocity factor (:mod:`services.backend.still`); a window that never stood still is rebuilt once from
-  two-view geometry and a linear IMU alignment of scale, velocities and gravity (:mod:`services.backend.mono_init`).
+  zero-velocity factor (:mod:`services.backend.window.still`); a window that never stood still is rebuilt once from
+  two-view geometry and a linear IMU alignment of scale, velocities and gravity (:mod:`services.backend.window.mono_init`).
 * **No features**: the window keeps its IMU chain (keyframes still come at ``max_keyframe_interval_s``),
   the state is propagated by the IMU factors, status ``imu_only``.
 """
@@ -36,24 +36,24 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, L, V, X
 
-from services.backend import init as vio_init
-from services.backend.cameras import BackendCamera, camera_from_calib  # noqa: F401 (re-exported)
+from services.backend.window import init as vio_init
+from shared.vio.cameras import VioCamera, camera_from_calib  # noqa: F401 (re-exported)
 from services.backend.config import BackendConfig
-from services.backend.extrinsics import ExtrinsicRefinement
-from services.backend.frame_result import FrameResult, to_message_covariance
-from services.backend.gravity_align import MovingStartAligner
-from services.backend.imu_factors import ImuBuffer, imu_factor, make_bias, make_params, predict
-from services.backend.motion_only import optimise_latest
-from services.backend.priors import WindowPrior, window_marginals
-from services.backend.protocols import ExtraFactorSource, MarginalisationListener
-from services.backend.mono_init import bootstrap as mono_bootstrap
-from services.backend.observations import ObservationBook
-from services.backend.still import mono_frame_factors
-from services.backend.time_offset import TimeOffsetEstimator, interval_residual
-from services.backend.triangulation import new_landmarks
-from services.backend.vision_factors import ProjectionModel
-from services.backend.window_api import WindowReadApi
-from services.backend.window_rules import (BackendInputError, keyframe_due,  # noqa: F401 (re-exported)
+from services.backend.window.extrinsics import ExtrinsicRefinement
+from services.backend.window.frame_result import FrameResult, to_message_covariance
+from services.backend.window.gravity_align import MovingStartAligner
+from shared.vio.imu_factors import ImuBuffer, imu_factor, make_bias, make_params, predict
+from shared.vio.motion_only import optimise_latest
+from services.backend.window.priors import WindowPrior, window_marginals
+from services.backend.window.protocols import ExtraFactorSource, MarginalisationListener
+from services.backend.window.mono_init import bootstrap as mono_bootstrap
+from services.backend.window.observations import ObservationBook
+from services.backend.window.still import mono_frame_factors
+from services.backend.window.time_offset import TimeOffsetEstimator, interval_residual
+from services.backend.window.triangulation import new_landmarks
+from shared.vio.vision_factors import ProjectionModel
+from services.backend.window.window_api import WindowReadApi
+from shared.vio.window_rules import (VioInputError, keyframe_due,  # noqa: F401 (re-exported)
                                            observation_arrays, reprojection_outliers, schur_ordering,
                                            state_keys)
 
@@ -61,10 +61,10 @@ from services.backend.window_rules import (BackendInputError, keyframe_due,  # n
 class WindowedVioEstimator(WindowReadApi):
     """Feed IMU with :meth:`add_imu` and frames with :meth:`process_frame` (in time order). ``extra_factors``:
     sources of factors for every window graph; ``on_marginalise``: told before the oldest keyframe leaves the
-    window (services/backend/protocols.py). Others read the window through the read API
-    (services/backend/window_api.py)."""
+    window (services/backend/window/protocols.py). Others read the window through the read API
+    (services/backend/window/window_api.py)."""
 
-    def __init__(self, cfg: BackendConfig, cameras: list[BackendCamera], imu_calib=None, *,
+    def __init__(self, cfg: BackendConfig, cameras: list[VioCamera], imu_calib=None, *,
                  extra_factors: Sequence[ExtraFactorSource] = (),
                  on_marginalise: Sequence[MarginalisationListener] = ()) -> None:
         if not cameras:
@@ -156,7 +156,7 @@ class WindowedVioEstimator(WindowReadApi):
     # ---------------------------------------------------------------- per frame
     def wants_frame(self, stamp_ns: int, is_keyframe: bool) -> bool:
         """Whether :meth:`process_frame` would make this frame a keyframe (or needs it to initialise): the frames the
-        back-end service gives it; the others only the per-frame fast path tracks (services/backend/odometry.py)."""
+        back-end service gives it; the others only the per-frame fast path tracks (services/frontend/odometry.py)."""
         last = self.stamps[self.keyframes[-1]] if self.initialised else None
         return self._first_frame_pending or keyframe_due(stamp_ns, is_keyframe, last, self.cfg.max_keyframe_interval_s)
 
@@ -278,7 +278,7 @@ class WindowedVioEstimator(WindowReadApi):
         ids, cams, uv, ok = observation_arrays(landmark_ids, camera_index, uv, len(self.cameras))
         latest = max(self.stamps.values()) if self.stamps else None
         if latest is not None and (stamp_ns < latest or (stamp_ns == latest and not self._first_frame_pending)):
-            raise BackendInputError(f"frame stamp {stamp_ns} ns is not after the previous frame")
+            raise VioInputError(f"frame stamp {stamp_ns} ns is not after the previous frame")
         self.dropped_observations += int((~ok).sum())
         return ids[ok], cams[ok], uv[ok]
 

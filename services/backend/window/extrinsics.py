@@ -4,7 +4,7 @@ Each camera c gets a Pose3 variable E(c) = T_SC in the window graph; its reproje
 ``ProjectionFactorPPP`` (body pose, extrinsic, landmark: gtsam_unstable) instead of a factor with the extrinsic fixed.
 The calibration file's T_SC is the first prior on E(c), with sigmas from the config (how much the user trusts the
 calibration). When the oldest keyframe leaves the window, the joint marginal of the next keyframe's state and every
-E(c) becomes one prior (services/backend/priors.py: the correlations matter, since a camera's pose X E(c) is known
+E(c) becomes one prior (services/backend/window/priors.py: the correlations matter, since a camera's pose X E(c) is known
 far better than X or E(c) alone), each E(c) block widened by a small random walk per keyframe
 (:func:`carried_covariance`). The marginal also counts the observations still in the window, as the state's prior
 does: alone that would make the prior ever more confident, since an extrinsic never changes; the walk bounds it,

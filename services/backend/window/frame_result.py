@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.backend.landmarks import WindowLandmarks
+from services.backend.window.landmarks import WindowLandmarks
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,7 @@
 """Gravity alignment of a window that started moving (several cameras: the window has metric scale from the start).
 
 A moving start takes gravity from the gyro-rotated accelerometer readings of the last ``static_window_s`` with the
-velocity change over it taken as zero and the gyro bias unknown (services/backend/init.py): on EuRoC's flying starts
+velocity change over it taken as zero and the gyro bias unknown (services/backend/window/init.py): on EuRoC's flying starts
 this tilts W by 1-3 deg. Held loosely, the tilt then wanders while vision and the IMU settle it over seconds and
 bends the trajectory (the accelerometer bias trades against it); held firmly, it stays wrong. So the window holds it
 firmly and, once it spans ``backend.moving_align_after_s`` of keyframes, measures it again from what the window now
@@ -9,7 +9,7 @@ knows, and turns the whole window once:
 
 1. each keyframe's body pose relative to the oldest one (vision's, metric with stereo) and the IMU deltas between
    consecutive keyframes (pre-integrated) give the keyframes' velocities
-   and gravity in the oldest keyframe's frame by the linear least squares of :func:`services.backend.mono_init.align`
+   and gravity in the oldest keyframe's frame by the linear least squares of :func:`services.backend.window.mono_init.align`
    (its scale, which should come out 1, is the check; held at 1 when the window barely moved, as a drone standing
    with its rotors running, which fails the static test, does); the deltas take the window's gyro bias but a zero
    accelerometer bias, which the window's estimate has bent to fit its tilt;
@@ -30,8 +30,8 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, L, V, X
 
-from services.backend.init import rotation_aligning
-from services.backend.mono_init import align
+from services.backend.window.init import rotation_aligning
+from services.backend.window.mono_init import align
 
 log = logging.getLogger("sigmaslam.backend")
 

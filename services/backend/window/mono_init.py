@@ -22,8 +22,8 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import V, X
 
-from services.backend.init import rotation_aligning
-from services.backend.triangulation import triangulate
+from services.backend.window.init import rotation_aligning
+from services.backend.window.triangulation import triangulate
 
 
 def two_view(xy_a: np.ndarray, xy_b: np.ndarray, ransac_rad: float) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:

@@ -1,5 +1,5 @@
 """Prior factors on the oldest state of the estimator's window: at initialisation, after the monocular rebuild
-(services/backend/mono_init.py) and, as a Gaussian on (pose, velocity, bias), after each marginalisation
+(services/backend/window/mono_init.py) and, as a Gaussian on (pose, velocity, bias), after each marginalisation
 (:class:`WindowPrior` keeps them and their covariance); and the window's marginals those Gaussians come from."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, L, V, X
 
-from services.backend.window_rules import state_keys
+from shared.vio.window_rules import state_keys
 
 
 def state_priors(n: int, T_WS: gtsam.Pose3, v_W: np.ndarray, bias: gtsam.imuBias.ConstantBias,
@@ -26,7 +26,7 @@ def marginal_prior(values: gtsam.Values, n: int, cov: np.ndarray, extrinsics: tu
                    ) -> gtsam.NonlinearFactor:
     """The joint marginal ``cov`` of state n's (pose, velocity, bias), order (rotation, position, velocity,
     accelerometer bias, gyro bias), then of the Pose3 variables ``extrinsics`` (keys; online extrinsic refinement,
-    services/backend/extrinsics.py) in that order, as one Gaussian prior linearised at their estimate in ``values``
+    services/backend/window/extrinsics.py) in that order, as one Gaussian prior linearised at their estimate in ``values``
     (the correlations kept: the camera poses X(n) E(c) are known better than either factor)."""
     lin = gtsam.Values()
     lin.insert(X(n), values.atPose3(X(n)))

@@ -4,7 +4,7 @@
 collaborators; no part installs a hook into another after construction.
 
 * :class:`ExtraFactorSource`: factors the windowed estimator adds to every window graph (the occupancy-to-point
-  terms, services/backend/o2p_terms.py);
+  terms, services/backend/o2p/terms.py);
 * :class:`MarginalisationListener`: told before the estimator marginalises its oldest keyframe (the keyframe
   history of the loop closer, services/backend/loop/history.py);
 * :class:`SubmapAnchoring`: how the occupancy terms tie a submap to a keyframe and map published poses back into
@@ -20,7 +20,7 @@ import gtsam
 import numpy as np
 
 if TYPE_CHECKING:
-    from services.backend.estimator import WindowedVioEstimator
+    from services.backend.window.estimator import WindowedVioEstimator
 
 
 class ExtraFactorSource(Protocol):

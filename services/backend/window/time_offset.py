@@ -20,7 +20,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, X
 
-from services.backend.imu_factors import ImuBuffer
+from shared.vio.imu_factors import ImuBuffer
 from shared.geometry import so3_exp, so3_log
 
 

@@ -1,4 +1,4 @@
-"""The estimator's read API (:class:`WindowReadApi`, a base of :class:`services.backend.estimator.WindowedVioEstimator`):
+"""The estimator's read API (:class:`WindowReadApi`, a base of :class:`services.backend.window.estimator.WindowedVioEstimator`):
 what the fast path, initialisation, loop closure and the node read from the window, kept apart from the solve.
 Every call answers at the current estimate and returns copies or new containers (the observation arrays of
 :meth:`WindowReadApi.observations_of` excepted, which are the window's own)."""
@@ -11,9 +11,9 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L
 
-from services.backend.cameras import BackendCamera
-from services.backend.gravity_align import GravityAlignment
-from services.backend.landmarks import WindowLandmarks, gather_landmarks
+from shared.vio.cameras import VioCamera
+from services.backend.window.gravity_align import GravityAlignment
+from services.backend.window.landmarks import WindowLandmarks, gather_landmarks
 
 
 class WindowReadApi:
@@ -42,7 +42,7 @@ class WindowReadApi:
         """(C,4,4) pose of each camera in the body frame S (a copy)."""
         return self._T_SC.copy()
 
-    def cameras_in_use(self) -> list[BackendCamera]:
+    def cameras_in_use(self) -> list[VioCamera]:
         """The rig's cameras with the extrinsics the window uses now (the refined ones with refinement on)."""
         return [dataclasses.replace(c, T_SC=T.copy()) for c, T in zip(self.cameras, self._T_SC)]
 
