@@ -1,8 +1,8 @@
 """02: run the visual-inertial estimator in one process, without Zenoh, and measure its error.
 
-Each service is a transport-free node: the frontend's ``FrontendNode`` (KLT tracking of both cameras, gyro-aided),
-the back end's ``BackendNode`` (a keyframe-window smoother in gtsam with IMU pre-integration, run at keyframes)
-and the per-frame fast path ``OdometryNode`` (every frame's state against the back end's latest window).
+Each process is a transport-free node: the frontend's ``FrontendNode`` (KLT tracking of both cameras, gyro-aided, and
+the per-frame fast path: every frame's state against the back end's latest window) and the back end's
+``BackendNode`` (a keyframe-window smoother in gtsam with IMU pre-integration, run at keyframes).
 ``tools/vio/offline.py`` runs them on the in-process runner (services/app/inprocess.py), which feeds a dataset in
 the order the player would publish it (IMU samples and frames interleaved by stamp) and delivers each feature frame
 to the fast path and the back end, the back end's window to the fast path and the fast path's state back to the

@@ -64,7 +64,7 @@ def _run(t_end, blank=(np.inf, np.inf), seed=5, threaded=False, acc_bias=(0.05, 
             fs = FeatureSet(ids, c, uv, codes[ids] ^ flips)
             (runner.submit_features if threaded else closer.add_keyframe_features)(stamp, fs)
         r = est.process_frame(stamp, ids, c, uv, is_keyframe=kf)
-        if cfg.early_loops and len(r.keyframe_stamps_ns):  # as services/backend/loop/backend_loop.py submits them
+        if cfg.early_loops and len(r.keyframe_stamps_ns):  # as services/backend/loop/stage.py submits them
             (runner.submit_window if threaded else closer.note_window)(r.keyframe_stamps_ns, r.keyframe_T_WS)
         corr = runner.correction() if threaded else closer.correction()
         (runner.submit_status if threaded else closer.note_status)(stamp, r.status, corr @ r.T_WS)

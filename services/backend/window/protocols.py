@@ -8,7 +8,7 @@ collaborators; no part installs a hook into another after construction.
 * :class:`MarginalisationListener`: told before the estimator marginalises its oldest keyframe (the keyframe
   history of the loop closer, services/backend/loop/history.py);
 * :class:`SubmapAnchoring`: how the occupancy terms tie a submap to a keyframe and map published poses back into
-  the window's frame (the loop-closing back end, services/backend/loop/backend_loop.py; none without a loop
+  the window's frame (the loop closure's published frame, services/backend/loop/published_frame.py; none without a loop
   closer).
 """
 
