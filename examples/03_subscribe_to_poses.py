@@ -30,7 +30,7 @@ import time
 import numpy as np
 import zenoh
 
-from services.system_config import load_system_config
+from services.app.system_config import load_system_config
 from shared import topics
 from shared.geometry import R_to_quat_wxyz
 from transport.pubsub import Subscriber

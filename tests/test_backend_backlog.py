@@ -44,7 +44,7 @@ def test_the_back_end_counts_the_keyframes_it_skips():
     """BackendNode.shed (live: called with what waits before each feature frame) keeps what shed_backlog keeps
     and counts the keyframes among the skipped frames (stats/backend keyframes_skipped)."""
     from services.backend.node import make_node
-    from services.system_config import load_system_config
+    from services.app.system_config import load_system_config
     from shared.rig import load_rig_config
 
     cfg = load_system_config(None, ["loop.enabled=false", "backend.max_backlog_frames=3",

@@ -92,7 +92,7 @@ def _window(T_SC):
 def test_the_fast_path_and_the_frontend_take_the_refined_extrinsics_and_refuse_another_rigs():
     """... and the frontend takes the time offset estimate from the same message."""
     from services.frontend.node import make_node
-    from services.system_config import load_system_config
+    from services.app.system_config import load_system_config
     from shared.camera import camera_from_sensor_yaml, camera_to_sensor_yaml
     from shared.codec import decode, encode
     from shared.dataflow import RejectedMessage

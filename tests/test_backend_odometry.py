@@ -102,7 +102,7 @@ def test_fast_path_applies_the_loop_correction_resets_and_waits_only_when_asked(
     import dataclasses
 
     from services.frontend.fast_path import FastPath
-    from services.system_config import load_system_config
+    from services.app.system_config import load_system_config
     from shared.messages import FeatureFrame, ImuSample
     from shared.rig import RigConfig, load_rig_config
 

@@ -15,7 +15,7 @@ from shared.messages import Header, StreamEnd
 from tools.bench_budgets import Budgets, check_budgets, format_table, load_budgets
 from tools.bench_pipeline import frames_within, next_rate, stage_summary
 from services.app.metrics.latency import ArrivalLog, map_latencies, matched_latencies, summary
-from tools.pipeline_probe import main_thread_schedstat, main_thread_shares, service_name
+from services.app.metrics.processes import main_thread_schedstat, main_thread_shares, service_name
 from tools.eval.suite_report import (PAPER_MEAN, ate_table, live_table, mean_std, mesh_table, segment_table,
                                      spread_table, timing_table)
 from transport.stats import STAGE_LOG_DTYPE, STAGE_LOG_ENV, StageTimer, StatsCollector, read_stage_log

@@ -12,7 +12,7 @@ from typing import Literal, Optional
 import pytest
 
 from services.app.supervisor import ServiceSpec
-from services.system_config import SystemConfig, load_system_config
+from services.app.system_config import SystemConfig, load_system_config
 from shared.config import (ConfigError, allowed_values, describe, from_dict, load_yaml, override, param,
                            parse_override, to_dict)
 
@@ -290,14 +290,14 @@ def test_override_gives_a_checked_changed_copy():
 def test_the_run_player_waits_for_the_heartbeats_its_services_send(tmp_path):
     """`sigmaslam run` starts the player with --wait-for naming each service's node (its heartbeat), whatever the
     service is called in the config: a service named 'fe' runs the frontend node, the recorder's node is 'recorder'."""
-    from services.app.run_cmd import pipeline_services
+    from services.app.run_pipeline import pipeline_services
 
     cfg = load_system_config(None, ["supervisor.services=[{name: fe, argv: [frontend]}, {name: be, argv: [backend]}]"])
-    services = pipeline_services(cfg, "DATA", tmp_path, realtime=True, record=True, player_args=[])
+    services = pipeline_services(cfg, "DATA", tmp_path, rate=1.0, record=True, player_args=[])
     assert [s.name for s in services] == ["fe", "be", "recorder", "player"]
     player = services[-1].argv
     assert player[player.index("--wait-for") + 1] == "frontend,backend,recorder"
-    plain = pipeline_services(load_system_config(None, []), "DATA", tmp_path, realtime=False, record=False,
+    plain = pipeline_services(load_system_config(None, []), "DATA", tmp_path, rate=0.0, record=False,
                               player_args=[])
     argv = plain[-1].argv
     assert argv[argv.index("--wait-for") + 1] == "frontend,backend" and "--lockstep" in argv

@@ -8,7 +8,6 @@ the command checks parse each command with the subcommand's own argument parser.
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import os
 import shlex
@@ -19,8 +18,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from services.app.cli import SUBCOMMANDS
-from services.system_config import load_system_config
+from services.app.cli import command_names, command_parser
+from services.app.system_config import load_system_config
 from tests.helpers_zenoh import REPO
 
 COMPOSE = REPO / "docker" / "compose.yaml"
@@ -72,10 +71,8 @@ def _commands(model: dict) -> list[tuple[str, list[str]]]:
 def _parse(argv: list[str]) -> argparse.Namespace:
     """Parse ``sigmaslam ...`` argv with the subcommand's own parser (as services.app.cli does)."""
     assert argv[0] == "sigmaslam", f"not a sigmaslam command: {argv}"
-    assert argv[1] in SUBCOMMANDS, f"{argv[1]!r} is not a sigmaslam subcommand ({', '.join(SUBCOMMANDS)})"
-    p = argparse.ArgumentParser(prog=f"sigmaslam {argv[1]}", exit_on_error=False)
-    importlib.import_module(SUBCOMMANDS[argv[1]][0]).add_arguments(p)
-    return p.parse_args(argv[2:])
+    assert argv[1] in command_names(), f"{argv[1]!r} is not a sigmaslam subcommand ({', '.join(command_names())})"
+    return command_parser(argv[1], exit_on_error=False).parse_args(argv[2:])
 
 
 def test_compose_validates_with_gpu_override() -> None:

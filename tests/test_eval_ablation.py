@@ -115,7 +115,7 @@ def test_unknown_row_is_refused(tmp_path, capsys):
 def test_rows_differ_by_config_alone():
     """Every row's keys load into the system config; the heuristic row asks the depth service for the heuristic
     stereo sigma of --heuristic-px pixels, the fused row maps the fused depth."""
-    from services.system_config import load_system_config
+    from services.app.system_config import load_system_config
     from tools.eval.ablation import EVAL_DEFAULTS, row_overrides
     from tools.eval.ablation_table import ROWS
 

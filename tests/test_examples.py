@@ -91,7 +91,7 @@ def test_03_subscribe_to_poses(tmp_path, capsys):
     """A fake back end publishes states at 50 Hz (data time) on a loopback router; the example, given the run's
     config file, prints and counts them."""
     from helpers_zenoh import router
-    from services.system_config import SystemConfig
+    from services.app.system_config import SystemConfig
     from shared import topics
     from shared.config import to_yaml
     from shared.messages import EstimatorState, Header

@@ -397,7 +397,7 @@ def test_a_frontend_process_behind_the_sensor_skips_its_oldest_frames():
     """Live, frames that wait beyond frontend.max_backlog_frames are skipped oldest first (the runner counts them as
     drops), so the pose latency stays bounded; 0 keeps every frame; a negative bound is refused."""
     from services.frontend.node import make_node
-    from services.system_config import load_system_config
+    from services.app.system_config import load_system_config
     from shared import topics
 
     cfg = load_system_config(None, [])
@@ -422,7 +422,7 @@ def test_the_frontend_node_skips_detection_only_when_behind_and_asked_to(stereo_
     without the setting. The frames are tracked alone (FrontendNode.track: no fast path, whose placeholder states
     would say 'initialising')."""
     from services.frontend.node import make_node
-    from services.system_config import load_system_config
+    from services.app.system_config import load_system_config
     from shared.messages import Header, MultiCameraFrame
 
     room, cams, poses, images = stereo_seq

@@ -13,7 +13,7 @@ from services.backend.node import BackendNode
 from services.depth.node import DepthNode
 from services.frontend.node import FrontendNode
 from services.mapping.node import MappingNode
-from services.system_config import load_system_config
+from services.app.system_config import load_system_config
 from shared import topics
 
 

@@ -2,15 +2,16 @@
 
     shared  <-  transport  <-  config schemas  <-  process packages  <-  application  <-  tools
 
-- ``shared/``: code two or more processes use (messages, codec, geometry, cameras, the occupancy field, ATE).
-- ``transport/``: Zenoh session, publishers/subscribers, queues, the service shell.
-- config schemas: :mod:`services.system_config` and the config modules it composes (``services/*/config.py``,
-  ``*_config.py``). Every process loads the system config, so it sits below the processes; a schema imports
-  only shared, transport and other schemas.
-- process packages: ``services/<process>/`` (one per OS process, each with its ``service.py``). A process
-  package never imports another process package, nor the application (config modules included: it reads
-  other sections through :mod:`services.system_config`).
-- application: ``services/app/`` (the CLI, commands, supervisor, what only commands use).
+- ``shared/``: code two or more processes use (messages, codec, geometry, cameras, the VIO core, the occupancy field,
+  ATE).
+- ``transport/``: Zenoh session, publishers/subscribers, queues, the service shell, the node runner.
+- config schemas: the config modules of the process packages (``services/<process>/**/config.py``,
+  ``*_config.py``); a schema imports only shared, transport and other schemas.
+- process packages: ``services/<process>/`` (one per OS process, each describing itself in its ``node.py``). A
+  process package never imports another process package, nor the application: it gets the system config handed
+  over (its own section and those it shares, e.g. the frontend reads ``backend``, the VIO config it shares).
+- application: ``services/app/`` (the CLI, commands, supervisor, the system config, the process registry, what
+  only commands use).
 - ``tools/``: developer scripts; nothing in the product imports them.
 
 Every ``import`` counts, also those inside functions (lazy) or under ``TYPE_CHECKING``, and so does a string
@@ -62,9 +63,11 @@ def layer(module: str) -> int | None:
         return {"shared": 0, "transport": 1, "tools": 5}[parts[0]]
     if len(parts) == 1:
         return None  # the bare namespace 'services' holds nothing
-    if module == "services.system_config" or (len(parts) > 2 and (parts[-1] == "config" or parts[-1].endswith("_config"))):
+    if parts[1] == APP:
+        return 4
+    if len(parts) > 2 and (parts[-1] == "config" or parts[-1].endswith("_config")):
         return 2
-    return 4 if parts[1] == APP else 3
+    return 3
 
 
 def package(module: str) -> str | None:
@@ -125,13 +128,15 @@ def test_every_import_goes_down_the_layers():
 
 
 def test_services_holds_process_packages_and_the_application():
-    """services/ = one package per process (each with service.py), the application and the system config."""
+    """services/ = one package per process (each describing itself in its node.py) and the application."""
     services = ROOT / "services"
-    loose = sorted(p.name for p in services.glob("*.py") if p.name not in ("__init__.py", "system_config.py"))
+    loose = sorted(p.name for p in services.glob("*.py") if p.name != "__init__.py")
     assert not loose, f"modules directly in services/ (belong in services/app/ or a process package): {loose}"
     for d in sorted(p for p in services.iterdir() if (p / "__init__.py").exists()):
         if d.name != APP:
-            assert (d / "service.py").exists(), f"services/{d.name}/ is not a process (no service.py): move it"
+            node = d / "node.py"
+            assert node.exists() and "\nDESCRIPTION = ProcessDescription(" in node.read_text(), (
+                f"services/{d.name}/ is not a process (no node.py ending in a DESCRIPTION): move it")
 
 
 def test_dev_command_exceptions_are_still_needed():
@@ -150,22 +155,24 @@ def test_the_check_sees_lazy_imports_strings_and_names_file_and_line():
     names = set(all_modules())
     src = ("import numpy as np\n"
            "from shared.geometry import inv_T\n"
-           "from services.system_config import load_system_config\n"
+           "from services.app.system_config import load_system_config\n"
            "def f():\n"
            "    from services.mapping.submaps import Submap\n"
            "    from services.app import supervisor\n"
            "    return importlib.import_module('tools.eval.suite')\n")
     bad = violations("services/backend/x.py", src, names)
-    assert len(bad) == 3, bad
-    assert bad[0] == ("services/backend/x.py:5: from services.mapping.submaps import Submap: process package "
+    assert len(bad) == 4, bad
+    assert bad[0] == ("services/backend/x.py:3: from services.app.system_config import load_system_config: process "
+                      "package services.backend.x may not import application services.app.system_config")
+    assert bad[1] == ("services/backend/x.py:5: from services.mapping.submaps import Submap: process package "
                       "services/backend may not import process package services/mapping (services.mapping.submaps)")
-    assert bad[1] == ("services/backend/x.py:6: from services.app import supervisor: process package "
+    assert bad[2] == ("services/backend/x.py:6: from services.app import supervisor: process package "
                       "services.backend.x may not import application services.app.supervisor")
-    assert bad[2].startswith("services/backend/x.py:7: 'tools.eval.suite' (names a module): ")
+    assert bad[3].startswith("services/backend/x.py:7: 'tools.eval.suite' (names a module): ")
     assert violations("shared/x.py", "from transport.queues import Empty\n", names) == [
         "shared/x.py:1: from transport.queues import Empty: shared shared.x may not import transport transport.queues"]
     # a schema imports only shared, transport and schemas; the application may import anything but tools
     assert violations("services/backend/config.py", "from services.backend.window.estimator import X\n", names)
-    assert not violations("services/system_config.py", "from services.mapping.config import MappingConfig\n", names)
+    assert not violations("services/app/system_config.py", "from services.mapping.config import MappingConfig\n", names)
     assert not violations("services/app/run_cmd.py", "from services.mapping.io import write_ply\n", names)
     assert violations("services/app/demo_cmd.py", "from tools.eval.suite import main\n", names)

@@ -116,7 +116,7 @@ def test_submap_anchor_uses_the_keyframe_pose_as_published():
     """The mapping's T_WM of a submap lives in the frame of the keyframe poses it last received, so the back end
     takes T_KM against the pose the last Keyframes message carried, not against a newer correction."""
     from services.backend.node import make_node
-    from services.system_config import load_system_config
+    from services.app.system_config import load_system_config
     from shared.geometry import make_T, so3_exp
     from shared.messages import Header, Keyframes
     from shared.rig import load_rig_config

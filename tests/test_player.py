@@ -328,7 +328,7 @@ def test_realtime_player_does_not_play_a_minute_of_trailing_imu(tmp_path, datase
 
 
 def test_run_finds_ground_truth_where_downloads_keep_it(tmp_path, dataset):
-    from services.app.run_cmd import find_ground_truth
+    from services.app.run_outputs import find_ground_truth
 
     d = _copy(dataset, tmp_path / "asl")
     asl = d / "mav0" / "state_groundtruth_estimate0" / "data.csv"
@@ -346,7 +346,7 @@ def test_run_ate_is_computed_over_the_ground_truths_span_only():
     import tempfile
     from pathlib import Path
 
-    from services.app.run_cmd import evaluate
+    from services.app.run_outputs import evaluate
     from shared.euroc import PoseSeries, write_tum
 
     t = T0 + np.arange(60, dtype=np.int64) * 50_000_000  # 3 s of poses at 20 Hz
@@ -393,9 +393,9 @@ def test_run_progress_line_counts_states_and_sequence_time():
     """`sigmaslam run` prints a progress line every PROGRESS_EVERY_S: what it has received so far."""
     from types import SimpleNamespace
 
-    from services.app.run_cmd import _Collector, progress_line
+    from services.app.run_collector import Collection, progress_line
 
-    col = _Collector()
+    col = Collection()
     assert "no state yet" in progress_line(col, 12.0)
     for k, status in enumerate(["initialising"] * 3 + ["tracking"] * 7):
         col.states.append(SimpleNamespace(header=SimpleNamespace(stamp_ns=1_000_000_000 + k * 50_000_000), status=status))

@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 
 from helpers_zenoh import REPO, child_env
 from services.mapping.io import load_map
-from services.system_config import load_system_config
+from services.app.system_config import load_system_config
 from shared.config import ConfigError
 from shared.euroc_reader import DatasetError, EurocDataset
 from shared.messages import ImuSample, MultiCameraFrame
@@ -228,7 +228,7 @@ def test_a_service_given_a_bad_config_exits_2_with_the_key_named(tmp_path):
 
 
 def test_a_restarted_recorder_never_overwrites_the_cut_recording(tmp_path):
-    from services.recorder.service import fresh_path
+    from services.recorder.recording import fresh_path
 
     out = tmp_path / "run.mcap"
     assert fresh_path(out) == out

@@ -15,7 +15,7 @@ import pytest
 import e2e_dataset
 from helpers_zenoh import REPO, child_env
 from services.app.inprocess import run_in_process
-from services.system_config import load_system_config
+from services.app.system_config import load_system_config
 from shared.euroc import read_tum
 
 SETTINGS = ["loop.synchronous=true", "o2p.enabled=false"]

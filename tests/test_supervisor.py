@@ -17,7 +17,7 @@ import yaml
 from helpers_zenoh import REPO, child_env, free_port, service_config, wait_for
 from services.recorder.mcap_reader import read_metadata
 from services.app.supervisor import Child, RestartTracker, ServiceSpec, Supervisor, SupervisorConfig, describe_exit, validate
-from services.system_config import load_system_config
+from services.app.system_config import load_system_config
 from shared.config import ConfigError, to_dict
 
 

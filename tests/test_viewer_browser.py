@@ -25,7 +25,7 @@ import pytest
 import trimesh
 
 from helpers_zenoh import REPO, child_env, free_port, router, wait_for
-from services.system_config import SystemConfig
+from services.app.system_config import SystemConfig
 from services.viewer.config import ViewerConfig
 from shared import messages as m, topics
 from shared.config import to_yaml

@@ -278,8 +278,9 @@ def test_stats_markdown():
 
 
 def test_build_model_uses_the_pipeline_rig_and_real_ground_truth(tmp_path):
-    from services.system_config import load_system_config
-    from services.viewer.service import build_model, main
+    from services.app.cli import main
+    from services.app.system_config import load_system_config
+    from services.viewer.node import build_model
     from shared.camera import CalibrationError
     from shared.paths import euroc_files
 
@@ -294,8 +295,5 @@ def test_build_model_uses_the_pipeline_rig_and_real_ground_truth(tmp_path):
     with pytest.raises(CalibrationError):
         build_model(load_system_config(None, [f"viewer.rig={tmp_path / 'none.yaml'}"]))
 
-    class Args:
-        config = None
-        set = [f"viewer.ground_truth={tmp_path / 'missing.csv'}"]
-
-    assert main(Args()) == 2  # a clear error, no server started
+    assert main(["viewer", "--set", f"viewer.ground_truth={tmp_path / 'missing.csv'}"]) == 2  # a clear error, no
+    # server started

@@ -27,7 +27,7 @@ from shared.messages import FeatureFrame, Header, ImuSample, MultiCameraFrame
 from services.frontend.fast_path import FastPath
 from shared.backlog import shed_backlog
 from shared.dataflow import Emit, Input, ProcessNode
-from services.system_config import load_system_config
+from services.app.system_config import load_system_config
 from shared.metrics.ate import compute_ate
 from shared.rig import load_rig_config
 from transport.node import Node

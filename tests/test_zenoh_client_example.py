@@ -7,7 +7,7 @@ import subprocess
 import sys
 
 from helpers_zenoh import REPO, child_env, router
-from services.system_config import SystemConfig
+from services.app.system_config import SystemConfig
 from shared.config import to_yaml
 
 

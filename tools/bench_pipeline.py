@@ -6,7 +6,7 @@ the player at ``--rate`` times sensor rate (1 = real time), while this process
 - has every service log the compute time of each item per stage ($SIGMASLAM_STAGE_LOG, transport/stats.py):
   median, p90, p99, achieved rate, items over the budgets of configs/budgets.yaml;
 - subscribes to sensors/frame, frontend/frame, estimator/state, depth/fused and map/submap and records arrival
-  wall times (tools/pipeline_probe.py): latency sensor -> state, -> features (the tracks, which the frontend
+  wall times (services/app/metrics/processes.py): latency sensor -> state, -> features (the tracks, which the frontend
   process sends right after the state), -> fused depth, -> submap update;
 - samples CPU share and resident memory of every service process (psutil);
 - reads queue drops and the services' own overrun counts from the run's stats.json.
@@ -21,10 +21,8 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import shutil
 import sys
 import threading
-import time
 import uuid
 from pathlib import Path
 
@@ -32,7 +30,6 @@ import numpy as np
 
 from tools.bench_budgets import check_budgets, format_table, load_budgets
 from services.app.metrics.latency import ArrivalLog, first_arrivals, map_latencies, matched_latencies, summary
-from tools.pipeline_probe import ProcessSampler
 from transport.session import free_local_port
 
 SERVICES = ("frontend", "backend", "depth", "mapping")
@@ -94,14 +91,10 @@ def run_once(dataset: Path, out: Path, rate: float, seconds: float, services: st
              sets: list[str], timeout_s: float) -> dict:
     """One measured pipeline run into ``out`` (``rate`` <= 0: lockstep); returns the raw measurements (see
     :func:`summarise`)."""
-    from services.app import run_cmd
-    from services.system_config import load_system_config
-    from transport.stats import STAGE_LOG_ENV
+    from services.app.run_pipeline import run_pipeline
+    from services.app.system_config import load_system_config
 
     out.mkdir(parents=True, exist_ok=True)
-    stage_dir = out / "stage_log"
-    shutil.rmtree(stage_dir, ignore_errors=True)
-    stage_dir.mkdir()
     port = free_local_port()
     overrides = [f"transport.namespace=sigmaslam/bench-{uuid.uuid4().hex[:8]}",
                  f"transport.connect=[tcp/127.0.0.1:{port}]", f"transport.router_listen=[tcp/127.0.0.1:{port}]",
@@ -113,31 +106,19 @@ def run_once(dataset: Path, out: Path, rate: float, seconds: float, services: st
     overrides += sets
     transport_cfg = load_system_config(config, overrides).transport
     frames = frames_within(dataset, seconds)
-    args = argparse.Namespace(dataset=str(dataset), config=config, out=str(out / "run"), set=overrides,
-                              realtime=rate > 0, rate=max(rate, 0.0), record=False, player_arg=[f"--max-frames={frames}"],
-                              settle_s=5.0, timeout_s=timeout_s, final_timeout_s=120.0)
     log, stop, ready = ArrivalLog(), threading.Event(), threading.Event()
     probe = threading.Thread(target=_probe, args=(log, transport_cfg, stop, ready), name="bench-probe", daemon=True)
     probe.start()
     ready.wait(30.0)
-    sampler = ProcessSampler(0.5).start()
-    old = os.environ.get(STAGE_LOG_ENV)
-    os.environ[STAGE_LOG_ENV] = str(stage_dir.resolve())
-    t0 = time.monotonic()
     try:
-        rc = run_cmd.main(args)
+        res = run_pipeline(dataset, out / "run", config, overrides, rate=max(rate, 0.0), max_frames=frames,
+                           timeout_s=timeout_s, final_timeout_s=120.0, stage_log=out / "stage_log",
+                           sample_processes=True)
     finally:
-        if old is None:
-            os.environ.pop(STAGE_LOG_ENV, None)
-        else:
-            os.environ[STAGE_LOG_ENV] = old
-        sampler.stop()
         stop.set()
         probe.join(timeout=10)
-    stats_path = out / "run" / "stats.json"
-    return {"rc": rc, "wall_s": time.monotonic() - t0, "rate": rate, "frames_requested": frames,
-            "dataset": str(dataset), "log": log, "sampler": sampler, "stage_dir": stage_dir,
-            "run_stats": json.loads(stats_path.read_text()) if stats_path.is_file() else {}}
+    return {"rc": res.rc, "wall_s": res.wall_s, "rate": rate, "frames_requested": frames, "dataset": str(dataset),
+            "log": log, "sampler": res.sampler, "stage_dir": res.stage_dir, "run_stats": res.stats}
 
 
 # ----------------------------------------------------------------------------- summary

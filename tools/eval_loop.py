@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from services.app.inprocess import run_in_process
-from services.system_config import load_system_config
+from services.app.system_config import load_system_config
 from shared import topics
 from shared.euroc import series_from_matrices, read_trajectory, write_tum
 

@@ -26,10 +26,10 @@ from pathlib import Path
 
 import numpy as np
 
-from services.app.cli import SUBCOMMANDS
-from services.app.run_cmd import find_ground_truth
+from services.app.cli import command_names
+from services.app.run_outputs import find_ground_truth
 from services.app.supervisor import ServiceSpec, Supervisor, validate
-from services.system_config import load_system_config
+from services.app.system_config import load_system_config
 from shared import topics
 from shared.config import override, to_yaml
 from transport.node import Node
@@ -134,7 +134,7 @@ def build(dataset: str, out: Path, rate: float, sets: list[str], nice: int = 10,
         services.insert(0, ServiceSpec(name="recorder", argv=["record", "--out", str(out / "recording.mcap")], **spec))
     cfg = override(load_system_config(None, overrides), {"rig.calibration": dataset, "supervisor.services": services,
                                                          "supervisor.start_router": True})
-    validate(cfg.supervisor, SUBCOMMANDS)
+    validate(cfg.supervisor, command_names())
     path = (out / "config.yaml").resolve()
     path.write_text(to_yaml(cfg))
     return cfg, path
@@ -280,7 +280,7 @@ def _kill_one(sup: Supervisor, probe: Probe, name: str, out: Path, window_s: flo
 
 def sup_port(sup: Supervisor) -> int | None:
     """The viewer's port, from the config file the supervisor hands to its children."""
-    from services.system_config import load_system_config as load
+    from services.app.system_config import load_system_config as load
 
     return load(sup.config_path).viewer.port
 

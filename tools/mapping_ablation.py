@@ -46,7 +46,7 @@ def _images(mav: Path, cam: str) -> dict[int, Path]:
 def depth_config(overrides: list[str]):
     """The depth service's config with ``depth.KEY=VALUE`` overrides, as the system config applies them
     (ConfigError for other keys: nothing else here reads them)."""
-    from services.system_config import load_system_config
+    from services.app.system_config import load_system_config
     from shared.config import ConfigError
 
     other = [o for o in overrides if not o.strip().startswith("depth.")]

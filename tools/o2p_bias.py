@@ -131,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     from services.depth.pipeline import DepthPipeline
     from shared.occupancy.o2p_points import SubmapPointPool, select_depth_points
     from services.mapping.submaps import SubmapMapper
-    from services.system_config import load_system_config
+    from services.app.system_config import load_system_config
     from shared.config import override
     from shared.rig import load_rig_config
     from tools.depth.evaluate import _replica_frames

@@ -35,7 +35,7 @@ def main() -> None:
 
     from services.depth.pipeline import DepthPipeline
     from shared.occupancy.o2p_points import select_depth_points
-    from services.system_config import load_system_config
+    from services.app.system_config import load_system_config
     from shared.config import override
     from shared.rig import load_rig_config
     from tools.depth.evaluate import _replica_frames

@@ -21,7 +21,7 @@ import time
 import numpy as np
 import trimesh
 
-from services.system_config import load_system_config
+from services.app.system_config import load_system_config
 from services.viewer.colors import height_colors
 from shared import messages as m
 from shared import topics

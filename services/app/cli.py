@@ -1,7 +1,8 @@
 """The ``sigmaslam`` command. Each subcommand lives in its own module, imported only when used.
 
-A subcommand module provides ``add_arguments(parser)`` and ``main(args) -> int``. To add one, add a
-line to :data:`SUBCOMMANDS`.
+Two kinds of subcommand: the application's commands (:data:`APP_COMMANDS`: a module providing
+``add_arguments(parser)`` and ``main(args) -> int``; to add one, add a line) and one command per process of the
+registry (services/app/processes.py), all run by the one generic entry services/app/process_cmd.py.
 """
 
 from __future__ import annotations
@@ -12,28 +13,47 @@ import logging
 import sys
 
 # name -> (module, one-line help)
-SUBCOMMANDS: dict[str, tuple[str, str]] = {
-    "config": ("services.app.config_cmd", "print the resolved config or the documented defaults"),
-    "router": ("services.app.router", "run the Zenoh router that services connect to"),
-    "bench": ("tools.bench_cmd", "benchmarks: transport, netns, mapping, mapping-ablation, pipeline (live budgets)"),
+APP_COMMANDS: dict[str, tuple[str, str]] = {
+    "run": ("services.app.run_cmd", "run the pipeline on a dataset; write the trajectory, stats and ATE to --out DIR"),
+    "demo": ("services.app.demo_cmd", "the README's main job: the whole pipeline on the bundled replica, with its figures"),
     "up": ("services.app.up_cmd", "run the router and all configured services, restarting failed ones"),
+    "router": ("services.app.router", "run the Zenoh router that services connect to"),
+    "config": ("services.app.config_cmd", "print the resolved config or the documented defaults"),
     "health": ("services.app.health_cmd", "exit 0 when a service's heartbeat (or the router) is seen on the bus"),
-    "record": ("services.recorder.service", "record topics to MCAP (with Foxglove mirrors); --recover a cut file"),
+    "eval": ("services.app.eval_cmd", "evaluations against ground truth: ate, mesh, depth, hilti, ablation (Table IV), suite"),
+    "map": ("services.app.map_cmd", "saved maps: info DIR (what a map holds), merge A B OUT (one map of two)"),
     "synth": ("services.app.synth.synth_cmd", "render a synthetic EuRoC replica (images, GT depth, mesh, IMU) of a real sequence"),
     "convert": ("tools.dataset_convert", "convert a dataset: EuRoC ASL folder <-> sigmaslam MCAP recording"),
-    "frontend": ("services.frontend.service", "feature tracker and per-frame fast path: sensors/frame + sensors/imu + "
-                 "estimator/window -> estimator/state, frontend/frame"),
-    "backend": ("services.backend.service", "visual-inertial window estimator: keyframes of frontend/frame + sensors/imu "
-                "-> estimator/window, keyframes, landmarks"),
-    "player": ("services.player.service", "replay an EuRoC ASL folder onto the sensor topics (--lockstep, --realtime)"),
-    "demo": ("services.app.demo_cmd", "the README's main job: the whole pipeline on the bundled replica, with its figures"),
-    "run": ("services.app.run_cmd", "run the pipeline on a dataset; write the trajectory, stats and ATE to --out DIR"),
-    "viewer": ("services.viewer.service", "web viewer (viser): submap meshes, trajectories, live images, stats"),
-    "depth": ("services.depth.service", "stereo + MVS depth with learned sigma, fused: sensors/frame -> depth/stereo, depth/fused"),
-    "mapping": ("services.mapping.service", "occupancy submapping: depth + estimator poses -> map/submap meshes"),
-    "map": ("services.app.map_cmd", "saved maps: info DIR (what a map holds), merge A B OUT (one map of two)"),
-    "eval": ("services.app.eval_cmd", "evaluations against ground truth: ate, mesh, depth, hilti, ablation (Table IV), suite"),
+    "bench": ("tools.bench_cmd", "benchmarks: transport, netns, mapping, mapping-ablation, pipeline (live budgets)"),
 }
+
+
+def command_names() -> list[str]:
+    """Every ``sigmaslam`` subcommand: the application's and the processes'."""
+    from services.app.processes import PROCESSES
+
+    return [*APP_COMMANDS, *(d.cli_command for d in PROCESSES)]
+
+
+def add_command_arguments(p: argparse.ArgumentParser, name: str) -> None:
+    """The arguments of ``sigmaslam <name>`` on ``p`` (an application command's module, or a process's description)."""
+    if name in APP_COMMANDS:
+        importlib.import_module(APP_COMMANDS[name][0]).add_arguments(p)
+        return
+    from services.app import process_cmd
+    from services.app.processes import by_command
+
+    d = by_command(name)
+    if d is None:
+        raise KeyError(f"{name!r} is not a sigmaslam command ({', '.join(command_names())})")
+    process_cmd.add_arguments(p, d)
+
+
+def command_parser(name: str, **kwargs) -> argparse.ArgumentParser:
+    """The parser of ``sigmaslam <name>`` alone (``kwargs``: argparse.ArgumentParser's)."""
+    p = argparse.ArgumentParser(prog=f"sigmaslam {name}", **kwargs)
+    add_command_arguments(p, name)
+    return p
 
 
 def add_module_commands(p: argparse.ArgumentParser, table: dict[str, tuple[str, str]], dest: str,
@@ -57,11 +77,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     chosen = next((a for a in argv if not a.startswith("-")), None)
-    for name, (module, help_text) in SUBCOMMANDS.items():
-        p = sub.add_parser(name, help=help_text, description=help_text)
-        p.set_defaults(_module=module)
-        if name == chosen:
-            importlib.import_module(module).add_arguments(p)
+    from services.app import process_cmd
+    from services.app.processes import PROCESSES
+
+    for name, (module, help_text) in APP_COMMANDS.items():
+        sub.add_parser(name, help=help_text, description=help_text).set_defaults(_module=module, _process=None)
+    for d in PROCESSES:
+        sub.add_parser(d.cli_command, help=d.help, description=d.help).set_defaults(_process=d)
+    if chosen in sub.choices:
+        add_command_arguments(sub.choices[chosen], chosen)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -71,6 +95,8 @@ def main(argv: list[str] | None = None) -> int:
     from shared.config import ConfigError
 
     try:
+        if args._process is not None:
+            return process_cmd.main(args, args._process)
         return int(importlib.import_module(args._module).main(args) or 0)
     except ConfigError as exc:
         print(f"sigmaslam {args.command}: config error: {exc}", file=sys.stderr)

@@ -1,6 +1,6 @@
 """The application's config section: what ``sigmaslam up`` starts and how it restarts and stops it
 (:class:`SupervisorConfig`, one :class:`ServiceSpec` per process). A schema module like every ``config.py``:
-:mod:`services.system_config` composes it, the supervisor (:mod:`services.app.supervisor`) runs it."""
+:mod:`services.app.system_config` composes it, the supervisor (:mod:`services.app.supervisor`) runs it."""
 
 from __future__ import annotations
 
@@ -21,16 +21,17 @@ class ServiceSpec:
     window_s: float = param(60.0, "sliding window over which restarts are counted", "s")
     backoff_s: float = param(0.5, "delay before the first restart in the window; doubles with each further one", "s")
     backoff_max_s: float = param(10.0, "longest delay before a restart", "s")
-    nice: int = param(0, "OS scheduling niceness added to the process (0..19); e.g. 10 for depth and mapping so "
-                      "that, on a loaded CPU, the estimator's processes get the cores first")
-    sched: Literal["normal", "batch", "idle"] = param("normal", "Linux scheduling class of the process: 'idle' "
-                                                      "(SCHED_IDLE) runs it only on CPU time no normal process "
-                                                      "wants, so that on two cores depth, mapping and the viewer "
-                                                      "never delay a pose; 'batch' (SCHED_BATCH) is for long "
-                                                      "computations; ignored elsewhere than Linux")
-    stop_timeout_s: float = param(0.0, "after SIGTERM, SIGKILL this service if still alive after this long "
-                                  "(0: the supervisor's shutdown_timeout_s); the mapping meshes and writes its map "
-                                  "when stopped, so it gets longer", "s")
+    nice: int | None = param(None, "OS scheduling niceness added to the process (0..19); e.g. 10 for depth and "
+                             "mapping so that, on a loaded CPU, the estimator's processes get the cores first "
+                             "(null: the process's default, its description's scheduling)")
+    sched: Literal["default", "normal", "batch", "idle"] = param(
+        "default", "Linux scheduling class of the process: 'idle' (SCHED_IDLE) runs it only on CPU time no normal "
+        "process wants, so that on two cores depth, mapping and the viewer never delay a pose; 'batch' (SCHED_BATCH) "
+        "is for long computations; 'default': the process's own (its description's scheduling); ignored elsewhere "
+        "than Linux")
+    stop_timeout_s: float | None = param(None, "after SIGTERM, SIGKILL this service if still alive after this long "
+                                         "(0: the supervisor's shutdown_timeout_s; null: the process's default, 60 s "
+                                         "for the mapping, which meshes and writes its map when stopped)", "s")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,7 +55,7 @@ class SupervisorConfig:
 
     def stop_limit_s(self, spec: ServiceSpec) -> float:
         """How long ``spec``'s process may take to stop after SIGTERM before it is SIGKILLed."""
-        return spec.stop_timeout_s if spec.stop_timeout_s > 0 else self.shutdown_timeout_s
+        return spec.stop_timeout_s if spec.stop_timeout_s else self.shutdown_timeout_s
 
     def longest_stop_s(self) -> float:
         """The longest any service may take to stop after SIGTERM."""

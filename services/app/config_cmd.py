@@ -6,7 +6,7 @@ import argparse
 import os
 import sys
 
-from services.system_config import SystemConfig, load_system_config
+from services.app.system_config import SystemConfig, load_system_config
 from shared.config import describe, to_yaml
 
 

@@ -41,20 +41,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _run_pipeline(dataset: Path, args: argparse.Namespace) -> int:
-    """``sigmaslam run`` on the replica (which finds its ground truth, overlays it in the viewer and prints the
-    viewer's address)."""
-    from services.app import run_cmd
+    """The pipeline on the replica, as ``sigmaslam run`` runs it (which finds its ground truth, overlays it in the
+    viewer and prints the viewer's address); returns its exit status."""
+    from services.app.run_outputs import find_ground_truth
+    from services.app.run_pipeline import run_pipeline
 
-    parser = argparse.ArgumentParser(prog="sigmaslam run")
-    run_cmd.add_arguments(parser)
-    argv = [str(dataset), args.config, "--out", args.out]
-    for s in args.set:
-        argv += ["--set", s]
-    if args.max_frames > 0:
-        argv.append(f"--player-arg=--max-frames={args.max_frames}")
-    if not args.lockstep:
-        argv.append("--realtime")
-    return int(run_cmd.main(parser.parse_args(argv)) or 0)
+    return run_pipeline(dataset, args.out, args.config, args.set, rate=0.0 if args.lockstep else 1.0,
+                        max_frames=args.max_frames, gt=find_ground_truth(dataset)).rc
 
 
 def _say(msg: str) -> None:
@@ -145,7 +138,7 @@ def summary_lines(out: Path, mesh: dict | None, viewer_url: str, phases: dict[st
 
 
 def main(args: argparse.Namespace) -> int:
-    from services.system_config import load_system_config
+    from services.app.system_config import load_system_config
     from services.app.synth.api import ensure_default_replica, replica_exists
 
     phases: dict[str, float] = {}

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.system_config import load_system_config
+from services.app.system_config import load_system_config
 from shared import topics
 from shared.codec import Header
 from shared.euroc import read_tum

@@ -18,7 +18,7 @@ import threading
 
 import zenoh
 
-from services.system_config import load_system_config
+from services.app.system_config import load_system_config
 from shared import topics
 from shared.messages import Heartbeat
 from transport.config import TransportConfig

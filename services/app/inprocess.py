@@ -27,14 +27,14 @@ from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
-from services.backend.node import make_node as backend_node
-from services.frontend.node import make_node as frontend_node
+from services.app.processes import PROCESSES, in_process_nodes
 from services.player.config import PlayerConfig
 from shared import topics
 from shared.config import override
 from shared.dataflow import InProcessRunner, ProcessNode
 from shared.euroc_reader import EurocDataset
 from shared.messages import EstimatorState, FinalTrajectory, Header, ImuSample, StreamEnd
+from shared.process_description import Start
 from shared.rig import load_rig_config
 
 
@@ -60,22 +60,12 @@ def dataset_source(ds: EurocDataset, player: PlayerConfig, max_frames: int = 0, 
 
 def pipeline_nodes(cfg, cams, depth: bool = False, mapping: bool = False,
                    clock: Callable[[], float] | None = None) -> dict[str, ProcessNode]:
-    """The pipeline's nodes as the services build them from the system config ``cfg`` and the rig ``cams``:
-    frontend process (tracking and the fast path: every frame's state) and back end (keyframe window), with ``depth`` the depth node, with ``mapping`` the mapping node (no output folder;
-    ``clock`` [s] paces its meshes and fields, the wall clock when None). The one place that says what the
-    in-process pipeline is made of."""
-    # the fast path before the back end: a keyframe's state comes from the previous window, as in a live run
-    nodes: dict[str, ProcessNode] = {"frontend": frontend_node(cfg, cams), "backend": backend_node(cfg, cams)}
-    if depth:
-        from services.depth.node import DepthNode
-        from services.depth.pipeline import pipeline_for_rig
-
-        nodes["depth"] = DepthNode(cfg.depth, pipeline_for_rig(cfg.depth, cams))
-    if mapping:
-        from services.mapping.node import make_node
-
-        nodes["mapping"] = make_node(cfg.mapping, None, **({} if clock is None else {"clock": clock}))
-    return nodes
+    """The pipeline's nodes, each built by its process's description (services/app/processes.py) from the system
+    config ``cfg`` and the rig ``cams``: the default pipeline (frontend: tracking and the fast path, every frame's
+    state; back end: keyframe window), with ``depth`` the depth node, with ``mapping`` the mapping node (no output
+    folder; ``clock`` [s] paces its meshes and fields, the wall clock when None), in the registry's order."""
+    names = [d.name for d in PROCESSES if d.default_pipeline] + ["depth"] * depth + ["mapping"] * mapping
+    return in_process_nodes(cfg, names, Start(out_dir="", clock=clock, cameras=cams))
 
 
 @dataclasses.dataclass

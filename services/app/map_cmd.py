@@ -132,7 +132,7 @@ def main(args: argparse.Namespace) -> int:
             return 2
         print(json.dumps(info, indent=1)) if args.json else _print_info(info)
         return 0
-    from services.system_config import load_system_config
+    from services.app.system_config import load_system_config
 
     cfg = load_system_config(None, args.set).loop
     try:

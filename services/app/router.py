@@ -11,7 +11,7 @@ import threading
 
 import zenoh
 
-from services.system_config import load_system_config
+from services.app.system_config import load_system_config
 from transport.session import open_session
 
 log = logging.getLogger("sigmaslam.router")

@@ -1,6 +1,7 @@
 """Process supervisor behind ``sigmaslam up``: one OS process per service, bounded restarts.
 
-Each enabled :class:`ServiceSpec` runs as ``[sys.executable, "-m", "services.app.cli", argv[0], CONFIG,
+Each enabled :class:`ServiceSpec` (its unset scheduling taken from its process's description:
+:func:`services.app.processes.with_defaults`) runs as ``[sys.executable, "-m", "services.app.cli", argv[0], CONFIG,
 *argv[1:]]`` in its own session / process group, where CONFIG is the resolved system config the
 supervisor wrote to ``<run_dir>/config.yaml`` (also in ``$SIGMASLAM_CONFIG``; ``$SIGMASLAM_RUN_DIR``
 is the run folder; ``$SIGMASLAM_RESTARTS`` counts the restarts of that service, 0 at its first start). With ``start_router`` the router (``sigmaslam router CONFIG``) starts first.
@@ -26,6 +27,7 @@ import time
 from pathlib import Path
 
 from services.app.config import ServiceSpec, SupervisorConfig
+from services.app.processes import with_defaults
 from shared.config import ConfigError
 from shared.supervision import RESTARTS_ENV
 
@@ -96,9 +98,9 @@ def validate(cfg: SupervisorConfig, known_commands: dict[str, object] | None = N
                               "frontend's process ('sigmaslam frontend' publishes estimator/state); remove this entry")
         if known_commands is not None and spec.enabled and spec.argv[0] not in known_commands:
             raise ConfigError(f"{where}.argv[0]: {spec.argv[0]!r} is not a sigmaslam subcommand ({sorted(known_commands)})")
-        if not 0 <= spec.nice <= 19:
+        if spec.nice is not None and not 0 <= spec.nice <= 19:
             raise ConfigError(f"{where}.nice: must be 0..19, got {spec.nice}")
-        if not spec.stop_timeout_s >= 0:
+        if spec.stop_timeout_s is not None and not spec.stop_timeout_s >= 0:
             raise ConfigError(f"{where}.stop_timeout_s: must be >= 0 s, got {spec.stop_timeout_s}")
         if spec.max_restarts < 0 or spec.window_s <= 0 or spec.backoff_s < 0:
             raise ConfigError(f"{where}: max_restarts >= 0, window_s > 0 and backoff_s >= 0 required")
@@ -144,6 +146,7 @@ class Supervisor:
     """Starts, watches, restarts and stops the children. ``run()`` returns the exit status."""
 
     def __init__(self, cfg: SupervisorConfig, config_path: Path, run_dir: Path) -> None:
+        cfg = dataclasses.replace(cfg, services=tuple(with_defaults(s) for s in cfg.services))
         self.cfg = cfg
         self.config_path = Path(config_path)
         self.run_dir = Path(run_dir)
@@ -151,8 +154,9 @@ class Supervisor:
         self.children: list[Child] = []
         self.router: Child | None = None
         if cfg.start_router:
-            self.router = Child(ServiceSpec(name="router", argv=["router"], restart="always", max_restarts=5,
-                                            window_s=60.0, backoff_s=0.2), self._argv(["router"]))
+            self.router = Child(with_defaults(ServiceSpec(name="router", argv=("router",), restart="always",
+                                                          max_restarts=5, window_s=60.0, backoff_s=0.2)),
+                                self._argv(["router"]))
         self.children = [Child(s, self._argv(s.argv)) for s in cfg.services if s.enabled]
 
     def _argv(self, argv: list[str]) -> list[str]:

@@ -3,8 +3,8 @@
 Components add their section here as they land. ``sigmaslam config --defaults`` prints every field
 with its default, unit and docstring.
 
-Every process loads it, so it sits below the process packages (tests/test_layers.py): like the ``config.py``
-modules it composes, it imports only config modules, ``shared`` and ``transport``.
+It belongs to the application: the ``sigmaslam`` commands load it and hand each process its system config (a process
+package reads its own section and those it shares, never this module: tests/test_layers.py).
 """
 
 from __future__ import annotations
@@ -53,18 +53,3 @@ def load_system_config(path: str | Path | None = None, overrides: list[str] | No
     if path is None:
         return from_dict(SystemConfig, extra)
     return load_yaml(SystemConfig, path, extra)
-
-
-def service_config_and_rig(args, command: str):
-    """What a service on the rig starts from: the system config of its command line (``args.config``,
-    ``args.set``) and the rig's cameras (``rig.calibration``); None after printing why the rig cannot be read
-    (the command then exits 2)."""
-    from shared.camera import CalibrationError
-    from shared.rig import load_rig_config
-
-    cfg = load_system_config(args.config, args.set)
-    try:
-        return cfg, load_rig_config(cfg.rig)
-    except (CalibrationError, FileNotFoundError) as exc:
-        print(f"sigmaslam {command}: {exc}", flush=True)
-        return None

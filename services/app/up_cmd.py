@@ -13,9 +13,9 @@ import signal
 import time
 from pathlib import Path
 
-from services.app.cli import SUBCOMMANDS
+from services.app.cli import command_names
 from services.app.supervisor import Supervisor, validate
-from services.system_config import load_system_config
+from services.app.system_config import load_system_config
 from shared.config import to_yaml
 
 
@@ -27,7 +27,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     cfg = load_system_config(args.config, args.set)
-    validate(cfg.supervisor, SUBCOMMANDS)
+    validate(cfg.supervisor, command_names())
     run_dir = Path(args.run_dir) if args.run_dir else (
         Path(cfg.supervisor.run_dir) / f"{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}-{os.getpid()}")
     run_dir.mkdir(parents=True, exist_ok=True)

@@ -17,12 +17,14 @@ process by :class:`shared.dataflow.InProcessRunner`.
 from __future__ import annotations
 
 import logging
+import time
 from typing import TYPE_CHECKING
 
 from shared import topics
 from shared.backlog import shed_backlog
 from shared.dataflow import Emit, Input, ProcessNode
 from shared.messages import EstimatorState, FeatureFrame, ImuSample, KeyframeFeatures, StreamEnd
+from shared.process_description import ProcessDescription, Start
 
 if TYPE_CHECKING:
     from services.backend.compose import BackendParts
@@ -152,3 +154,24 @@ def make_node(cfg, cameras, restarted: bool = False) -> BackendNode:
     from services.backend.compose import build_backend
 
     return BackendNode(cfg.backend, build_backend(cfg, cameras, restarted))
+
+
+def _build(cfg, start: Start) -> BackendNode:
+    cameras = start.rig(cfg)
+    log.info("backend: %d cameras", len(cameras))
+    return make_node(cfg, cameras, restarted=start.restarts > 0)
+
+
+def _warm_up(node: BackendNode) -> None:
+    if node.o2p is not None:  # before the first heartbeat: a player waiting for the back end starts after this
+        from shared.occupancy.query import warm_up
+
+        t0 = time.monotonic()
+        warm_up()
+        log.info("backend: occupancy queries loaded in %.2f s", time.monotonic() - t0)
+
+
+DESCRIPTION = ProcessDescription(
+    name="backend", node=BackendNode, build=_build, warm_up=_warm_up, default_pipeline=True, in_process=True,
+    help="visual-inertial window estimator: keyframes of frontend/frame + sensors/imu -> estimator/window, "
+         "keyframes, landmarks (loop closure, o2p factors)")

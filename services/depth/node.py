@@ -1,4 +1,4 @@
-"""The depth service as a transport-free process node: sensors/frame + estimator/state + estimator/keyframes +
+"""The depth process as a transport-free node: sensors/frame + estimator/state + estimator/keyframes +
 estimator/landmarks (keep-latest; the MVS network's sparse prior) -> depth/stereo and depth/fused (DepthFrame:
 depth, sigma, K and T_SC of the rectified left camera, T_WC when the estimator knows the frame's pose, identity
 otherwise).
@@ -17,14 +17,18 @@ from __future__ import annotations
 import logging
 import time
 from collections import OrderedDict
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from services.depth.pipeline import DepthPipeline, DepthResult
 from shared import topics
 from shared.codec import Header
 from shared.dataflow import Emit, Input, ProcessNode
 from shared.messages import DepthFrame, EstimatorState, Keyframes, Landmarks, MultiCameraFrame
+from shared.process_description import ProcessDescription, ProcessStartError, Start
+
+if TYPE_CHECKING:
+    from services.depth.pipeline import DepthPipeline, DepthResult
 
 log = logging.getLogger("sigmaslam.depth")
 
@@ -157,3 +161,32 @@ class DepthNode(ProcessNode):
                Emit(topics.DEPTH_FUSED, depth_message(res, "fused", self.pipe, stamp, self.seq, name))]
         self.seq += 1
         return out
+
+
+def _build(cfg, start: Start) -> DepthNode:
+    from services.depth.pipeline import pipeline_for_rig
+    from services.depth.weights import WeightsError
+    from shared.camera import CalibrationError
+
+    dc = cfg.depth
+    try:
+        pipe = pipeline_for_rig(dc, start.rig(cfg))
+    except (CalibrationError, FileNotFoundError, WeightsError, ValueError) as exc:
+        raise ProcessStartError(str(exc)) from exc
+    log.info("depth: method %s (stereo gain %.3f, MVS %s), %dx%d, f %.1f px, baseline %.3f m", pipe.method,
+             pipe.stereo_gain, "on" if pipe.mvs_net is not None else "off", dc.width, dc.height, pipe.f_px,
+             pipe.baseline_m)
+    return DepthNode(dc, pipe)
+
+
+def _warm_up(node: DepthNode) -> None:
+    t0 = time.monotonic()
+    node.pipe.warm_up()  # before the node's first heartbeat: a player waiting for it starts once depth is ready
+    log.info("depth: networks warmed up in %.1f s", time.monotonic() - t0)
+
+
+DESCRIPTION = ProcessDescription(
+    name="depth", node=DepthNode, build=_build, warm_up=_warm_up, in_process=True,
+    ready=lambda node, cfg: f"depth: running ({node.pipe.method}, {node.dc.rate_hz:g} Hz) on namespace "
+                            f"{cfg.transport.namespace}",
+    help="stereo + MVS depth with learned sigma, fused: sensors/frame -> depth/stereo, depth/fused")

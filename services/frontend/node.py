@@ -26,6 +26,7 @@ from shared import topics
 from shared.backlog import shed_backlog
 from shared.dataflow import Emit, Input, ProcessNode, RejectedMessage
 from shared.messages import EstimatorWindow, FeatureFrame, Header, ImuSample, MultiCameraFrame
+from shared.process_description import ProcessDescription, Start
 
 if TYPE_CHECKING:
     from services.frontend.fast_path import FastPath
@@ -162,3 +163,16 @@ def make_node(cfg, cameras, first_landmark_id: int = 0) -> FrontendNode:
 
     return FrontendNode(cfg.frontend, MultiCameraTracker(cfg.frontend, cameras, first_landmark_id),
                         FastPath(cfg.backend, cameras))
+
+
+def _build(cfg, start: Start) -> FrontendNode:
+    # after a supervisor restart, landmark ids continue in a range of their own (2^40 ids per life)
+    node = make_node(cfg, start.rig(cfg), first_landmark_id=start.restarts << 40)
+    log.info("frontend: %d cameras %s", len(node.names), node.names)
+    return node
+
+
+DESCRIPTION = ProcessDescription(
+    name="frontend", node=FrontendNode, build=_build, default_pipeline=True, in_process=True,
+    help="feature tracker and per-frame fast path: sensors/frame + sensors/imu + estimator/window -> "
+         "estimator/state, frontend/frame")

@@ -36,6 +36,7 @@ from shared import messages, topics
 from shared.codec import Header
 from shared.dataflow import Emit, Input, ProcessNode
 from shared.occupancy.o2p_points import SubmapPointPool
+from shared.process_description import Output, ProcessDescription, Scheduling, Start
 
 if TYPE_CHECKING:
     from services.mapping.store import MapStore
@@ -284,3 +285,24 @@ def make_node(cfg: MappingConfig, out_dir: str | None = None, clock: Callable[[]
     from services.mapping.store import MapStore
 
     return MappingNode(cfg, MapStore(out_dir, restarts), clock)
+
+
+def _build(cfg, start: Start) -> MappingNode:
+    out = cfg.mapping.output_dir if start.out_dir is None else start.out_dir
+    clock = {} if start.clock is None else {"clock": start.clock}
+    return make_node(cfg.mapping, out or None, restarts=start.restarts, **clock)
+
+
+def _warm_up(node: MappingNode) -> None:
+    from services.mapping.integrate import warm_up
+
+    warm_up(node.cfg.sensor)
+
+
+DESCRIPTION = ProcessDescription(
+    name="mapping", node=MappingNode, build=_build, warm_up=_warm_up, in_process=True,
+    ready=lambda node, cfg: f"mapping: {node.cfg.depth_topic} -> {topics.SUBMAP.key}",
+    output=Output(in_run="", help="write mesh.ply, submaps/, map/dense.npz here at exit (overrides "
+                                  "mapping.output_dir)"),
+    scheduling=Scheduling(stop_timeout_s=60.0),  # meshes and writes its map when stopped: give it time to finish
+    help="occupancy submapping: depth + estimator poses -> map/submap meshes, map/field; the map at exit")

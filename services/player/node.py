@@ -1,10 +1,13 @@
-"""The player's declared topics (its loop is in services/player/service.py: a source paced by the sensor clock,
-the estimator's states in lockstep, or a rate; not driven by a runner)."""
+"""The player: its declared topics and its description. Its loop is services/player/playback.py: a source paced by
+the sensor clock (the estimator's states in lockstep, or a rate), not driven by a runner."""
 
 from __future__ import annotations
 
+import argparse
+
 from shared import topics
 from shared.dataflow import Input, ProcessNode
+from shared.process_description import ProcessDescription
 
 
 class PlayerNode(ProcessNode):
@@ -18,3 +21,20 @@ class PlayerNode(ProcessNode):
     )
     outputs = (topics.IMU, topics.FRAME, topics.STREAM_END)
     output_notes = {topics.STREAM_END.key: "once, after the last frame"}
+
+
+def _arguments(p: argparse.ArgumentParser) -> None:
+    from services.player.playback import add_arguments
+
+    add_arguments(p)
+
+
+def _play(cfg, args: argparse.Namespace) -> int:
+    from services.player.playback import play
+
+    return play(cfg, args)
+
+
+DESCRIPTION = ProcessDescription(
+    name="player", node=PlayerNode, main=_play, arguments=_arguments, config_positional=False,
+    help="replay an EuRoC ASL folder or an MCAP recording onto the sensor topics (--lockstep, --realtime, --rate)")

@@ -1,7 +1,5 @@
-"""``sigmaslam player DATASET [CONFIG] [--lockstep | --realtime | --rate R]``: replay an EuRoC folder or MCAP file.
-
-Minimal player written to unblock ``sigmaslam run`` (meant to be extended by the dataset work): IMU samples
-go out on sensors/imu (keep-all), frames on sensors/frame, in time order, then ``StreamEnd`` on sensors/end
+"""The player's loop (``sigmaslam player DATASET [CONFIG] [--lockstep | --realtime | --rate R]``): replays an EuRoC
+folder or an MCAP file, paced by the sensor clock (services/player/node.py declares its topics). IMU samples go out on sensors/imu (keep-all), frames on sensors/frame, in time order, then ``StreamEnd`` on sensors/end
 (header stamp = the last frame's time). ``--lockstep`` publishes a frame only after the estimator has
 answered the previous one (estimator/state with its stamp, or ``--lockstep-timeout-s``): reproducible runs
 whatever the machine's speed. ``--rate R`` plays at R times sensor rate (``--realtime`` = 1).
@@ -20,7 +18,6 @@ import logging
 import time
 from pathlib import Path
 
-from services.system_config import load_system_config
 from shared import topics
 from services.player.source import open_source
 from shared.euroc_reader import DatasetError
@@ -32,10 +29,21 @@ from transport.queues import Empty
 log = logging.getLogger("sigmaslam.player")
 
 
+class _DatasetAndConfig(argparse.Action):
+    """DATASET [CONFIG] in any order (the supervisor puts CONFIG first, a person DATASET first): sets ``dataset``
+    and ``config`` (None without one)."""
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        configs = [v for v in values if v.endswith((".yaml", ".yml")) and Path(v).is_file()]
+        data = [v for v in values if v not in configs]
+        if len(data) != 1 or len(configs) > 1:
+            parser.error(f"expected DATASET [CONFIG.yaml], got {values}")
+        namespace.dataset, namespace.config = data[0], (configs[0] if configs else None)
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("paths", nargs="+", metavar="DATASET [CONFIG]",
+    p.add_argument("paths", nargs="+", metavar="DATASET [CONFIG]", action=_DatasetAndConfig,
                    help="EuRoC ASL folder or .mcap recording, and optionally a YAML system config (any order)")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config field")
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--lockstep", action="store_true", help="wait for the estimator after every frame (player.mode default)")
     mode.add_argument("--realtime", action="store_true", help="play at sensor rate")
@@ -45,14 +53,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--paused", action="store_true", help="start paused; a 'resume' on the control topic starts playing")
     p.add_argument("--wait-for", default="", help="comma-separated services whose heartbeat must be seen first")
     p.add_argument("--wait-timeout-s", type=float, default=60.0, help="longest wait for --wait-for [s]")
-
-
-def _split_paths(paths: list[str]) -> tuple[str, str | None]:
-    configs = [p for p in paths if p.endswith((".yaml", ".yml")) and Path(p).is_file()]
-    data = [p for p in paths if p not in configs]
-    if len(data) != 1 or len(configs) > 1:
-        raise SystemExit(f"sigmaslam player: expected DATASET [CONFIG.yaml], got {paths}")
-    return data[0], (configs[0] if configs else None)
 
 
 def _wait_for_services(node: Node, names: list[str], timeout_s: float) -> bool:
@@ -75,12 +75,11 @@ def _wait_for_services(node: Node, names: list[str], timeout_s: float) -> bool:
     return False
 
 
-def main(args: argparse.Namespace) -> int:
-    dataset_path, config = _split_paths(args.paths)
-    cfg = load_system_config(config, args.set)
+def play(cfg, args: argparse.Namespace) -> int:
+    """Play ``args.dataset`` with the system config ``cfg`` (the player's main); returns the exit status."""
     pc = cfg.player
     try:
-        ds = open_source(dataset_path)
+        ds = open_source(args.dataset)
     except DatasetError as exc:
         print(f"sigmaslam player: {exc}", flush=True)
         return 2

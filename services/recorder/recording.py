@@ -1,4 +1,5 @@
-"""``sigmaslam record``: record every topic (or ``--key EXPR``) to MCAP; ``--recover`` repairs a cut file.
+"""The recorder's loop (``sigmaslam record``): records every topic (or ``--key EXPR``) to MCAP; ``--recover`` repairs a
+cut file (services/recorder/node.py declares its topics).
 
 The Zenoh callback only copies the payload and the receive time into a bounded keep-all queue
 (bounded in messages and bytes; beyond either bound the message is dropped and counted); the main
@@ -21,7 +22,6 @@ import zenoh
 
 from services.recorder.mcap_writer import RecordingError, RecordingWriter
 from services.recorder.recovery import RecoveryError, recover
-from services.system_config import load_system_config
 from shared.config import to_yaml
 from services.recorder.node import RecorderNode
 from transport.node import Node
@@ -31,9 +31,6 @@ log = logging.getLogger("sigmaslam.record")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("config", nargs="?", help="YAML system config (default: built-in defaults)")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config field")
-    p.add_argument("--out", metavar="FILE.mcap", help="output file (default: <recorder.output_dir>/sigmaslam-<UTC>-<pid>.mcap)")
     p.add_argument("--key", metavar="EXPR", help="Zenoh key expression to record (default: '<namespace>/**')")
     p.add_argument("--recover", metavar="BROKEN.mcap", help="rebuild a complete indexed file from a cut one into --out, then exit")
 
@@ -74,7 +71,9 @@ class _ByteBudget:
             self.used -= n
 
 
-def main(args: argparse.Namespace) -> int:
+def record(cfg, args: argparse.Namespace) -> int:
+    """Record with the system config ``cfg`` (the recorder's main), or repair a cut file (``--recover``); returns the
+    exit status."""
     if args.recover:
         if not args.out:
             print("sigmaslam record --recover needs --out FIXED.mcap", file=sys.stderr)
@@ -89,7 +88,6 @@ def main(args: argparse.Namespace) -> int:
               f"into {args.out}: {state}", flush=True)
         return 0
 
-    cfg = load_system_config(args.config, args.set)
     rc = cfg.recorder
     key = args.key or rc.key_expr or f"{cfg.transport.namespace.rstrip('/')}/**"
     out = fresh_path(Path(args.out) if args.out else default_output(rc.output_dir))

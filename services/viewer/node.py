@@ -1,7 +1,8 @@
-"""The viewer as a process node: every shown topic goes into the scene model (latest wins, nothing queues up), and
-``tick`` pushes the model's changes to the browser at ``viewer.draw_rate_hz``, so a slow browser makes the drawing
-coarser, never the pipeline slower. The page's Pause / Resume buttons go out on ``control``. A message the model
-rejects is a drop of its subscription in ``stats/viewer``, logged at most once per period."""
+"""The viewer as a process node (``sigmaslam viewer``): every shown topic goes into the scene model (latest wins,
+nothing queues up), and ``tick`` pushes the model's changes to the browser at ``viewer.draw_rate_hz``, so a slow
+browser makes the drawing coarser, never the pipeline slower. The page's Pause / Resume buttons go out on
+``control``. A message the model rejects is a drop of its subscription in ``stats/viewer``, logged at most once per
+period. The draw timer and the subscription counters go out in ``stats/viewer``."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import time
 from shared import messages as m
 from shared import topics
 from shared.dataflow import Emit, Input, ProcessNode, RejectedMessage
+from shared.process_description import ProcessDescription, ProcessStartError, Start
 from shared.ratelimit import RateLimitedLog
 
 log = logging.getLogger("sigmaslam.viewer")
@@ -34,7 +36,7 @@ class ViewerNode(ProcessNode):
         self._controls: queue.SimpleQueue[str] = queue.SimpleQueue()  # from the page's thread
         self._seq = 0
         self._draw_errors = RateLimitedLog(log)
-        self.drawer = None
+        self.drawer, self.server = None, server
         if server is not None:
             from services.viewer.drawer import SceneDrawer
 
@@ -68,3 +70,55 @@ class ViewerNode(ProcessNode):
                 except Exception as exc:  # a drawing error must not end the viewer: log (rate-limited), go on
                     self._draw_errors.warning("drawing failed: %s: %s", type(exc).__name__, exc)
         return out
+
+    def close(self) -> list[Emit]:
+        if self.server is not None:
+            self.server.stop()
+        return []
+
+
+def build_model(cfg):
+    """The scene model of the system config ``cfg``: the rig (viewer.rig, else the pipeline's rig section) and the
+    ground truth. A bad viewer.rig or ground-truth file is an error naming the file; an unusable pipeline rig only a
+    warning (frusta then come from the depth frames' K and T_SC)."""
+    from services.viewer.scene_model import ViewerModel
+    from shared.camera import CalibrationError, load_rig
+    from shared.euroc import read_trajectory
+    from shared.rig import load_rig_config
+
+    vcfg = cfg.viewer
+    if vcfg.rig:
+        cameras = load_rig(vcfg.rig)
+    else:
+        try:
+            cameras = load_rig_config(cfg.rig)
+        except CalibrationError as exc:
+            log.warning("no rig for the camera frusta (%s): using the depth frames' K and T_SC", exc)
+            cameras = None
+    gt = read_trajectory(vcfg.ground_truth) if vcfg.ground_truth else None
+    return ViewerModel(vcfg, cameras, gt)
+
+
+def _build(cfg, start: Start) -> ViewerNode:
+    from shared.camera import CalibrationError
+    from shared.euroc import TrajectoryFileError
+
+    try:
+        model = build_model(cfg)
+    except (CalibrationError, TrajectoryFileError) as exc:
+        raise ProcessStartError(str(exc)) from exc
+    import viser  # imported here: reading the descriptions stays fast
+
+    vcfg = cfg.viewer
+    try:
+        server = viser.ViserServer(host=vcfg.host, port=vcfg.port, label="sigmaslam", verbose=False)
+    except OSError as exc:
+        raise ProcessStartError(f"cannot serve on {vcfg.host}:{vcfg.port}: {exc}", code=1) from exc
+    return ViewerNode(vcfg, model, server)
+
+
+DESCRIPTION = ProcessDescription(
+    name="viewer", node=ViewerNode, build=_build,
+    ready=lambda node, cfg: f"viewer: http://{cfg.viewer.host}:{node.server.get_port()} (namespace "
+                            f"{cfg.transport.namespace})",
+    help="web viewer (viser): submap meshes, trajectories, live images, stats")

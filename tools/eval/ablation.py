@@ -155,7 +155,7 @@ class _Progress:
 
 def row_config(row: str, dataset: Path, overrides: list[str], heuristic_px: float = 1.0):
     """The system config of a row: the evaluation defaults, the user's ``--set``, then the row's own keys."""
-    from services.system_config import load_system_config
+    from services.app.system_config import load_system_config
     from shared.config import ConfigError, override
 
     if row not in ROWS:

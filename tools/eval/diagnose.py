@@ -29,7 +29,7 @@ import numpy as np
 def collect(dataset: str, overrides: list[str], max_frames: int = 0) -> dict:
     """Run the estimator in process; returns per-state and per-frame arrays."""
     from services.app.inprocess import run_in_process
-    from services.system_config import load_system_config
+    from services.app.system_config import load_system_config
     from shared import topics
 
     cfg = load_system_config(None, ["o2p.enabled=false", *overrides])

@@ -48,7 +48,7 @@ def _rmse(e: np.ndarray) -> float | None:
 
 def evaluate(map_dataset: str, dataset: str, out: Path, max_a: int = 0, max_b: int = 0, sets=()) -> dict:
     from services.app.inprocess import run_in_process
-    from services.system_config import load_system_config
+    from services.app.system_config import load_system_config
     from shared.euroc import read_trajectory
     from shared.metrics.ate import compute_ate
 

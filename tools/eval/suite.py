@@ -324,7 +324,7 @@ LIVE_KEYS = {"latency_p50_ms": ("latency", "median"), "latency_p99_ms": ("latenc
 
 def live_figures(run_stats: dict, processes: dict) -> dict:
     """What a live run did in real time, from its stats.json (``run_stats``) and the process sampler's summary
-    (``processes``, tools/pipeline_probe.py): sensor -> pose latency p50 / p99 [ms], frames without a state,
+    (``processes``, services/app/metrics/processes.py): sensor -> pose latency p50 / p99 [ms], frames without a state,
     keyframes the back end skipped to catch up, and the share of the wall time the frontend's and the back end's
     main threads ran and waited for a core [%]. A figure the run did not report is left out."""
     sources = {"latency": run_stats.get("state_latency_ms") or {}, "stats": run_stats,

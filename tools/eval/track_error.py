@@ -79,7 +79,7 @@ def measure(replica: str | Path, first: int = 0, frames: int = 0, shift_ms: floa
             overrides: list[str] | None = None) -> dict:
     """Run the tracker over the replica; per observation its error [px] and age [frames], summarised."""
     from services.frontend.tracker import MultiCameraTracker
-    from services.system_config import load_system_config
+    from services.app.system_config import load_system_config
     from shared.camera import load_rig
     from shared.depth_io import DepthFolder
     from shared.euroc import read_euroc_csv

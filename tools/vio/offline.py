@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.system_config import load_system_config
+from services.app.system_config import load_system_config
 from shared.euroc import series_from_matrices, read_trajectory, write_tum
 
 

@@ -1,5 +1,6 @@
-"""What ``sigmaslam bench pipeline`` measures beside the services' own stats, without touching them (arrival times
-and latencies: services/app/metrics/latency.py).
+"""What a measured run (``run_pipeline(..., measure=True)``: the eval suite's live figures, the pipeline bench)
+samples of its processes beside their own stats, without touching them (arrival times and latencies:
+services/app/metrics/latency.py).
 
 - :class:`ProcessSampler`: CPU share and resident memory of each child process of this one (the services the
   supervisor started), named by their ``services.app.cli <subcommand>`` argument, and how long each one's main
