@@ -15,11 +15,11 @@ import numpy as np
 import frontend_scene as fs
 from shared.camera import CameraCalib, camera_to_sensor_yaml
 from shared.euroc import PoseSeries, read_euroc_csv
-from shared.euroc_writer import write_euroc
-from shared.imu_sim import ImuNoise, read_imu_csv, simulate_imu
+from services.app.datasets.euroc_writer import write_euroc
+from services.app.synth.imu_sim import ImuNoise, read_imu_csv, simulate_imu
 from shared.paths import euroc_files
 from shared.rig import RigConfig, load_rig_config
-from shared.trajectory import Trajectory
+from services.app.synth.trajectory import Trajectory
 
 
 def scaled_rig(scale: float) -> list[CameraCalib]:

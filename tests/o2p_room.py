@@ -8,7 +8,7 @@ from shared.occupancy.blocks import BlockStore
 from services.mapping.config import SensorModelConfig
 from services.mapping.integrate import integrate
 from services.mapping.sensor_model import prepare_depth
-from tools.raycast_depth import DepthRenderer, intrinsics, look_at, room_scene
+from raycast_depth import DepthRenderer, intrinsics, look_at, room_scene
 
 W, H = 160, 120
 K = intrinsics(W, H)

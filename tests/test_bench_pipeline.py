@@ -13,10 +13,11 @@ import pytest
 
 from shared.messages import Header, StreamEnd
 from tools.bench_budgets import Budgets, check_budgets, format_table, load_budgets
-from tools.bench_pipeline import frames_within, next_rate, stage_summary
+from services.app.run_pipeline import frames_within
+from tools.bench_pipeline import next_rate, stage_summary
 from services.app.metrics.latency import ArrivalLog, map_latencies, matched_latencies, summary
 from services.app.metrics.processes import main_thread_schedstat, main_thread_shares, service_name
-from tools.eval.suite_report import (PAPER_MEAN, ate_table, live_table, mean_std, mesh_table, segment_table,
+from services.app.eval.suite_report import (PAPER_MEAN, ate_table, live_table, mean_std, mesh_table, segment_table,
                                      spread_table, timing_table)
 from transport.stats import STAGE_LOG_DTYPE, STAGE_LOG_ENV, StageTimer, StatsCollector, read_stage_log
 
@@ -90,7 +91,7 @@ def test_main_thread_shares_of_the_wall_time():
 
 
 def test_suite_live_figures_and_table():
-    from tools.eval.suite import live_figures
+    from services.app.eval.suite import live_figures
 
     stats = {"state_latency_ms": {"median": 21.4, "p99": 127.1}, "frames_without_state": 2,
              "services": {"backend": {"counters": {"keyframes_skipped": 47}}}}
@@ -188,7 +189,7 @@ def test_suite_means_per_mode_and_the_target():
 
 def test_suite_sequences_and_scenes():
     from shared.paths import EUROC_SEQUENCES, has_sequence
-    from tools.eval.suite import available_sequences, parse_rates, scene_for
+    from services.app.eval.suite import available_sequences, parse_rates, scene_for
     import argparse
 
     assert available_sequences() == [s for s in sorted(EUROC_SEQUENCES) if has_sequence(s)]
@@ -201,7 +202,7 @@ def test_suite_sequences_and_scenes():
 
 
 def test_suite_median_over_start_offsets():
-    from tools.eval.suite import median_row, parse_starts
+    from services.app.eval.suite import median_row, parse_starts
 
     assert parse_starts("0, 0.5,1,0.5") == [0.0, 0.5, 1.0]  # distinct, in the order given
     for bad in ("", "-1", "0,nan", "x"):
@@ -223,7 +224,7 @@ def test_suite_median_over_start_offsets():
 
 
 def test_suite_deletes_a_scored_runs_dense_map_and_nothing_else(tmp_path):
-    from tools.eval.suite import drop_dense_map
+    from services.app.eval.suite import drop_dense_map
 
     files = {"submaps/submap_000.ply": 300, "submaps/submap_001.ply": 200, "map/dense.npz": 1000,
              "mesh_from_checkpoint.ply": 50, "map/sparse.npz": 70, "mesh.ply": 40, "trajectory_causal.txt": 10,
@@ -251,7 +252,7 @@ def test_bench_pipeline_end_to_end(tmp_path):
 
         data, seconds = e2e_dataset.make_dataset(tmp_path / "data", "V1_02", start_s=0.0, seconds=4.0), 4.0
     out = tmp_path / "bench"
-    proc = subprocess.run([sys.executable, "-m", "services.app.cli", "bench", "pipeline", str(data), "--out", str(out),
+    proc = subprocess.run([sys.executable, "-m", "tools", "bench", "pipeline", str(data), "--out", str(out),
                            "--seconds", str(seconds), "--timeout-s", "600"], cwd=REPO, env=child_env(),
                           capture_output=True, text=True, timeout=900)
     log = proc.stdout + proc.stderr

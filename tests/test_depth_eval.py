@@ -1,4 +1,4 @@
-"""`sigmaslam eval depth` end to end on a tiny rendered split: every method gets finite metrics, the table has
+"""`python -m tools eval depth` end to end on a tiny rendered split: every method gets finite metrics, the table has
 the Laplacian and Gaussian expectations, the calibration plot is written."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from services.app import cli
+import tools.__main__ as dev_cli
 from tools.depth import make_dataset
 from tools.depth.evaluate import METHODS
 
@@ -25,7 +25,7 @@ def tiny_set(tmp_path_factory):
 
 def test_eval_depth_writes_every_method(tiny_set, tmp_path):
     out = tmp_path / "eval"
-    rc = cli.main(["eval", "depth", "--data", str(tiny_set), "--split", "test", "--frames", "2", "--out", str(out)])
+    rc = dev_cli.main(["eval", "depth", "--data", str(tiny_set), "--split", "test", "--frames", "2", "--out", str(out)])
     assert rc == 0
     m = json.loads((out / "metrics.json").read_text())
     assert set(METHODS) <= set(m["metrics"])

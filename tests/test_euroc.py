@@ -53,7 +53,7 @@ def test_errors(tmp_path):
 
 
 from shared.euroc_reader import DatasetError, EurocDataset  # noqa: E402
-from shared.euroc_writer import write_euroc  # noqa: E402
+from services.app.datasets.euroc_writer import write_euroc  # noqa: E402
 from shared.messages import ImuSample, MultiCameraFrame  # noqa: E402
 
 CAM = {"T_BS": {"rows": 4, "cols": 4, "data": np.eye(4).ravel().tolist()}, "intrinsics": [450.0, 450.0, 16.0, 12.0],
@@ -122,7 +122,7 @@ SEQUENCES = ("MH_01", "MH_02", "MH_03", "MH_04", "V1_01", "V1_02", "V2_01", "V2_
 @pytest.mark.parametrize("seq", SEQUENCES)
 def test_every_known_sequence_reads(seq):
     """The eight EuRoC sequences of the shared folder: ground truth (CSV or TUM, xz) and, where recorded, the IMU."""
-    from shared.imu_sim import read_imu_csv
+    from services.app.synth.imu_sim import read_imu_csv
     from tests.helpers_data import require_sequence
     from shared.paths import has_real_imu
 

@@ -1,4 +1,4 @@
-"""``sigmaslam eval ablation`` (tools/eval/ablation.py): a short real run through the CLI entry (4 s of the 25 s
+"""``sigmaslam eval ablation`` (services/app/eval/ablation.py): a short real run through the CLI entry (4 s of the 25 s
 V1_02 replica, baseline + learned rows, depth at 2.5 Hz, mesh on), --resume, a rerun that gives the same
 trajectories, and the table; each row is the pipeline's nodes on the in-process runner, and what makes a row is
 config."""
@@ -12,7 +12,7 @@ import math
 import pytest
 
 from services.app.cli import main
-from tools.eval.ablation_table import table_markdown
+from services.app.eval.ablation_table import table_markdown
 
 
 @pytest.mark.e2e
@@ -116,8 +116,8 @@ def test_rows_differ_by_config_alone():
     """Every row's keys load into the system config; the heuristic row asks the depth service for the heuristic
     stereo sigma of --heuristic-px pixels, the fused row maps the fused depth."""
     from services.app.system_config import load_system_config
-    from tools.eval.ablation import EVAL_DEFAULTS, row_overrides
-    from tools.eval.ablation_table import ROWS
+    from services.app.eval.ablation import EVAL_DEFAULTS, row_overrides
+    from services.app.eval.ablation_table import ROWS
 
     for row in ROWS:
         cfg = load_system_config(None, [*EVAL_DEFAULTS, *row_overrides(row, 2.5)])
@@ -131,8 +131,8 @@ def test_rows_differ_by_config_alone():
 
 
 def test_mono_row_is_judged_against_the_mono_baseline():
-    from tools.eval.ablation import row_overrides
-    from tools.eval.ablation_table import verdict
+    from services.app.eval.ablation import row_overrides
+    from services.app.eval.ablation_table import verdict
 
     assert row_overrides("mono_baseline")[-1] == "o2p.enabled=false" and row_overrides("mono")[-1] == "o2p.enabled=true"
     rows = {"baseline": {"ate_causal_m": 0.010}, "learned": {"ate_causal_m": 0.012},

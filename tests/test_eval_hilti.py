@@ -97,7 +97,7 @@ def test_control_points_from_groundtruth_interpolate_at_frame_times():
 def test_eval_hilti_command(tmp_path, capsys):
     import argparse
 
-    from services.app.eval_hilti_cmd import add_arguments, main
+    from services.app.eval.hilti_cmd import add_arguments, main
 
     cs, cp = _track()
     ctrl = tmp_path / "control.csv"

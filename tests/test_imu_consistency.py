@@ -1,4 +1,4 @@
-"""shared/imu_consistency.py: the measures of agreement between a trajectory and an IMU, the sub-ms clock offset, and
+"""services/app/synth/imu_consistency.py: the measures of agreement between a trajectory and an IMU, the sub-ms clock offset, and
 the per-channel knot choice, on a procedural flight whose IMU is simulated from the true motion."""
 
 import dataclasses
@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from shared.euroc import PoseSeries
-from shared.imu_consistency import accel_mismatch_mm, fit_to_imu, follow_imu, gyro_mismatch_deg, refine_offset
-from shared.imu_sim import ImuNoise, simulate_imu
-from shared.trajectory import Trajectory, _qmul
+from services.app.synth.imu_consistency import accel_mismatch_mm, fit_to_imu, follow_imu, gyro_mismatch_deg, refine_offset
+from services.app.synth.imu_sim import ImuNoise, simulate_imu
+from services.app.synth.trajectory import Trajectory, _qmul
 
 RATE_NS = 5_000_000  # 200 Hz, as EuRoC's imu0 and ground truth
 

@@ -2,8 +2,8 @@ import gtsam
 import numpy as np
 
 from shared.euroc import read_euroc_csv
-from shared.imu_sim import G_W, ImuNoise, read_imu_csv, simulate_imu, time_offset
-from shared.trajectory import Trajectory, procedural
+from services.app.synth.imu_sim import G_W, ImuNoise, read_imu_csv, simulate_imu, time_offset
+from services.app.synth.trajectory import Trajectory, procedural
 from shared.paths import euroc_dir
 
 DATA = euroc_dir()  # the shared EuRoC folder, else the files bundled in data/euroc

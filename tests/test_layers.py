@@ -16,7 +16,10 @@
 
 Every ``import`` counts, also those inside functions (lazy) or under ``TYPE_CHECKING``, and so does a string
 that names one of the project's modules (``importlib.import_module(name)``, ``python -m name``, the CLI's
-command registries). The only exceptions are in :data:`DEV_COMMANDS`.
+command registries). There are no exceptions: the developer commands are ``python -m tools ...``.
+
+A ``shared/`` module serves two processes or more (a process package, or the application, which runs processes of
+its own: ``sigmaslam run``, ``up``, the router); one that serves fewer belongs to its user.
 """
 
 from __future__ import annotations
@@ -29,18 +32,6 @@ ROOT = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml"
 PACKAGES = ("shared", "transport", "services", "tools")
 LAYERS = ("shared", "transport", "config schema", "process package", "application", "tools")
 APP = "app"
-
-# Developer commands that the product CLI names as strings and imports only when that command is chosen;
-# they live in tools/ and no product code imports them. (file, module named) pairs; keep this list tiny.
-DEV_COMMANDS = {
-    ("services/app/cli.py", "tools.bench_cmd"),  # sigmaslam bench ...: benchmarks
-    ("services/app/cli.py", "tools.dataset_convert"),  # sigmaslam convert: EuRoC <-> MCAP conversion
-    ("services/app/eval_cmd.py", "tools.depth.evaluate"),  # sigmaslam eval depth: depth network evaluation
-    ("services/app/eval_cmd.py", "tools.eval.ablation"),  # sigmaslam eval ablation: the paper's Table IV
-    ("services/app/eval_cmd.py", "tools.eval.suite"),
-    ("services/app/eval_cmd.py", "tools.eval.relocalise"),  # sigmaslam eval relocalise: saved-map figures  # sigmaslam eval suite: the paper's tables I, II, V
-    ("services/app/eval_cmd.py", "tools.depth.stereo_bench"),  # sigmaslam eval stereo: real-photograph stereo
-}
 
 _MODULE_NAME = re.compile(r"^(%s)(\.\w+)+$" % "|".join(PACKAGES))
 
@@ -111,8 +102,6 @@ def violations(rel_path: str, source: str, modules: set[str]) -> list[str]:
         elif is_process and dst_pkg is not None and dst_pkg != src_pkg:
             what = "the application" if dst_pkg == APP else f"process package services/{dst_pkg}"
             why = f"process package services/{src_pkg} may not import {what} ({target})"
-        if why and by_name and (rel_path, target) in DEV_COMMANDS:
-            continue
         if why:
             out.append(f"{rel_path}:{line}: {text}{' (names a module)' if by_name else ''}: {why}")
     return out
@@ -139,16 +128,36 @@ def test_services_holds_process_packages_and_the_application():
                 f"services/{d.name}/ is not a process (no node.py ending in a DESCRIPTION): move it")
 
 
-def test_dev_command_exceptions_are_still_needed():
+def _closure(deps: dict[str, set[str]], start: list[str]) -> set[str]:
+    seen, todo = set(), list(start)
+    while todo:
+        m = todo.pop()
+        if m not in seen:
+            seen.add(m)
+            todo += deps.get(m, ())
+    return seen
+
+
+def users_of_shared() -> dict[str, set[str]]:
+    """shared module -> the process packages and the application whose code imports it (directly or through other
+    modules)."""
     mods = all_modules()
     names = set(mods)
-    used = set()
-    for rel, target in DEV_COMMANDS:
-        src = (ROOT / rel).read_text(encoding="utf-8")
-        if any(t == target and s for _, t, _, s in imports_of(src, module_of(ROOT / rel), False, names)):
-            used.add((rel, target))
-        assert target in names and layer(target) == 5, f"DEV_COMMANDS names {target}, not a module of tools/"
-    assert used == DEV_COMMANDS, f"stale DEV_COMMANDS entries: {sorted(DEV_COMMANDS - used)}"
+    deps = {m: {t for _, t, _, _ in imports_of(p.read_text(encoding="utf-8"), m, p.name == "__init__.py", names)
+                if t in names} for m, p in mods.items()}
+    users: dict[str, set[str]] = {m: set() for m in mods if m.split(".")[0] == "shared"}
+    for pkg in {package(m) for m in mods} - {None}:
+        for m in _closure(deps, [m for m in mods if package(m) == pkg]):
+            if m in users:
+                users[m].add(pkg)
+    return users
+
+
+def test_every_shared_module_serves_two_processes():
+    """shared/ holds what two processes or more use; a module one user needs lives with it."""
+    lonely = {m: sorted(u) for m, u in users_of_shared().items()
+              if len(u) < 2 and not (ROOT / m.replace(".", "/") / "__init__.py").exists()}
+    assert not lonely, f"shared modules that serve fewer than two processes (move them to their user): {lonely}"
 
 
 def test_the_check_sees_lazy_imports_strings_and_names_file_and_line():
@@ -159,7 +168,7 @@ def test_the_check_sees_lazy_imports_strings_and_names_file_and_line():
            "def f():\n"
            "    from services.mapping.submaps import Submap\n"
            "    from services.app import supervisor\n"
-           "    return importlib.import_module('tools.eval.suite')\n")
+           "    return importlib.import_module('tools.eval.diagnose')\n")
     bad = violations("services/backend/x.py", src, names)
     assert len(bad) == 4, bad
     assert bad[0] == ("services/backend/x.py:3: from services.app.system_config import load_system_config: process "
@@ -168,11 +177,11 @@ def test_the_check_sees_lazy_imports_strings_and_names_file_and_line():
                       "services/backend may not import process package services/mapping (services.mapping.submaps)")
     assert bad[2] == ("services/backend/x.py:6: from services.app import supervisor: process package "
                       "services.backend.x may not import application services.app.supervisor")
-    assert bad[3].startswith("services/backend/x.py:7: 'tools.eval.suite' (names a module): ")
+    assert bad[3].startswith("services/backend/x.py:7: 'tools.eval.diagnose' (names a module): ")
     assert violations("shared/x.py", "from transport.queues import Empty\n", names) == [
         "shared/x.py:1: from transport.queues import Empty: shared shared.x may not import transport transport.queues"]
     # a schema imports only shared, transport and schemas; the application may import anything but tools
     assert violations("services/backend/config.py", "from services.backend.window.estimator import X\n", names)
     assert not violations("services/app/system_config.py", "from services.mapping.config import MappingConfig\n", names)
     assert not violations("services/app/run_cmd.py", "from services.mapping.io import write_ply\n", names)
-    assert violations("services/app/demo_cmd.py", "from tools.eval.suite import main\n", names)
+    assert violations("services/app/demo_cmd.py", "from tools.bench_pipeline import run_once\n", names)

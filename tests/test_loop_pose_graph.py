@@ -8,7 +8,7 @@ import pytest
 from services.backend.loop.covisibility import Covisibility
 from services.backend.loop.pose_graph import LoopConstraint, PoseGraph, relative_covariance
 from shared.geometry import inv_T, so3_exp
-from shared.trajectory import procedural
+from services.app.synth.trajectory import procedural
 
 
 def _exp(xi):

@@ -1,4 +1,4 @@
-"""``sigmaslam bench mapping-ablation --set depth.KEY=VALUE``: the overrides reach the depth config, other keys and
+"""``python -m tools bench mapping-ablation --set depth.KEY=VALUE``: the overrides reach the depth config, other keys and
 bad values are refused with the config loader's errors."""
 import pytest
 

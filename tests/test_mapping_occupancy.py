@@ -12,7 +12,7 @@ from services.mapping.config import SensorModelConfig
 from services.mapping.integrate import integrate
 from shared.occupancy.query import FREE, OCCUPIED, UNKNOWN, BlockField, interpolate, near_surface_field, state
 from services.mapping.sensor_model import log_odds, prepare_depth, surface_thickness
-from tools.raycast_depth import DepthRenderer, intrinsics, look_at, room_scene
+from raycast_depth import DepthRenderer, intrinsics, look_at, room_scene
 
 W, H = 512, 384
 K = intrinsics(W, H)

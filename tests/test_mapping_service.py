@@ -24,7 +24,7 @@ from shared.codec import Header
 from shared.config import to_dict
 from shared.geometry import inv_T, make_T, so3_exp
 from tests.helpers_zenoh import REPO, child_env, router, wait_for, wait_for_heartbeat
-from tools.raycast_depth import DepthRenderer, intrinsics, look_at, room_scene
+from raycast_depth import DepthRenderer, intrinsics, look_at, room_scene
 from transport.pubsub import Publisher, Subscriber
 from transport.session import open_session
 

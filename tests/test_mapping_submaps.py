@@ -13,7 +13,7 @@ from services.mapping.poses import PoseBuffer
 from shared.occupancy.query import interpolate
 from services.mapping.submaps import SubmapMapper
 from shared.geometry import inv_T, make_T, so3_exp
-from tools.raycast_depth import DepthRenderer, intrinsics, look_at
+from raycast_depth import DepthRenderer, intrinsics, look_at
 
 W, H = 256, 192  # smaller images keep these tests fast; the geometry does not depend on it
 K = intrinsics(W, H)

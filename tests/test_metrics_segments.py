@@ -6,7 +6,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from shared.metrics.ate import compute_ate
-from shared.metrics.segments import angular_speed, fastest_window, segment_errors
+from services.app.metrics.segments import angular_speed, fastest_window, segment_errors
 
 
 def _yaw_series(rate_of_t, seconds=60.0, hz=200):

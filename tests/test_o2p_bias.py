@@ -16,7 +16,7 @@ from services.mapping.sensor_model import prepare_depth
 from shared.geometry import inv_T
 from tests.o2p_room import H, K, W, view
 from tools.o2p_bias import factor_offset, residuals
-from tools.raycast_depth import DepthRenderer, room_scene
+from raycast_depth import DepthRenderer, room_scene
 
 NOISE = 0.04  # per-pixel depth noise [m], independent across views; the sigma given to the map and factor
 

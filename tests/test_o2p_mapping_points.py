@@ -11,7 +11,7 @@ from services.mapping.node import make_node
 from shared import topics
 from shared import messages as m
 from shared.codec import Header
-from tools.raycast_depth import DepthRenderer, intrinsics, look_at, room_scene
+from raycast_depth import DepthRenderer, intrinsics, look_at, room_scene
 
 W, H = 160, 120
 K = intrinsics(W, H)

@@ -17,7 +17,7 @@ from services.mapping.mesh import ChunkMesher
 from services.mapping.submaps import Submap
 from shared.geometry import inv_T, make_T, so3_exp
 from tests.o2p_room import H, K, W, view
-from tools.raycast_depth import intrinsics, room_scene
+from raycast_depth import intrinsics, room_scene
 
 S = 1_000_000_000  # 1 s in ns
 

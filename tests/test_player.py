@@ -16,9 +16,9 @@ from shared import topics
 from shared.codec import Header
 from shared.config import to_dict
 from shared.euroc_reader import DatasetError, EurocDataset
-from shared.euroc_writer import write_euroc
+from services.app.datasets.euroc_writer import write_euroc
 from shared.messages import Control, EstimatorState, MultiCameraFrame
-from tools.dataset_convert import euroc_to_mcap, mcap_to_euroc
+from services.app.datasets.convert_cmd import euroc_to_mcap, mcap_to_euroc
 from transport.node import Node
 
 T0 = 1_403_715_523_912_143_104

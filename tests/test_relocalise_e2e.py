@@ -13,7 +13,7 @@ import pytest
 @pytest.mark.e2e
 def test_another_flight_through_the_room_localises_in_the_default_replicas_map(tmp_path):
     from services.app.synth.api import ensure_replica
-    from tools.eval.relocalise import evaluate
+    from services.app.eval.relocalise import evaluate
 
     a = ensure_replica("V1_02", "vicon-a", imu="real", duration_s=25.0)  # the demo's, cached by the first test using it
     b = ensure_replica("V2_01", "vicon-a", imu="real", start_s=56.0, duration_s=12.0)  # passes where a looked

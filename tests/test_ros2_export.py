@@ -7,7 +7,7 @@ import pytest
 from services.recorder.mcap_writer import RecordingWriter
 from shared import messages as m
 from shared.geometry import make_T, so3_exp
-from services.app.ros2_export import TOPICS, recording_to_ros2
+from services.app.datasets.ros2_export import TOPICS, recording_to_ros2
 
 pytestmark = pytest.mark.unit
 NS = "sigmaslam/robot0/"

@@ -4,7 +4,7 @@ and ROS 1 bags converted back to the identical EuRoC folder, whose estimator tra
 import numpy as np
 import pytest
 
-from shared.ros_bag import BagError, choose_topics, image_to_grey, is_ros_bag, match_stereo
+from services.app.datasets.ros_bag import BagError, choose_topics, image_to_grey, is_ros_bag, match_stereo
 from tests.helpers_data import require_real_data
 from tests.ros_bags import image_msg, write_bag, write_kalibr
 
@@ -79,7 +79,7 @@ def micro():
 @pytest.mark.unit
 def test_kalibr_rig_equals_the_euroc_rig(tmp_path, micro):
     from shared.camera import load_rig
-    from shared.kalibr import read_kalibr
+    from services.app.datasets.kalibr import read_kalibr
 
     chain, imu = write_kalibr(micro, tmp_path, timeshift_s=0.004)
     rig = read_kalibr(chain, imu)
@@ -96,7 +96,7 @@ def test_kalibr_rig_equals_the_euroc_rig(tmp_path, micro):
 @pytest.mark.parametrize("kind", ["mcap", "sqlite3", "ros1"])
 def test_real_frames_round_trip_through_a_bag(tmp_path, micro, kind):
     from shared.euroc_reader import EurocDataset
-    from services.app.bag_input import bag_to_euroc
+    from services.app.datasets.bag_input import bag_to_euroc
 
     name = {"mcap": "bag2", "sqlite3": "bag2db", "ros1": "run.bag"}[kind]
     bag = write_bag(micro, tmp_path / name, kind, max_frames=15)
@@ -117,7 +117,7 @@ def test_real_frames_round_trip_through_a_bag(tmp_path, micro, kind):
 
 def test_sync_tolerance_timeshift_and_missing_calibration(tmp_path, micro):
     from shared.euroc_reader import EurocDataset
-    from services.app.bag_input import bag_to_euroc
+    from services.app.datasets.bag_input import bag_to_euroc
 
     bag = write_bag(micro, tmp_path / "b", "mcap", max_frames=10, cam_delay_ns=(0, 3_000_000))
     chain, imu = write_kalibr(micro, tmp_path / "k", timeshift_s=0.005)
@@ -136,7 +136,7 @@ def test_sync_tolerance_timeshift_and_missing_calibration(tmp_path, micro):
 def _folder_and_its_bag_trajectories(folder, tmp_path):
     """The offline estimator's (result, causal trajectory) on ``folder`` and on the folder written as a ROS 2 bag
     (mcap, raw mono8 and PNG-compressed images) with a Kalibr calibration, converted back."""
-    from services.app.bag_input import bag_to_euroc
+    from services.app.datasets.bag_input import bag_to_euroc
     from tools.vio.offline import run
 
     bag = write_bag(folder, tmp_path / "bag", "mcap", encodings=("mono8", "png"))

@@ -1,4 +1,4 @@
-"""`sigmaslam eval stereo`: Middlebury-style folders are read in both layouts, the metrics and the background
+"""`python -m tools eval stereo`: Middlebury-style folders are read in both layouts, the metrics and the background
 fill do what they say on hand-made arrays, and on the real Middlebury scenes SGBM and the network are scored
 with figures that a broken reader or a sign error would change."""
 import json
@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from shared.stereo_scene import StereoSceneError, find_scenes, read_pfm, read_stereo_scene
+from tools.depth.stereo_scene import StereoSceneError, find_scenes, read_pfm, read_stereo_scene
 from tests.helpers_data import require_real_data
 from services.depth.sgbm import fill_background
 from tools.depth.stereo_bench import disparity_metrics, scene_scale
@@ -118,7 +118,7 @@ def test_scale_shrinks_only_pairs_beyond_the_range(tmp_path):
 
 def test_real_middlebury_scores(tmp_path):
     root = require_real_data("middlebury_2001_2003")
-    from services.app.cli import main
+    from tools.__main__ import main
 
     rc = main(["eval", "stereo", str(root / "venus"), str(root / "tsukuba"), "--euroc", "none", "--out",
                str(tmp_path)])

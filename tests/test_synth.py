@@ -11,12 +11,12 @@ import pytest
 
 from helpers_data import needs_sequence
 from shared.camera import load_rig
-from shared.depth_io import DepthFolder, read_depth_png, write_depth_png
+from services.app.synth.depth_io import DepthFolder, read_depth_png, write_depth_png
 from shared.euroc import read_euroc_csv
 from shared.euroc_reader import EurocDataset
-from shared.imu_sim import G_W, read_imu_csv, time_offset
+from services.app.synth.imu_sim import G_W, read_imu_csv, time_offset
 from shared.paths import REPO_ROOT, euroc_files
-from shared.trajectory import Trajectory, procedural
+from services.app.synth.trajectory import Trajectory, procedural
 from services.app.synth.render import RenderConfig, Renderer
 from services.app.synth.replica import ReplicaSpec, generate, load_calibration, plan
 from services.app.synth.scene import build_scene, read_ply

@@ -10,10 +10,10 @@ import open3d as o3d
 import pytest
 
 from shared.camera import load_rig
-from shared.depth_io import DepthFolder
+from services.app.synth.depth_io import DepthFolder
 from shared.euroc import read_euroc_csv
-from shared.imu_sim import read_imu_csv, time_offset
-from shared.trajectory import Trajectory
+from services.app.synth.imu_sim import read_imu_csv, time_offset
+from services.app.synth.trajectory import Trajectory
 from services.app.synth.api import DEFAULT, replica_name
 from services.app.synth.replica import ReplicaSpec
 from services.app.synth.scene import read_ply

@@ -1,7 +1,7 @@
 import numpy as np
 
 from shared.euroc import read_euroc_csv
-from shared.trajectory import Trajectory, _quat_to_R, procedural
+from services.app.synth.trajectory import Trajectory, _quat_to_R, procedural
 from shared.paths import euroc_dir
 
 DATA = euroc_dir()  # the shared EuRoC folder, else the files bundled in data/euroc

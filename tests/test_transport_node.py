@@ -126,7 +126,7 @@ def test_router_command_serves_peers_and_stops_on_sigterm():
 
 def test_bench_transport_short_run_writes_json(tmp_path):
     out = tmp_path / "bench.json"
-    cmd = [sys.executable, "-m", "services.app.cli", "bench", "transport", "--duration", "1", "--samples", "100",
+    cmd = [sys.executable, "-m", "tools", "bench", "transport", "--duration", "1", "--samples", "100",
            "--json", str(out)]
     res = subprocess.run(cmd, cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=60)
     assert res.returncode == 0, res.stderr

@@ -1,4 +1,4 @@
-"""Budgets of the design brief (configs/budgets.yaml) and the pass/over table of ``sigmaslam bench pipeline``.
+"""Budgets of the design brief (configs/budgets.yaml) and the pass/over table of ``python -m tools bench pipeline``.
 
 :func:`check_budgets` turns a bench summary (the dict :mod:`tools.bench_pipeline` writes to bench.json) into
 rows ``Check(name, measured, limit, unit, ok)``; a measurement that is missing gives ``ok=None`` ("n/a").

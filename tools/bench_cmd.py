@@ -1,4 +1,4 @@
-"""``sigmaslam bench <name>``: benchmarks of the system, each in its own module under tools/.
+"""``python -m tools bench <name>``: benchmarks of the system, each in its own module under tools/.
 
 To add one, add a line to :data:`BENCHES`; the module provides ``add_arguments(parser)`` and ``main(args) -> int``.
 """

@@ -1,4 +1,4 @@
-"""``sigmaslam bench mapping``: occupancy integration time per 512x384 depth frame at 2.5 cm, memory,
+"""``python -m tools bench mapping``: occupancy integration time per 512x384 depth frame at 2.5 cm, memory,
 and (on a replica) mesh accuracy/completeness against the scene mesh.
 
 Sources: ``--replica DIR`` (a ``sigmaslam synth`` folder: ground-truth depth of cam0 undistorted to a
@@ -33,7 +33,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def room_frames(n: int, width: int = 512, height: int = 384):
     """(stamp_ns, depth, K, T_WC) of a camera circling inside the synthetic room."""
-    from tools.raycast_depth import DepthRenderer, intrinsics, look_at, room_scene
+    from tests.raycast_depth import DepthRenderer, intrinsics, look_at, room_scene
 
     mesh = room_scene()
     renderer, K = DepthRenderer(mesh), intrinsics(width, height)
@@ -51,7 +51,7 @@ def replica_frames(folder: Path, n: int, stride: int, width: int = 512, height: 
 
     from services.mapping.poses import PoseBuffer
     from shared.camera import load_rig
-    from shared.depth_io import DepthFolder
+    from services.app.synth.depth_io import DepthFolder
     from shared.euroc import read_trajectory
     from shared.geometry import pose_from_pq
 

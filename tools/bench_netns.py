@@ -1,4 +1,4 @@
-"""``sigmaslam bench netns``: latency of pipeline messages across a host boundary vs on one host.
+"""``python -m tools bench netns``: latency of pipeline messages across a host boundary vs on one host.
 
 Three real processes per case: a ``sigmaslam router``, a sender and a receiver (``python -m
 tools.bench_netns --role send|recv``). Cases:
@@ -253,7 +253,7 @@ def main(args: argparse.Namespace) -> int:
 
 
 def _child_main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description="netns benchmark child roles (use 'sigmaslam bench netns')")
+    p = argparse.ArgumentParser(description="netns benchmark child roles (use 'python -m tools bench netns')")
     add_arguments(p)
     p.add_argument("--role", choices=("parent", "send", "recv"), default="parent")
     p.add_argument("--connect", default="")

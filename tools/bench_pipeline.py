@@ -1,4 +1,4 @@
-"""``sigmaslam bench pipeline [DATASET]``: the whole pipeline at sensor rate, measured per stage and end to end.
+"""``python -m tools bench pipeline [DATASET]``: the whole pipeline at sensor rate, measured per stage and end to end.
 
 One ``sigmaslam run`` (services/app/run_cmd.py: router, player, frontend, backend, depth, mapping as processes) with
 the player at ``--rate`` times sensor rate (1 = real time), while this process
@@ -29,6 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from tools.bench_budgets import check_budgets, format_table, load_budgets
+from services.app.metrics.stages import stage_items
+from services.app.run_pipeline import frames_within
 from services.app.metrics.latency import ArrivalLog, first_arrivals, map_latencies, matched_latencies, summary
 from transport.session import free_local_port
 
@@ -59,19 +61,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 # ----------------------------------------------------------------------------- one run
-
-def frames_within(dataset: Path, seconds: float) -> int:
-    """Camera frames in the first ``seconds`` of the dataset (0: all)."""
-    root = dataset / "mav0" if (dataset / "mav0").is_dir() else dataset
-    csv = root / "cam0" / "data.csv"
-    if not csv.is_file():
-        raise FileNotFoundError(f"{csv} not found: {dataset} is not an EuRoC ASL folder")
-    stamps = np.array([int(line.split(",")[0]) for line in csv.read_text().splitlines()
-                       if line.strip() and not line.startswith("#")], np.int64)
-    if seconds <= 0:
-        return len(stamps)
-    return int(np.sum(stamps - stamps[0] <= int(seconds * 1e9)))
-
 
 def _probe(log: ArrivalLog, transport_cfg, stop: threading.Event, ready: threading.Event) -> None:
     from shared import topics
@@ -122,13 +111,6 @@ def run_once(dataset: Path, out: Path, rate: float, seconds: float, services: st
 
 
 # ----------------------------------------------------------------------------- summary
-
-def stage_items(stage_dir: Path) -> dict[str, np.ndarray]:
-    """'service.stage' -> per-item records (end_ns, seconds) from the stage logs."""
-    from transport.stats import read_stage_log
-
-    return {p.name[:-4]: read_stage_log(p) for p in sorted(Path(stage_dir).glob("*.bin"))}
-
 
 def stage_summary(rec: np.ndarray, budget_ms: float | None) -> dict:
     ms = rec["seconds"] * 1e3

@@ -1,4 +1,4 @@
-"""PNG plots and the per-item series file of ``sigmaslam bench pipeline``.
+"""PNG plots and the per-item series file of ``python -m tools bench pipeline``.
 
 latency_time.png (latency per sensor frame over the run), latency_hist.png, compute_hist.png (per-item compute
 time per stage) and processes.png (CPU and resident memory per service over time).

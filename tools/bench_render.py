@@ -19,7 +19,7 @@ def main() -> None:
     a = ap.parse_args()
     from shared.euroc import read_euroc_csv
     from shared.paths import euroc_files
-    from shared.trajectory import Trajectory
+    from services.app.synth.trajectory import Trajectory
     from services.app.synth.render import RenderConfig, Renderer
     from services.app.synth.replica import load_calibration
     from services.app.synth.scene import build_scene

@@ -330,7 +330,7 @@ def main(args: argparse.Namespace) -> int:
 
 
 def _child_main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description="transport benchmark (child roles; use 'sigmaslam bench transport')")
+    p = argparse.ArgumentParser(description="transport benchmark (child roles; use 'python -m tools bench transport')")
     add_arguments(p)
     p.add_argument("--role", choices=("parent", "send", "pong"), default="parent")
     p.add_argument("--connect", default="")

@@ -1,4 +1,4 @@
-"""``sigmaslam bench mapping-ablation --replica DIR``: the paper's Table IV style ablation of what the map
+"""``python -m tools bench mapping-ablation --replica DIR``: the paper's Table IV style ablation of what the map
 gets as depth and sigma, all at ground-truth poses on a replica:
 
 - ``gt``: ground-truth depth (cam0, undistorted) with the heuristic quadratic sigma;

@@ -20,11 +20,12 @@ APP_COMMANDS: dict[str, tuple[str, str]] = {
     "router": ("services.app.router", "run the Zenoh router that services connect to"),
     "config": ("services.app.config_cmd", "print the resolved config or the documented defaults"),
     "health": ("services.app.health_cmd", "exit 0 when a service's heartbeat (or the router) is seen on the bus"),
-    "eval": ("services.app.eval_cmd", "evaluations against ground truth: ate, mesh, depth, hilti, ablation (Table IV), suite"),
+    "eval": ("services.app.eval.cmd", "evaluations against ground truth: ate, mesh, hilti, ablation (Table IV), suite (the "
+             "paper's tables), relocalise"),
     "map": ("services.app.map_cmd", "saved maps: info DIR (what a map holds), merge A B OUT (one map of two)"),
     "synth": ("services.app.synth.synth_cmd", "render a synthetic EuRoC replica (images, GT depth, mesh, IMU) of a real sequence"),
-    "convert": ("tools.dataset_convert", "convert a dataset: EuRoC ASL folder <-> sigmaslam MCAP recording"),
-    "bench": ("tools.bench_cmd", "benchmarks: transport, netns, mapping, mapping-ablation, pipeline (live budgets)"),
+    "convert": ("services.app.datasets.convert_cmd", "convert a dataset: EuRoC ASL folder <-> sigmaslam MCAP recording; ROS "
+                "bag -> EuRoC folder"),
 }
 
 

@@ -14,7 +14,7 @@ import sys
 
 from services.app.system_config import load_system_config
 from shared.process_description import ProcessDescription, ProcessStartError, Start
-from shared.supervision import restart_count
+from services.app.supervision import restart_count
 
 
 def add_arguments(p: argparse.ArgumentParser, d: ProcessDescription) -> None:

@@ -60,7 +60,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "DIR/map/sparse.npz is written)")
     p.add_argument("--record", action="store_true", help="also record every topic to DIR/recording.mcap")
     p.add_argument("--ros2-bag", metavar="BAG", default=None, help="also write the results as a ROS 2 bag (MCAP "
-                   "storage, standard messages: services/app/ros2_export.py) to the new folder BAG; implies --record")
+                   "storage, standard messages: services/app/datasets/ros2_export.py) to the new folder BAG; implies --record")
     p.add_argument("--player-arg", action="append", default=[], metavar="ARG",
                    help="extra argument for the player (repeatable), e.g. --player-arg=--max-frames=200")
     p.add_argument("--settle-s", type=float, default=5.0, help="after the player ended, stop when no state came "
@@ -70,7 +70,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "bundle adjustment (estimator/trajectory_final) after the stream ended [s]")
     p.add_argument("--serve-s", type=float, default=0.0, help="after the run, show its final map and trajectories "
                    "in the web viewer (viewer.host:viewer.port) this long [s] (0: no)")
-    from services.app.bag_input import add_bag_arguments
+    from services.app.datasets.bag_input import add_bag_arguments
 
     add_bag_arguments(p)
     _intermixed(p)
@@ -94,7 +94,7 @@ def _intermixed(p: argparse.ArgumentParser) -> None:
 
 def _bag_dataset(args: argparse.Namespace, out: Path) -> str:
     """A ROS bag converted to OUT/dataset (an EuRoC folder; reused when it is already there)."""
-    from services.app.bag_input import bag_to_euroc
+    from services.app.datasets.bag_input import bag_to_euroc
 
     dst = out / "dataset"
     if (dst / "mav0").is_dir():
@@ -119,7 +119,7 @@ def _ground_truth(gt_arg: str | None, dataset: str) -> tuple[Path | None, str | 
 
 def main(args: argparse.Namespace) -> int:
     from shared.euroc_reader import DatasetError
-    from shared.ros_bag import is_ros_bag
+    from services.app.datasets.ros_bag import is_ros_bag
 
     out = Path(args.out)
     dataset = str(Path(args.dataset).resolve())
@@ -164,8 +164,8 @@ def main(args: argparse.Namespace) -> int:
 
 
 def _ros2_bag(out: Path, bag: str) -> int:
-    """The results as a ROS 2 bag (services/app/ros2_export.py); 1 when it cannot be written."""
-    from services.app.ros2_export import recording_to_ros2
+    """The results as a ROS 2 bag (services/app/datasets/ros2_export.py); 1 when it cannot be written."""
+    from services.app.datasets.ros2_export import recording_to_ros2
 
     try:
         counts = recording_to_ros2(out / "recording.mcap", bag)

@@ -19,6 +19,8 @@ import uuid
 from pathlib import Path
 from typing import Sequence
 
+import numpy as np
+
 from services.app import processes
 from services.app.cli import command_names
 from services.app.config import ServiceSpec
@@ -48,6 +50,19 @@ class RunResult:
     sampler: object | None = None  # the processes' CPU, memory and scheduling over the run (sample_processes=True):
     # services.app.metrics.processes.ProcessSampler (summary(), series())
     stage_dir: Path | None = None  # the services' per-item stage logs (stage_log)
+
+
+def frames_within(dataset: Path, seconds: float) -> int:
+    """Camera frames in the first ``seconds`` of the EuRoC folder ``dataset`` (0: all)."""
+    root = Path(dataset) / "mav0" if (Path(dataset) / "mav0").is_dir() else Path(dataset)
+    csv = root / "cam0" / "data.csv"
+    if not csv.is_file():
+        raise FileNotFoundError(f"{csv} not found: {dataset} is not an EuRoC ASL folder")
+    stamps = np.array([int(line.split(",")[0]) for line in csv.read_text().splitlines()
+                       if line.strip() and not line.startswith("#")], np.int64)
+    if seconds <= 0:
+        return len(stamps)
+    return int(np.sum(stamps - stamps[0] <= int(seconds * 1e9)))
 
 
 def pipeline_services(cfg, dataset: str, out: Path, rate: float, record: bool,

@@ -29,7 +29,7 @@ from pathlib import Path
 from services.app.config import ServiceSpec, SupervisorConfig
 from services.app.processes import with_defaults
 from shared.config import ConfigError
-from shared.supervision import RESTARTS_ENV
+from services.app.supervision import RESTARTS_ENV
 
 log = logging.getLogger("sigmaslam.up")
 

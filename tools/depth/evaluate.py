@@ -1,4 +1,4 @@
-"""``sigmaslam eval depth``: depth and uncertainty of every method on held-out frames with ground truth.
+"""``python -m tools eval depth``: depth and uncertainty of every method on held-out frames with ground truth.
 
 Methods: SGBM with the quadratic and the linear heuristic sigma; the stereo network with its learned
 sigma and, for the same depths, with the quadratic heuristic sigma; the MVS network; the fusion of both
@@ -51,7 +51,7 @@ def _replica_frames(path: Path, n: int, stride: int, skip: int, rect, sources: i
     from services.depth.views import select_sources
     from shared.euroc import read_euroc_csv
     from shared.euroc_reader import EurocDataset
-    from shared.trajectory import Trajectory
+    from services.app.synth.trajectory import Trajectory
 
     ds = EurocDataset(path)
     traj = Trajectory(read_euroc_csv(ds.groundtruth_path), knot_spacing_s=0.05)

@@ -6,7 +6,7 @@ Two stages, so that map variants can be tried without re-running the networks:
     python -m tools.depth.fused_map_diag maps DIR --variants stereo,fused,...     # occupancy maps of variants
     python -m tools.depth.fused_map_diag stats DIR                              # per-pixel error tails
 
-``dump`` feeds :class:`services.depth.pipeline.DepthPipeline` exactly as ``sigmaslam bench mapping-ablation``
+``dump`` feeds :class:`services.depth.pipeline.DepthPipeline` exactly as ``python -m tools bench mapping-ablation``
 does (GT poses, every ``--keyframe-every``-th used frame a keyframe) and stores per frame the stereo, MVS
 and fused depth and sigma, the number of MVS source views, the pose, and the ground-truth depth ray-cast
 from the replica's scene mesh in the rectified left camera.
@@ -29,7 +29,7 @@ def dump(a) -> int:
     from shared.camera import load_rig
     from tools.bench_mapping import replica_frames
     from tools.mapping_ablation import _images
-    from tools.raycast_depth import DepthRenderer
+    from tests.raycast_depth import DepthRenderer
 
     folder, out = Path(a.replica), Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

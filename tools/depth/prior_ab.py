@@ -37,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from shared.euroc import read_euroc_csv
     from shared.euroc_reader import EurocDataset
-    from shared.trajectory import Trajectory
+    from services.app.synth.trajectory import Trajectory
 
     states, kfs, lms = {}, [], []
     for key, _t, msg in read_recording(a.recording):

@@ -1,8 +1,8 @@
-"""``sigmaslam eval stereo``: the stereo network against OpenCV SGBM on real photographs with ground truth.
+"""``python -m tools eval stereo``: the stereo network against OpenCV SGBM on real photographs with ground truth.
 
-    sigmaslam eval stereo ../shared/data/real/middlebury_2001_2003 --out out/depth/stereo
+    python -m tools eval stereo ../shared/data/real/middlebury_2001_2003 --out out/depth/stereo
 
-Scenes are Middlebury-style folders (shared/stereo_scene.py: the 2001/2003 and 2014 layouts); by default the
+Scenes are Middlebury-style folders (tools/depth/stereo_scene.py: the 2001/2003 and 2014 layouts); by default the
 four classic scenes in ``$SIGMASLAM_SHARED/data/real/middlebury_2001_2003``. They are a test set: nothing in
 this project trains or calibrates on them.
 
@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from services.depth.sgbm import SgbmParams, fill_background, sgbm_disparity
-from shared.stereo_scene import StereoScene, find_scenes, read_stereo_scene
+from tools.depth.stereo_scene import StereoScene, find_scenes, read_stereo_scene
 
 DEFAULT_SCENES = "middlebury_2001_2003"
 DEFAULT_EUROC = "euroc_V1_01_micro"
@@ -210,7 +210,7 @@ def table(rows: dict[str, dict]) -> list[str]:
 
 
 def markdown(report: dict) -> str:
-    out = ["# Stereo on real photographs (`sigmaslam eval stereo`)", "",
+    out = ["# Stereo on real photographs (`python -m tools eval stereo`)", "",
            f"Non-occluded pixels unless marked 'all'; errors in the ground truth's pixels. Laplacian expectation within "
            f"1/2/3 sigma: 63/86/95 %. SGBM sigma: constant {report['sgbm_sigma_px']:g} px. Scale: "
            + ", ".join(f"{n} x{s['scale']:.2f}" for n, s in report["scales"].items()) + ".", "",
@@ -284,7 +284,7 @@ def main(args: argparse.Namespace) -> int:
 
     from services.depth.config import DepthConfig
     from services.depth.weights import WeightsError
-    from shared.stereo_scene import StereoSceneError
+    from tools.depth.stereo_scene import StereoSceneError
 
     torch.set_num_threads(max(1, args.threads))
     scene_args = args.scenes or ([p] if (p := _default(None, DEFAULT_SCENES)) else [])

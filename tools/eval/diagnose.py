@@ -61,7 +61,7 @@ def analyse(d: dict, segment_s: float = 10.0) -> dict:
     """Per-state errors and per-segment figures of :func:`collect`'s output against its ground truth."""
     from shared.euroc import read_euroc_csv
     from shared.metrics.ate import associate, compute_ate
-    from shared.metrics.segments import angular_speed
+    from services.app.metrics.segments import angular_speed
 
     gt = read_euroc_csv(d["groundtruth"])
     if gt.gyro_bias is None:

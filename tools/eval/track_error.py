@@ -81,7 +81,7 @@ def measure(replica: str | Path, first: int = 0, frames: int = 0, shift_ms: floa
     from services.frontend.tracker import MultiCameraTracker
     from services.app.system_config import load_system_config
     from shared.camera import load_rig
-    from shared.depth_io import DepthFolder
+    from services.app.synth.depth_io import DepthFolder
     from shared.euroc import read_euroc_csv
     from shared.euroc_reader import EurocDataset
     from shared.geometry import inv_T, transform_points

@@ -1,5 +1,5 @@
 """A replica's twin with simulated IMU: same images and ground truth (linked), imu0 simulated from the ground
-truth with the imu0 noise model of its sensor.yaml (``shared.imu_sim``), at the same IMU stamps.
+truth with the imu0 noise model of its sensor.yaml (``services.app.synth.imu_sim``), at the same IMU stamps.
 
     python -m tools.vio.sim_imu_variant SRC_REPLICA DST [--seed 0]
 
@@ -18,8 +18,8 @@ import numpy as np
 
 from shared.euroc import read_euroc_csv
 from shared.euroc_reader import read_sensor_yaml
-from shared.imu_sim import ImuNoise, read_imu_csv, simulate_imu
-from shared.trajectory import Trajectory
+from services.app.synth.imu_sim import ImuNoise, read_imu_csv, simulate_imu
+from services.app.synth.trajectory import Trajectory
 
 
 def make_variant(src: Path, dst: Path, seed: int = 0) -> Path:

@@ -11,7 +11,7 @@ end nor subtracted), so latency(stamp) = arrival(topic, stamp) - arrival(sensors
   ``mapping.mesh_period_s``, so this includes that period). A lower bound when the mapper runs behind its input;
 - :func:`summary`: n, mean, median, p90, p99, max of a sample.
 
-Used by ``sigmaslam run`` (pose latency of every run) and ``sigmaslam bench pipeline``.
+Used by ``sigmaslam run`` (pose latency of every run) and ``python -m tools bench pipeline``.
 """
 
 from __future__ import annotations

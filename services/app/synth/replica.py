@@ -1,14 +1,14 @@
 """Generate a synthetic EuRoC replica: real trajectory, real calibration, real image stamps, rendered images.
 
 Steps: read the ground truth (EuRoC CSV or TUM) and, for ``imu='real'``, the recorded imu0 data;
-estimate the clock offset between the two (:func:`shared.imu_sim.time_offset`) and shift the ground
-truth onto the IMU/camera clock; fit a smooth :class:`shared.trajectory.Trajectory` (with a recorded IMU, the
+estimate the clock offset between the two (:func:`services.app.synth.imu_sim.time_offset`) and shift the ground
+truth onto the IMU/camera clock; fit a smooth :class:`services.app.synth.trajectory.Trajectory` (with a recorded IMU, the
 knot spacings and the offset that agree best with it, then the IMU's own fine motion on top:
-:mod:`shared.imu_consistency`; the agreement reached is written to ``replica.yaml``, ``trajectory_fit``); render every
+:mod:`services.app.synth.imu_consistency`; the agreement reached is written to ``replica.yaml``, ``trajectory_fit``); render every
 camera at the real image stamps from it; write imu0 (real samples, or simulated from the trajectory
 with the imu0 noise model) and ``state_groundtruth_estimate0`` (17 columns, sampled from the same
 trajectory at the IMU stamps) so that images, IMU and ground truth agree. Output: the EuRoC ASL
-layout plus ``mav0/depth0`` (see :mod:`shared.depth_io`), ``mav0/scene/mesh.ply`` and ``replica.yaml``.
+layout plus ``mav0/depth0`` (see :mod:`services.app.synth.depth_io`), ``mav0/scene/mesh.ply`` and ``replica.yaml``.
 """
 from __future__ import annotations
 
@@ -22,19 +22,19 @@ import yaml
 
 from shared.camera import CameraCalib, camera_from_sensor_yaml, load_rig, read_sensor_yaml_file
 from shared.config import param, to_dict
-from shared.depth_io import choose_scale, write_depth_png, write_depth_sensor_yaml
+from services.app.synth.depth_io import choose_scale, write_depth_png, write_depth_sensor_yaml
 from shared.euroc import PoseSeries, read_trajectory
-from shared.euroc_writer import write_euroc
-from shared.imu_consistency import (POSITION_CUTOFF_HZ, POSITION_KNOTS_S, ROTATION_CUTOFF_HZ, ROTATION_KNOTS_S,
+from services.app.datasets.euroc_writer import write_euroc
+from services.app.synth.imu_consistency import (POSITION_CUTOFF_HZ, POSITION_KNOTS_S, ROTATION_CUTOFF_HZ, ROTATION_KNOTS_S,
                                     fit_to_imu)
-from shared.imu_sim import ImuData, ImuNoise, read_imu_csv, simulate_imu, time_offset
+from services.app.synth.imu_sim import ImuData, ImuNoise, read_imu_csv, simulate_imu, time_offset
 from shared.paths import euroc_files
-from shared.trajectory import Trajectory
+from services.app.synth.trajectory import Trajectory
 from services.app.synth.render import RenderConfig, Renderer
 from services.app.synth.scene import build_scene
 
 # Bumped whenever a replica of the same spec would come out different; a cached replica of an older version is
-# made again (services/app/synth/api.py). 2: the trajectory fitted to the recorded IMU (shared/imu_consistency.py).
+# made again (services/app/synth/api.py). 2: the trajectory fitted to the recorded IMU (services/app/synth/imu_consistency.py).
 # 3: the IMU's fine motion on top of that fit (imu_consistency.follow_imu): images that agree with the recorded IMU.
 # 4: coarser texture levels sampled where cv2.pyrDown put them (they were 0.5 / 1.5 / 3.5 texels off at levels
 # 1 / 2 / 3, so texture slid along surfaces as the camera's distance changed). 5: one scene per site whatever the
@@ -61,7 +61,7 @@ class ReplicaSpec:
     depth_cameras: tuple[int, ...] = param((0,), "cameras whose ground-truth depth is written (mav0/depth<i>)")
     knot_spacing_s: float = param(0.0, "knot spacing of the position spline fitted to the ground truth; 0: with "
                                   "imu='real' the candidate that agrees best with the recorded accelerometer "
-                                  "(shared/imu_consistency.py), else 0.05", "s")
+                                  "(services/app/synth/imu_consistency.py), else 0.05", "s")
     rotation_knot_spacing_s: float = param(0.0, "knot spacing of the orientation spline; 0: with imu='real' the "
                                            "candidate that agrees best with the recorded gyro, else 0.05", "s")
     timeshift_cam_imu_s: float = param(0.0, "camera-IMU clock offset as Kalibr writes it (t_imu = t_cam + shift): the "

@@ -1,6 +1,6 @@
 """How well a smooth trajectory and a recorded IMU describe the same motion, and the spline fit that makes them agree.
 
-A replica renders its images along a :class:`shared.trajectory.Trajectory` fitted to the ground truth and, with
+A replica renders its images along a :class:`services.app.synth.trajectory.Trajectory` fitted to the ground truth and, with
 ``imu='real'``, ships the recorded imu0 beside them. On the real rig the images and the IMU see one motion; on a
 replica they agree only as well as the fitted trajectory follows the motion the IMU felt. Two measures, each on the
 residual between the recorded samples and what the trajectory predicts, after a running mean over
@@ -13,7 +13,7 @@ A white-noise IMU alone would give ~0.002 deg and ~0.1 mm (EuRoC's imu0 densitie
 is the rest: a laser tracker's positions (EuRoC's machine hall) are far noisier than a motion-capture system's, so
 a fit that follows them closely shakes the images by centimetres against the accelerometer. The knot spacings are
 chosen per channel from a few candidates by these two measures (:func:`fit_to_imu`), and the coarse clock offset
-found by correlating angular speeds (:func:`shared.imu_sim.time_offset`, 1 ms steps) is refined to 0.1 ms by the
+found by correlating angular speeds (:func:`services.app.synth.imu_sim.time_offset`, 1 ms steps) is refined to 0.1 ms by the
 gyro residual (:func:`refine_offset`). No estimator is involved: the choice rests on the IMU and the ground truth.
 
 A spline of the ground truth cannot follow what the ground truth itself gets wrong: a motion-capture system that
@@ -34,8 +34,8 @@ from scipy.signal import butter, sosfiltfilt
 
 from shared.euroc import PoseSeries
 from shared.geometry import R_to_quat_wxyz, so3_exp
-from shared.imu_sim import G_W, ImuData
-from shared.trajectory import Trajectory
+from services.app.synth.imu_sim import G_W, ImuData
+from services.app.synth.trajectory import Trajectory
 
 ROTATION_KNOTS_S = (0.01, 0.02, 0.05, 0.1)
 POSITION_KNOTS_S = (0.05, 0.1, 0.2, 0.3)

@@ -1,4 +1,4 @@
-"""The markdown table of ``sigmaslam eval ablation`` (tools/eval/ablation.py): one row per replica and ablation
+"""The markdown table of ``sigmaslam eval ablation`` (services/app/eval/ablation.py): one row per replica and ablation
 row, and a line per replica saying which dense rows beat their baseline's causal ATE."""
 
 from __future__ import annotations

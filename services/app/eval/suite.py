@@ -3,15 +3,15 @@
 For each sequence (default: every EuRoC sequence whose files are found, shared/paths.py: the eight of the shared
 folder, real IMU where it was recorded, simulated for MH_01/MH_02; scene ``vicon-<variant>`` /
 ``machinehall-<variant>``, ``--variant a|b``) the replica is generated once (cached, services/app/synth/api.py;
-``--duration S`` for a short one), the pipeline runs on it through the pipeline bench's runner
-(tools/bench_pipeline.run_once: ``sigmaslam run`` with frontend, backend, depth, mapping, or the services
-of ``--config`` with ``--services config``; final bundle adjustment on) once per playback rate of ``--rates``
+``--duration S`` for a short one), the pipeline runs on it (services/app/run_pipeline.py, as ``sigmaslam run``, with
+frontend, backend, depth, mapping, or the services of ``--config`` with ``--services config``; final bundle
+adjustment on; stages logged and processes sampled) once per playback rate of ``--rates``
 (0: lockstep, so that a loaded machine does not change accuracy; R: R x sensor rate, live; ``--rates 0,1`` gives
 both), and the outputs are evaluated:
 
 - ATE RMSE after SE(3) alignment of the causal (trajectory_causal.txt) and non-causal (trajectory_final.txt)
   trajectories (shared/metrics/ate.py), the RMSE of their first 10 s and of the 10 s where the ground truth turns
-  fastest (shared/metrics/segments.py), the means over the sequences against the paper's, Hilti score on control points from the ground truth (services/app/metrics/hilti.py);
+  fastest (services/app/metrics/segments.py), the means over the sequences against the paper's, Hilti score on control points from the ground truth (services/app/metrics/hilti.py);
 - mesh accuracy / completeness of DIR/mesh.ply against the replica's mav0/scene/mesh.ply (services/app/metrics/mesh.py),
   with its error image;
 - per-item compute times of every stage (mean +- sigma, pooled over the sequences);
@@ -38,8 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tools.eval.suite_report import (NOTE, PAPER_ATE, PAPER_MESH, ate_table, hilti_table, live_table, mean_std,
-                                     mesh_table, segment_table, spread_table, timing_table)
+from services.app.eval.suite_report import pooled_timing, write_report
 
 SITE_OF_PREFIX = {"V": "vicon", "MH": "machinehall"}
 
@@ -103,13 +102,13 @@ def _aligned(res, est_p: np.ndarray, est_stamps: np.ndarray) -> np.ndarray:
 
 def evaluate_sequence(seq: str, replica: Path, run_dir: Path, out: Path, hilti_points: int) -> dict:
     """ATE, Hilti score, mesh metrics and the trajectory figure of one finished run."""
-    from services.app.eval_hilti_cmd import dataset_control_points
+    from services.app.eval.hilti_cmd import dataset_control_points
     from shared.euroc import read_trajectory
     from shared.metrics.ate import compute_ate
-    from shared.metrics.segments import segment_errors
+    from services.app.metrics.segments import segment_errors
     from services.app.metrics.hilti import hilti_score
     from services.app.metrics.mesh import evaluate_mesh_files
-    from tools.eval.suite_plots import trajectory_figure
+    from services.app.eval.suite_plots import trajectory_figure
 
     row: dict = {"replica": str(replica)}
     gt = read_trajectory(replica / "mav0" / "state_groundtruth_estimate0" / "data.csv")
@@ -176,91 +175,19 @@ def mesh_from_checkpoint(run_dir: Path) -> Path:
     return write_ply(run_dir / "mesh_from_checkpoint.ply", v, f)
 
 
-def pooled_timing(stage_dirs: list[Path]) -> dict:
-    """Table V rows of ours from the per-item stage logs of the runs (pooled)."""
-    from tools.bench_pipeline import stage_items
-
-    pooled: dict[str, list[np.ndarray]] = {}
-    for d in stage_dirs:
-        for k, rec in stage_items(d).items():
-            pooled.setdefault(k, []).append(rec["seconds"] * 1e3)
-    get = lambda k: np.concatenate(pooled[k]) if k in pooled else np.zeros(0)  # noqa: E731
-    fe, be = mean_std(get("frontend.track")), mean_std(get("backend.optimise"))
-    vi = None if fe is None or be is None else (fe[0] + be[0], float(np.hypot(fe[1], be[1])), min(fe[2], be[2]))
-    return {"VI optimisation (per frame)": vi,
-            "  of which frontend tracking": fe,
-            "  of which backend optimisation": be,
-            "occupancy update (per depth frame)": mean_std(get("mapping.integrate")),
-            "stereo network": None, "MVS network": None,
-            "depth service: stereo + MVS + fusion": mean_std(get("depth.depth"))}
-
-
-def write_report(out: Path, rows: dict[str, dict], timing: dict, args, rates: list[float],
-                 starts: list[float] = (0.0,)) -> Path:
-    from tools.eval.suite_plots import summary_figure
-
-    summary_figure(out / "summary.png", rows, PAPER_ATE, PAPER_MESH)
-    dur = "whole sequences" if args.duration <= 0 else f"first {args.duration:g} s of each sequence"
-    if args.seconds > 0:
-        dur += f", the first {args.seconds:g} s played"
-    if len(starts) > 1:
-        dur += f"; one run per start offset ({', '.join(f'{s:g}' for s in starts)} s), figures: the median over them"
-    modes = ", ".join(("lockstep playback" if r <= 0 else f"playback at {r:g}x sensor rate (live)") for r in rates)
-    imus = ", ".join(sorted({f"{r.get('sequence', k)}: {r['imu']}" for k, r in rows.items() if "imu" in r}))
-    lines = ["# sigmaslam evaluation suite", "",
-             f"Replicas ({dur}; scene variant {args.variant}; profile {args.profile or 'default'}; IMU {imus}), "
-             f"{modes}{' (the estimator alone, in one process)' if args.in_process else ''}. {NOTE}", "",
-             "## Table I: ATE RMSE [m], SE(3) alignment", "", ate_table(rows), "",
-             *(["## Spread over the start offsets", "",
-                "Causal and non-causal ATE [m] of each run: min / median / max (one run alone can be tens of percent "
-                "off its sequence's median).", "", spread_table(rows), ""] if len(starts) > 1 else []),
-             "## Where the error is: first 10 s and the fastest-turning 10 s", "",
-             "RMSE [m] of the stretch within the whole run's alignment, and its ratio to the run's RMSE "
-             "(issue 23's targets: first 10 s at most 2x).", "", segment_table(rows), "",
-             "## Table II: mesh accuracy [m] (no threshold) and completeness [%] (0.2 m)", "",
-             "Completeness is against the whole replica scene mesh, of which a short run sees only a part.", "",
-             mesh_table(rows), "",
-             "## Table V: timing, mean +- sigma [ms]", "",
-             "Ours: per-item compute times of all runs pooled, CPU only, on a machine shared with other jobs. "
-             "Our depth service runs stereo, MVS and fusion as one stage.", "",
-             timing_table(timing), "",
-             *(["## Live: real-time figures", "",
-                "Pose latency from sensor time to estimator/state, frames without a state, keyframes the back end "
-                "skipped to catch up, and the share of the wall time the main threads of the frontend (tracking and "
-                "the per-frame fast path) and of the back end ran and were ready but waited for a core.", "",
-                live_table(rows), ""] if any(r > 0 for r in rates) else []),
-             "## Hilti 2022 score (control points from the ground truth)", "", hilti_table(rows), "",
-             "![summary](summary.png)", ""]
-    for seq, r in rows.items():
-        lines.append(f"### {seq}")
-        lines.append("")
-        for key in ("error_causal", "error_noncausal", "error_mesh", "error_run", "mesh_source"):
-            if key in r:
-                lines.append(f"- {key}: {r[key]}")
-        where = r.get("dir", seq)  # the (first) run's folder under out
-        if (out / where / "trajectory.png").is_file():
-            lines.append(f"![{seq} trajectory]({where}/trajectory.png)")
-        if (out / where / "mesh" / "error_top.png").is_file():
-            lines.append(f"![{seq} mesh error]({where}/mesh/error_top.png)")
-        lines.append("")
-    path = out / "report.md"
-    path.write_text("\n".join(lines))
-    return path
-
-
 def run_estimator_in_process(replica: Path, run_dir: Path, config: str | None, sets: list[str],
                              seconds: float = 0.0) -> dict:
     """The estimator alone (frontend, fast path, back end with loop closure and final BA; no depth, mapping or
     occupancy terms) on the in-process runner, loop events handled synchronously: a reproducible run of a few
     minutes per sequence. Writes trajectory_causal.txt and trajectory_final.txt into ``run_dir``."""
+    from services.app.eval.loop_eval import evaluate_loop
+    from services.app.run_pipeline import frames_within
     from shared.euroc import write_tum
-    from tools.eval_loop import run
 
     run_dir.mkdir(parents=True, exist_ok=True)
-    from tools.bench_pipeline import frames_within
-
     frames = frames_within(replica, seconds) if seconds > 0 else 0
-    res, trajs = run(str(replica), ["loop.synchronous=true", "loop.final_ba=true", *sets], frames, config=config)
+    res, trajs = evaluate_loop(str(replica), ["loop.synchronous=true", "loop.final_ba=true", *sets], frames,
+                               config=config)
     write_tum(run_dir / "trajectory_causal.txt", trajs["causal"])
     if "final" in trajs:
         write_tum(run_dir / "trajectory_final.txt", trajs["final"])
@@ -338,27 +265,39 @@ def live_figures(run_stats: dict, processes: dict) -> dict:
     return out
 
 
+def run_pipeline_measured(args: argparse.Namespace, replica: Path, run_out: Path, rate: float, sets: list[str]):
+    """The pipeline (the services of ``--services``, final bundle adjustment on) on ``replica`` into ``run_out``/run,
+    its stages logged to ``run_out``/stage_log and its processes sampled (``rate`` <= 0: lockstep)."""
+    from services.app.run_pipeline import frames_within, run_pipeline
+
+    overrides = ["supervisor.shutdown_timeout_s=120"]  # the mapper meshes and writes DIR/mesh.ply after SIGTERM
+    if args.services != "config":
+        names = [s for s in args.services.split(",") if s]
+        overrides.append("supervisor.services=[" + ", ".join(f"{{name: {s}, argv: [{s}]}}" for s in names) + "]")
+    return run_pipeline(replica, run_out / "run", args.config, [*overrides, "loop.final_ba=true", *sets],
+                        rate=max(rate, 0.0), max_frames=frames_within(replica, args.seconds),
+                        timeout_s=args.timeout_s, final_timeout_s=120.0, stage_log=run_out / "stage_log",
+                        sample_processes=True)
+
+
 def run_and_score(args: argparse.Namespace, label: str, replica: Path, run_out: Path, rate: float,
                   sets: list[str]) -> tuple[dict, bool]:
     """One run of the pipeline (or of the estimator in process) on ``replica`` into ``run_out``/run, scored:
     (its row, whether it ran and scored without an error)."""
-    from tools.bench_pipeline import run_once
-
     ok = True
     if args.skip_run:
         pass
     elif args.in_process:
         run_estimator_in_process(replica, run_out / "run", args.config, sets, args.seconds)
     else:
-        raw = run_once(replica, run_out, rate, args.seconds, args.services, args.config,
-                       ["loop.final_ba=true", *sets], args.timeout_s)
-        ok = raw["rc"] == 0
+        res = run_pipeline_measured(args, replica, run_out, rate, sets)
+        ok = res.rc == 0
     try:
         row = evaluate_sequence(label, replica, run_out / "run", run_out, args.hilti_points)
     except (ValueError, OSError) as exc:
         row, ok = {"error_run": str(exc)}, False
     if not (args.in_process or args.skip_run):
-        row.update(live_figures(raw["run_stats"], raw["sampler"].summary()))
+        row.update(live_figures(res.stats, res.sampler.summary()))
     if not (args.in_process or args.skip_run or args.keep_maps):
         freed = drop_dense_map(run_out / "run")
         print(f"[eval suite] {label}: dense map deleted after scoring ({freed / 1e6:.0f} MB; --keep-maps keeps it)",

@@ -1,4 +1,5 @@
-"""Exact depth images of a triangle mesh by ray casting (open3d), for mapping tests and benchmarks.
+"""Exact depth images of a triangle mesh by ray casting (open3d): a fixture of the mapping and o2p tests, which the
+mapping benchmarks borrow (``python -m tools bench mapping`` from a checkout).
 
 :func:`room_scene` builds a small closed room with a box and a sphere in it; :func:`render_depth`
 returns the z-depth (NaN where no hit) seen by a pinhole camera at ``T_WC`` (OpenCV axes).

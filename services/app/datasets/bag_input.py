@@ -3,10 +3,10 @@
     sigmaslam convert BAG DIR --calib camchain-imucam.yaml --imu-calib imu.yaml [--cam T --cam T] [--imu T]
     sigmaslam convert BAG DIR --calib EUROC_FOLDER
 
-The calibration is a Kalibr ``camchain-imucam.yaml`` (shared/kalibr.py: pinhole radtan/equidistant, T_cam_imu,
+The calibration is a Kalibr ``camchain-imucam.yaml`` (services/app/datasets/kalibr.py: pinhole radtan/equidistant, T_cam_imu,
 timeshift_cam_imu applied to the image stamps) with ``imu.yaml`` for the IMU noise, or an EuRoC folder whose
 ``mav0/cam*/sensor.yaml`` and ``imu0/sensor.yaml`` are copied. Camera topics: ``--cam`` in rig order, else the
-Kalibr file's ``rostopic`` entries when the bag has them, else picked automatically (shared/ros_bag.py). Stereo
+Kalibr file's ``rostopic`` entries when the bag has them, else picked automatically (services/app/datasets/ros_bag.py). Stereo
 frames are matched by header stamp within ``--sync-tolerance-ms``; unmatched images are counted and reported.
 """
 from __future__ import annotations
@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from shared.camera import CameraCalib, camera_to_sensor_yaml, load_rig, read_sensor_yaml_file
-from shared.euroc_writer import write_euroc
-from shared.ros_bag import BagError, bag_topics, choose_topics, iter_frames, scan_bag
+from services.app.datasets.euroc_writer import write_euroc
+from services.app.datasets.ros_bag import BagError, bag_topics, choose_topics, iter_frames, scan_bag
 
 
 def rig_calibration(calib: str | Path, imu_calib: str | Path | None) -> tuple[list[CameraCalib], dict,
@@ -31,7 +31,7 @@ def rig_calibration(calib: str | Path, imu_calib: str | Path | None) -> tuple[li
         imu_file = Path(imu_calib) if imu_calib else root / "imu0" / "sensor.yaml"
         imu = read_sensor_yaml_file(imu_file) if imu_file.is_file() else {}
         return cams, imu, [None] * len(cams), [0] * len(cams), None
-    from shared.kalibr import read_kalibr
+    from services.app.datasets.kalibr import read_kalibr
 
     rig = read_kalibr(c, imu_calib)
     return rig.cameras, rig.imu_yaml, rig.topics, rig.timeshift_ns, rig.imu_topic

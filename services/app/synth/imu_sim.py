@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from shared.trajectory import Trajectory
+from services.app.synth.trajectory import Trajectory
 
 G_W = np.array([0.0, 0.0, -9.81])
 

@@ -1,6 +1,6 @@
 """``sigmaslam eval ablation``: the paper's Table IV (occupancy-to-point factors, depth sigma, depth fusion) and
 the mono-inertial variant of Table II, as one command over several replicas, in one process per run (no
-transport). Also ``python -m tools.eval.ablation REPLICA ... [options]``.
+transport). Also ``python -m services.app.eval.ablation REPLICA ... [options]``.
 
 Rows (each a full frontend + back end + loop closure + depth + mapping run over the same frames); what makes a
 row is config alone (:func:`row_overrides`, applied after the user's ``--set``):
@@ -59,7 +59,7 @@ from pathlib import Path
 import numpy as np
 
 from shared import topics
-from tools.eval.ablation_table import MONO, ROWS, table_markdown
+from services.app.eval.ablation_table import MONO, ROWS, table_markdown
 
 DEFAULT_REPLICAS = ("V1_02", "V2_01", "MH_04")
 
@@ -94,7 +94,7 @@ def resolve_replica(name: str, duration_s: float) -> tuple[str, Path]:
         return path.name, path
     if "/" in name or path.exists():
         raise ValueError(f"{name}: not a replica folder (no mav0/ inside)")
-    from tools.eval.suite import scene_for
+    from services.app.eval.suite import scene_for
     from services.app.synth.api import ensure_replica
 
     return name, ensure_replica(name, scene_for(name), imu="real", duration_s=duration_s, progress=False)
@@ -351,6 +351,6 @@ def main(args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":
-    _parser = argparse.ArgumentParser(prog="python -m tools.eval.ablation", description=__doc__.splitlines()[0])
+    _parser = argparse.ArgumentParser(prog="python -m services.app.eval.ablation", description=__doc__.splitlines()[0])
     add_arguments(_parser)
     sys.exit(main(_parser.parse_args()))

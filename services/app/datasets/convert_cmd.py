@@ -1,13 +1,13 @@
 """``sigmaslam convert SRC DST``: EuRoC ASL folder <-> sigmaslam MCAP recording; ROS bag -> EuRoC folder.
 
-ROS bags (ROS 2 MCAP or sqlite3, ROS 1) become EuRoC folders with services/app/bag_input.py (``--calib`` Kalibr
+ROS bags (ROS 2 MCAP or sqlite3, ROS 1) become EuRoC folders with services/app/datasets/bag_input.py (``--calib`` Kalibr
 camchain-imucam.yaml + ``--imu-calib`` imu.yaml, or an EuRoC folder; ``--cam``/``--imu`` topics when ambiguous).
 
 EuRoC -> MCAP: IMU samples and multi-camera frames become native ``sensors/imu`` / ``sensors/frame``
 messages (log time = sensor stamp) under ``--namespace``; every other file of ``mav0`` (sensor.yaml
 files, ground truth, GT depth, scene mesh) and ``replica.yaml`` is stored as an MCAP attachment under its
 relative path, so the reverse conversion restores the folder exactly. MCAP -> EuRoC: messages are written
-back with :func:`shared.euroc_writer.write_euroc`, attachments to their paths. A plain recording without
+back with :func:`services.app.datasets.euroc_writer.write_euroc`, attachments to their paths. A plain recording without
 attachments needs ``--calib`` (a folder with ``camN_sensor.yaml`` [+ ``imu0_sensor.yaml``]).
 """
 from __future__ import annotations
@@ -53,7 +53,7 @@ def mcap_to_euroc(src: str | Path, dst: str | Path, calib: str | Path | None = N
     from mcap.reader import make_reader
 
     from services.player.source import McapSource
-    from shared.euroc_writer import write_euroc
+    from services.app.datasets.euroc_writer import write_euroc
 
     dst = Path(dst)
     if (dst / "mav0").exists():
@@ -110,26 +110,26 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--namespace", default="sigmaslam/robot0", help="key prefix of the topics written to MCAP")
     p.add_argument("--to", choices=["euroc", "ros2"], default="euroc", help="from a sigmaslam recording: an EuRoC "
                    "folder of its sensor data (euroc), or a ROS 2 bag of its results (ros2: odometry, tf, path, "
-                   "submap clouds and meshes, depth; services/app/ros2_export.py)")
+                   "submap clouds and meshes, depth; services/app/datasets/ros2_export.py)")
     p.add_argument("--foxglove", action="store_true", help="also write Foxglove image mirrors (doubles the size)")
     p.add_argument("--calib", help="MCAP -> EuRoC: calibration folder when the recording carries none; bag -> EuRoC: "
                    "Kalibr camchain-imucam.yaml or an EuRoC folder")
-    from services.app.bag_input import add_bag_arguments
+    from services.app.datasets.bag_input import add_bag_arguments
 
     add_bag_arguments(p, calib=False)
 
 
 def main(args: argparse.Namespace) -> int:
-    from shared.ros_bag import is_ros_bag
+    from services.app.datasets.ros_bag import is_ros_bag
 
     try:
         if is_ros_bag(args.src):
-            from services.app.bag_input import bag_to_euroc
+            from services.app.datasets.bag_input import bag_to_euroc
 
             counts = bag_to_euroc(args.src, args.dst, args.calib, args.imu_calib, args.cam, args.imu,
                                   args.sync_tolerance_ms)
         elif str(args.src).endswith(".mcap") and args.to == "ros2":
-            from services.app.ros2_export import recording_to_ros2
+            from services.app.datasets.ros2_export import recording_to_ros2
 
             counts = recording_to_ros2(args.src, args.dst)
         elif str(args.src).endswith(".mcap"):

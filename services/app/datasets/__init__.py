@@ -1,0 +1,1 @@
+"""Datasets in and out of the application: EuRoC folders written (euroc_writer.py), ROS bags read and converted (ros_bag.py, kalibr.py, bag_input.py), ``sigmaslam convert`` (convert_cmd.py) and results as a ROS 2 bag (ros2_export.py)."""

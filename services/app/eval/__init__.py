@@ -1,0 +1,1 @@
+"""Evaluations against ground truth, the paper's tables among them: ``sigmaslam eval <what>`` (cmd.py: ate, mesh, hilti, ablation, suite, relocalise), the suite's report and plots, the in-process loop evaluation (loop_eval.py)."""
