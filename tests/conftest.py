@@ -254,3 +254,16 @@ def o2p_room():
 
     store, renderer, cfg = mapped_room(0.02)
     return field_message(Submap(0, np.eye(4), 1_000_000_000, store, ChunkMesher(4)), cfg.l_min), renderer
+
+
+@pytest.fixture(scope="module")
+def stereo_seq():
+    """The frontend tests' sequence: a stereo rig (tests/frontend_scene.py) moving through the box room, 16 frames
+    rendered 50 ms apart: (room, cameras, body poses, images per frame)."""
+    import frontend_scene as fs
+
+    room = fs.BoxRoom()
+    cams = fs.rig()
+    poses = [fs.body_pose(k * 0.05) for k in range(16)]
+    images = [[fs.render(room, c, T) for c in cams] for T in poses]
+    return room, cams, poses, images

@@ -6,7 +6,9 @@ import pytest
 
 import vio_sim as sim
 from services.backend.config import BackendConfig
-from services.backend.window.estimator import VioCamera, VioInputError, WindowedVioEstimator
+from services.backend.window.estimator import WindowedVioEstimator
+from shared.vio.cameras import VioCamera
+from shared.vio.window_rules import VioInputError
 
 IMU_NOISE = dict(gyro_nd=1.7e-4, acc_nd=2e-3, gyro_rw=1.9e-5, acc_rw=3e-3)  # EuRoC ADIS16448 datasheet
 GYRO_BIAS = np.array([0.002, -0.001, 0.003])

@@ -7,7 +7,8 @@ import pytest
 
 import vio_sim as sim
 from services.backend.config import BackendConfig
-from services.backend.window.estimator import VioCamera, WindowedVioEstimator
+from services.backend.window.estimator import WindowedVioEstimator
+from shared.vio.cameras import VioCamera
 from services.backend.window.extrinsics import carried_covariance
 from shared.geometry import pose_error
 from tools.vio.extrinsics_bench import perturb_extrinsics

@@ -6,7 +6,8 @@ import pytest
 
 import vio_sim as sim
 from services.backend.config import BackendConfig
-from services.backend.window.estimator import VioCamera, WindowedVioEstimator
+from services.backend.window.estimator import WindowedVioEstimator
+from shared.vio.cameras import VioCamera
 from services.frontend.odometry import FrameTracker, StaleFrame
 from shared.codec import Header, decode, encode
 from shared.messages import EstimatorWindow

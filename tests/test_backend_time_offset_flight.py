@@ -15,7 +15,8 @@ def test_the_estimator_finds_the_offset_of_a_synthetic_rig_with_the_frontend_cor
     import vio_sim as sim
 
     from services.backend.config import BackendConfig
-    from services.backend.window.estimator import VioCamera, WindowedVioEstimator
+    from services.backend.window.estimator import WindowedVioEstimator
+    from shared.vio.cameras import VioCamera
 
     def run(estimate: bool, td=0.005, t0=0.5, t_end=20.0, rate=20.0):
         rng = np.random.default_rng(4)

@@ -13,7 +13,8 @@ from gtsam.symbol_shorthand import X
 
 import vio_sim as sim
 from services.backend.config import BackendConfig
-from services.backend.window.estimator import VioCamera, WindowedVioEstimator
+from services.backend.window.estimator import WindowedVioEstimator
+from shared.vio.cameras import VioCamera
 
 ROOT = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").exists())
 ESTIMATOR_NAMES = {"est", "estimator"}  # how the code base names a WindowedVioEstimator

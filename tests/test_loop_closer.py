@@ -13,7 +13,8 @@ import pytest
 
 import vio_sim as sim
 from services.backend.config import BackendConfig
-from services.backend.window.estimator import VioCamera, WindowedVioEstimator
+from services.backend.window.estimator import WindowedVioEstimator
+from shared.vio.cameras import VioCamera
 from services.backend.loop.config import LoopConfig
 from services.backend.loop.history import KeyframeHistory, KeyframeRecord
 from services.backend.loop.loop_closer import LoopCloser

@@ -7,7 +7,8 @@ import numpy as np
 
 import vio_sim as sim
 from services.backend.config import BackendConfig
-from services.backend.window.estimator import VioCamera, WindowedVioEstimator
+from services.backend.window.estimator import WindowedVioEstimator
+from shared.vio.cameras import VioCamera
 from services.backend.loop.config import LoopConfig
 from services.backend.loop.final_ba import bundle_adjust, follow_keyframes
 from services.backend.loop.history import KeyframeHistory

@@ -11,7 +11,8 @@ import pytest
 
 import vio_sim as sim
 from services.backend.config import BackendConfig
-from services.backend.window.estimator import VioCamera, WindowedVioEstimator
+from services.backend.window.estimator import WindowedVioEstimator
+from shared.vio.cameras import VioCamera
 from services.backend.window.mono_init import metric_hold
 from services.backend.o2p.config import O2PConfig
 from services.backend.o2p.terms import OccupancyTerms

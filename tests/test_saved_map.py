@@ -141,7 +141,7 @@ def test_a_map_saved_by_the_loop_closer_places_a_new_view_after_the_file_round_t
     frame W (a yaw and a shift from the truth) are saved, loaded by a second closer, and a view the first session
     never had (half a keyframe interval later, from another session's frame) is matched to them by PnP at its true
     pose in W. Also checked: each saved landmark projects onto its saved feature at its keyframe's saved pose."""
-    from services.backend.window.estimator import VioCamera
+    from shared.vio.cameras import VioCamera
     from services.backend.loop.history import KeyframeRecord
     from services.backend.loop.loop_closer import LoopCloser
     from services.backend.loop.map_session import PRIOR_KEY_BASE

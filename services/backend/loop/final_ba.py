@@ -62,63 +62,15 @@ def bundle_adjust(records: list[KeyframeRecord], cameras, sigma_px: float = 1.0,
     states = {r.state for r in recs}
     anchors = [a for a in anchors if a[0] in states]
     T0 = np.eye(4) if T_init is None else np.asarray(T_init, float)
-    g, vals = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    for r in recs:
-        vals.insert(X(r.state), gtsam.Pose3(T0 @ r.T_WS))
-        vals.insert(V(r.state), T0[:3, :3] @ np.asarray(r.v_W, float))
-        vals.insert(B(r.state), r.bias)
-        if r.imu_to_next is not None and r.next_state in states:
-            g.add(r.imu_to_next)
-    r0 = recs[0]
     if anchors:  # the saved map's matches place the run; the first keyframe only weakly
         prior_sigma_rot, prior_sigma_pos = 1.0, 100.0
-        for s, T, cov in anchors:
-            g.add(gtsam.PriorFactorPose3(X(s), gtsam.Pose3(np.asarray(T, float)), gtsam.noiseModel.Robust.Create(
-                gtsam.noiseModel.mEstimator.Cauchy.Create(3.0), gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, float)))))
-    g.add(gtsam.PriorFactorPose3(X(r0.state), gtsam.Pose3(T0 @ r0.T_WS), gtsam.noiseModel.Diagonal.Sigmas(
-        np.array([prior_sigma_rot] * 3 + [prior_sigma_pos] * 3))))
-    g.add(gtsam.PriorFactorVector(V(r0.state), T0[:3, :3] @ np.asarray(r0.v_W, float),
-                                  gtsam.noiseModel.Isotropic.Sigma(3, 0.1)))
-    g.add(gtsam.PriorFactorConstantBias(B(r0.state), r0.bias, gtsam.noiseModel.Diagonal.Sigmas(
-        np.array([0.1] * 3 + [0.01] * 3))))
-    # landmarks: all observations across keyframes; the newest position estimate as the initial value
-    obs: dict[int, list[tuple[int, int, np.ndarray]]] = {}
-    p_init: dict[int, np.ndarray] = {}
-    for r in recs:
-        for lm, lst in r.obs.items():
-            obs.setdefault(lm, []).extend((r.state, c, xy) for c, xy in lst)
-        p_init.update(r.landmarks)
-    projection = ProjectionModel(cameras, sigma_px, cauchy_k)  # the window's reprojection factors
-    n_lm = n_obs = 0
-    lm_factors: dict[int, list[tuple[int, float]]] = {}  # landmark -> (factor index, focal length [px])
+    g, vals = _keyframes(recs, states, anchors, T0, prior_sigma_rot, prior_sigma_pos)
+    obs, p_init = _observations(recs)
     root = _merge_landmarks(obs, p_init, [(lm, own) for _, _, _, lm, own in loop_observations]) \
         if merge_loop_landmarks else {}
-    for s, c, xy, lm, _ in loop_observations:
-        lm = root.get(lm, lm)
-        if s in states and lm in obs and all(s != s2 for s2, _, _ in obs[lm]):
-            obs[lm].append((s, c, np.asarray(xy, float)))
-    for lm, lst in obs.items():
-        if lm not in p_init or len({s for s, _, _ in lst}) < 2:
-            continue
-        vals.insert(L(lm), T0[:3, :3] @ np.asarray(p_init[lm], float) + T0[:3, 3])
-        n_lm += 1
-        for s, c, xy in lst:
-            lm_factors.setdefault(lm, []).append((g.size(), cameras[c].focal_px))
-            g.add(projection.factor(np.asarray(xy, float), c, X(s), L(lm)))
-            n_obs += 1
-    for old, new, T_rel, cov in loops:
-        if old in states and new in states:
-            model = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(3.0),
-                                                   gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, float)))
-            g.add(gtsam.BetweenFactorPose3(X(old), X(new), gtsam.Pose3(T_rel), model))
-    n_m2m = 0
-    T_of = {r.state: T0 @ r.T_WS for r in recs}
-    for t in map_to_map:
-        if t.state_m in states and t.state_o in states:
-            f = t.build(X(t.state_m), X(t.state_o), T_of[t.state_m], T_of[t.state_o])
-            if f is not None:
-                g.add(f)
-                n_m2m += 1
+    n_lm, n_obs, lm_factors = _landmarks(g, vals, obs, p_init, states, ProjectionModel(cameras, sigma_px, cauchy_k),
+                                         cameras, loop_observations, root, T0)
+    n_m2m = _loops_and_map(g, recs, states, loops, map_to_map, T0)
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
     params.setRelativeErrorTol(1e-5)
@@ -140,6 +92,83 @@ def bundle_adjust(records: list[KeyframeRecord], cameras, sigma_px: float = 1.0,
     return FinalBaResult(np.array([r.stamp_ns for r in recs], np.int64),
                          np.array([out.atPose3(X(r.state)).matrix() for r in recs]), n_lm, n_obs, e0, g.error(out),
                          n_m2m, len(root), len(bad))
+
+
+def _keyframes(recs: list[KeyframeRecord], states: set[int], anchors, T0: np.ndarray, prior_sigma_rot: float,
+               prior_sigma_pos: float) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+    """Every keyframe's (pose, velocity, bias) moved by ``T0``, the IMU factors between them, the anchors' robust
+    pose priors and the gauge priors on the first keyframe."""
+    g, vals = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    for r in recs:
+        vals.insert(X(r.state), gtsam.Pose3(T0 @ r.T_WS))
+        vals.insert(V(r.state), T0[:3, :3] @ np.asarray(r.v_W, float))
+        vals.insert(B(r.state), r.bias)
+        if r.imu_to_next is not None and r.next_state in states:
+            g.add(r.imu_to_next)
+    r0 = recs[0]
+    for s, T, cov in anchors:
+        g.add(gtsam.PriorFactorPose3(X(s), gtsam.Pose3(np.asarray(T, float)), gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Cauchy.Create(3.0), gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, float)))))
+    g.add(gtsam.PriorFactorPose3(X(r0.state), gtsam.Pose3(T0 @ r0.T_WS), gtsam.noiseModel.Diagonal.Sigmas(
+        np.array([prior_sigma_rot] * 3 + [prior_sigma_pos] * 3))))
+    g.add(gtsam.PriorFactorVector(V(r0.state), T0[:3, :3] @ np.asarray(r0.v_W, float),
+                                  gtsam.noiseModel.Isotropic.Sigma(3, 0.1)))
+    g.add(gtsam.PriorFactorConstantBias(B(r0.state), r0.bias, gtsam.noiseModel.Diagonal.Sigmas(
+        np.array([0.1] * 3 + [0.01] * 3))))
+    return g, vals
+
+
+def _observations(recs: list[KeyframeRecord]) -> tuple[dict, dict]:
+    """(landmark -> [(state, camera, xy)] across the keyframes, landmark -> its newest position estimate)."""
+    obs: dict[int, list[tuple[int, int, np.ndarray]]] = {}
+    p_init: dict[int, np.ndarray] = {}
+    for r in recs:
+        for lm, lst in r.obs.items():
+            obs.setdefault(lm, []).extend((r.state, c, xy) for c, xy in lst)
+        p_init.update(r.landmarks)
+    return obs, p_init
+
+
+def _landmarks(g, vals, obs: dict, p_init: dict, states, projection: ProjectionModel, cameras, loop_observations,
+               root: dict, T0: np.ndarray) -> tuple[int, int, dict[int, list[tuple[int, float]]]]:
+    """The landmarks of ``obs`` seen from two keyframes or more (with the loop keyframes' PnP inliers, through the
+    merged landmarks of ``root``) and their reprojection factors (the window's); (landmarks, observations, landmark
+    -> [(factor index, focal length [px])])."""
+    for s, c, xy, lm, _ in loop_observations:
+        lm = root.get(lm, lm)
+        if s in states and lm in obs and all(s != s2 for s2, _, _ in obs[lm]):
+            obs[lm].append((s, c, np.asarray(xy, float)))
+    n_lm = n_obs = 0
+    lm_factors: dict[int, list[tuple[int, float]]] = {}
+    for lm, lst in obs.items():
+        if lm not in p_init or len({s for s, _, _ in lst}) < 2:
+            continue
+        vals.insert(L(lm), T0[:3, :3] @ np.asarray(p_init[lm], float) + T0[:3, 3])
+        n_lm += 1
+        for s, c, xy in lst:
+            lm_factors.setdefault(lm, []).append((g.size(), cameras[c].focal_px))
+            g.add(projection.factor(np.asarray(xy, float), c, X(s), L(lm)))
+            n_obs += 1
+    return n_lm, n_obs, lm_factors
+
+
+def _loops_and_map(g, recs, states, loops, map_to_map, T0: np.ndarray) -> int:
+    """The loop constraints (Cauchy-robust relative poses) and the map-to-map terms between keyframes; returns how
+    many map-to-map terms joined."""
+    for old, new, T_rel, cov in loops:
+        if old in states and new in states:
+            model = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(3.0),
+                                                   gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, float)))
+            g.add(gtsam.BetweenFactorPose3(X(old), X(new), gtsam.Pose3(T_rel), model))
+    n_m2m = 0
+    T_of = {r.state: T0 @ r.T_WS for r in recs}
+    for t in map_to_map:
+        if t.state_m in states and t.state_o in states:
+            f = t.build(X(t.state_m), X(t.state_o), T_of[t.state_m], T_of[t.state_o])
+            if f is not None:
+                g.add(f)
+                n_m2m += 1
+    return n_m2m
 
 
 def _badly_fitting(g: gtsam.NonlinearFactorGraph, values: gtsam.Values, lm_factors: dict[int, list[tuple[int, float]]],

@@ -37,28 +37,25 @@ import numpy as np
 from gtsam.symbol_shorthand import B, L, V, X
 
 from services.backend.window import init as vio_init
-from shared.vio.cameras import VioCamera, camera_from_calib  # noqa: F401 (re-exported)
+from shared.vio.cameras import VioCamera
 from services.backend.config import BackendConfig
 from services.backend.window.extrinsics import ExtrinsicRefinement
 from services.backend.window.frame_result import FrameResult, to_message_covariance
 from services.backend.window.gravity_align import MovingStartAligner
-from shared.vio.imu_factors import ImuBuffer, imu_factor, make_bias, make_params, predict
+from shared.vio.imu_factors import ImuBuffer, make_bias, make_params
 from shared.vio.motion_only import optimise_latest
 from services.backend.window.priors import WindowPrior, window_marginals
 from services.backend.window.protocols import ExtraFactorSource, MarginalisationListener
 from services.backend.window.mono_init import bootstrap as mono_bootstrap
 from services.backend.window.observations import ObservationBook
-from services.backend.window.still import mono_frame_factors
 from services.backend.window.time_offset import TimeOffsetEstimator, interval_residual
-from services.backend.window.triangulation import new_landmarks
 from shared.vio.vision_factors import ProjectionModel
+from services.backend.window.graph import WindowGraph
 from services.backend.window.window_api import WindowReadApi
-from shared.vio.window_rules import (VioInputError, keyframe_due,  # noqa: F401 (re-exported)
-                                           observation_arrays, reprojection_outliers, schur_ordering,
-                                           state_keys)
+from shared.vio.window_rules import VioInputError, keyframe_due, observation_arrays, schur_ordering, state_keys
 
 
-class WindowedVioEstimator(WindowReadApi):
+class WindowedVioEstimator(WindowGraph, WindowReadApi):
     """Feed IMU with :meth:`add_imu` and frames with :meth:`process_frame` (in time order). ``extra_factors``:
     sources of factors for every window graph; ``on_marginalise``: told before the oldest keyframe leaves the
     window (services/backend/window/protocols.py). Others read the window through the read API
@@ -181,16 +178,32 @@ class WindowedVioEstimator(WindowReadApi):
         if not keyframe and self.cfg.motion_only_between_keyframes and not self.cfg.compute_covariance:
             return self._motion_only_frame(n, last_kf)
         if self._mono_pending and keyframe:
-            c = self.cfg
-            if self.still_frames:  # standing still anchored the state: no rebuild needed
-                self._mono_pending = False
-            else:
-                self.mono_init_reason = mono_bootstrap(self, n, c.mono_init_min_features,
-                                                       np.deg2rad(c.mono_init_parallax_deg), c.mono_init_ransac_px)
-                if not self.mono_init_reason:
-                    self._mono_pending = False
-                    self._still.clear()  # only the speed priors of the wait: the rebuild knows the velocities
-                    self.mono_bootstraps += 1
+            self._mono_rebuild(n)
+        graph = self._solve_window(n, keyframe, last_kf)
+        status = "tracking" if len(self._book.seen_at(n)) >= self.cfg.min_landmarks_tracking else "imu_only"
+        result = self._result(n, self._covariance(graph, n, keyframe), status)
+        if keyframe:
+            result = dataclasses.replace(result, landmarks=self.window_landmarks())
+        self._keep_or_drop(n, keyframe, last_kf)
+        return result
+
+    def _mono_rebuild(self, n: int) -> None:
+        """One camera, a keyframe while the window has no metric hold: rebuilt from two-view geometry and the IMU
+        (mono_init.py) unless it stood still."""
+        c = self.cfg
+        if self.still_frames:  # standing still anchored the state: no rebuild needed
+            self._mono_pending = False
+            return
+        self.mono_init_reason = mono_bootstrap(self, n, c.mono_init_min_features, np.deg2rad(c.mono_init_parallax_deg),
+                                               c.mono_init_ransac_px)
+        if not self.mono_init_reason:
+            self._mono_pending = False
+            self._still.clear()  # only the speed priors of the wait: the rebuild knows the velocities
+            self.mono_bootstraps += 1
+
+    def _solve_window(self, n: int, keyframe: bool, last_kf: int) -> gtsam.NonlinearFactorGraph:
+        """Triangulate, optimise the window (the IMU chain alone if that fails), read the refined extrinsics, reject
+        outliers, and at a keyframe turn a moving start to its gravity and update the time offset; the graph."""
         self._triangulate_new(n)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(self.cfg.lm_max_iterations)
@@ -217,23 +230,27 @@ class WindowedVioEstimator(WindowReadApi):
         if keyframe and self.time_offset is not None and n != self.keyframes[-1]:  # time_offset.py
             e, g = interval_residual(self.values, self.imu, self.stamps, self.keyframes[-1], n)
             self.time_offset.update(e, g, np.radians(self.cfg.time_offset_rotation_sigma_deg))
-        seen_now = len(self._book.seen_at(n))
-        status = "tracking" if seen_now >= self.cfg.min_landmarks_tracking else "imu_only"
+        return graph
+
+    def _covariance(self, graph: gtsam.NonlinearFactorGraph, n: int, keyframe: bool) -> np.ndarray:
+        """The (15,15) marginal covariance of state ``n`` (with ``compute_covariance`` or at a keyframe; NaN
+        otherwise or when the marginals fail), keeping the window's marginals for the read API."""
         self._marginals = None
-        cov = np.full((15, 15), np.nan)
-        if self.cfg.compute_covariance or keyframe:
-            self._marginals, held = window_marginals(graph, self.values, self._book.in_graph,
-                                                     self.cfg.marginals_landmark_sigma_m)
-            self.held_marginals += held
-            joint = self.joint_marginal(state_keys(n))
-            if joint is None:
-                self._marginals = None
-                self.failed_optimisations += 1
-            else:
-                cov = joint
-        result = self._result(n, cov, status)
-        if keyframe:
-            result = dataclasses.replace(result, landmarks=self.window_landmarks())
+        if not (self.cfg.compute_covariance or keyframe):
+            return np.full((15, 15), np.nan)
+        self._marginals, held = window_marginals(graph, self.values, self._book.in_graph,
+                                                 self.cfg.marginals_landmark_sigma_m)
+        self.held_marginals += held
+        joint = self.joint_marginal(state_keys(n))
+        if joint is None:
+            self._marginals = None
+            self.failed_optimisations += 1
+            return np.full((15, 15), np.nan)
+        return joint
+
+    def _keep_or_drop(self, n: int, keyframe: bool, last_kf: int) -> None:
+        """A new keyframe joins the window (the oldest marginalised beyond ``window_keyframes``); another frame's
+        state leaves it."""
         if n != last_kf:
             if keyframe:
                 self.keyframes.append(n)
@@ -242,7 +259,6 @@ class WindowedVioEstimator(WindowReadApi):
             else:
                 self._remove_state(n)
         self.imu.prune_before(self.stamps[self.keyframes[-1]])
-        return result
 
     def _note_failure(self, exc: Exception) -> None:
         self.failed_optimisations += 1
@@ -282,114 +298,6 @@ class WindowedVioEstimator(WindowReadApi):
         self.dropped_observations += int((~ok).sum())
         return ids[ok], cams[ok], uv[ok]
 
-    def _add_state(self, stamp_ns: int) -> int:
-        k = self.keyframes[-1]
-        bias = self.values.atConstantBias(B(k))
-        pim = self.imu.preintegrate(self.params, bias, self.stamps[k], stamp_ns)
-        n = self._new_state(stamp_ns)
-        T, v = predict(pim, self.values.atPose3(X(k)).matrix(), self.values.atVector(V(k)), bias)
-        self.values.insert(X(n), gtsam.Pose3(T))
-        self.values.insert(V(n), v)
-        self.values.insert(B(n), bias)
-        self._imu_factors[n] = imu_factor(pim, (X(k), V(k), B(k)), (X(n), V(n), B(n)))
-        return n
-
-    def _add_observations(self, n: int, ids, cams, uv) -> None:
-        for c in np.unique(cams):  # camera by camera, as the factors' observation indices j count them
-            for lm, p in zip(ids[cams == c], self._vision.undistort(cams[cams == c], uv[cams == c])):
-                self._book.add(n, int(lm), int(c), p)
-
-    def _add_still(self, n: int, k: int) -> None:
-        """Relative-pose and zero-velocity factors keyframe k -> state n when the (first camera's) image stands still:
-        one camera, or a rig of several with ``backend.still_stereo`` until it first moves."""
-        if n == k or self._still_over:
-            return
-        factors, still = mono_frame_factors(self._book.by_landmark, k, n, float(self._focal[0]), self._T_SC[0][:3, :3], self.cfg,
-                                            self._mono_pending)
-        # several cameras: only at the start (mid-run pauses have held marginals; these made 5-7 marginalisations fail)
-        self._still_over = len(self.cameras) > 1 and not still
-        if factors:
-            self._still[n] = factors
-        self.still_frames += still
-
-    def _triangulate_new(self, n: int) -> None:
-        for lm, p in new_landmarks(self._book.by_landmark, self._book.in_graph, n, lambda s: self.values.atPose3(X(s)).matrix(),
-                                   self._T_SC, self._focal, self.cfg):
-            if self.values.exists(L(lm)):
-                self.values.update(L(lm), p)
-            else:
-                self.values.insert(L(lm), p)
-            self._book.in_graph.add(lm)
-
-    def _projection(self, lm: int, n: int, j: int, c: int, xy: np.ndarray) -> gtsam.NonlinearFactor:
-        if self._extrinsics is None:
-            return self._book.factor(lm, n, j, lambda: self._vision.factor(xy, c, X(n), L(lm)))
-        return self._book.factor(lm, n, j, lambda: self._vision.factor_with_extrinsic(
-            xy, c, X(n), self._extrinsics.keys[c], L(lm)))
-
-    def _build_graph(self, n: int) -> gtsam.NonlinearFactorGraph:
-        g = gtsam.NonlinearFactorGraph()
-        for f in self._prior.factors:
-            g.add(f)
-        for f in () if self._extrinsics is None else self._extrinsics.priors:
-            g.add(f)
-        for k in self.keyframes[1:]:
-            g.add(self._imu_factors[k])
-        if n != self.keyframes[-1]:
-            g.add(self._imu_factors[n])
-        for k in self._still:
-            for f in self._still[k]:
-                g.add(f)
-        for lm in self._book.in_graph:
-            for s, obs in self._book.by_landmark[lm].items():
-                for j, (c, xy) in enumerate(obs):
-                    g.add(self._projection(lm, s, j, c, xy))
-        for source in self._extra_factors:
-            for f in source.window_factors(self):
-                g.add(f)
-        return g
-
-    def _reject_outliers(self) -> bool:
-        """Remove observations whose reprojection error exceeds the bound; drop landmarks left with < 2.
-
-        Returns True when anything was removed."""
-        book = self._book
-        if not book.in_graph:
-            return False
-        touched = reprojection_outliers(self.values, book.by_landmark, book.in_graph, self.stamps, self._T_SC,
-                                        self._focal, self.cfg.min_depth_m, self.cfg.max_reproj_error_px)
-        for (lm, s), drop in touched.items():
-            book.set(lm, s, [o for j, o in enumerate(book.by_landmark[lm][s]) if j not in drop])
-        for lm in {lm for lm, _ in touched}:
-            if book.count(lm) < 2:
-                self._drop_landmark(lm)
-        return bool(touched)
-
-    def _drop_landmark(self, lm: int) -> None:
-        self._book.in_graph.discard(lm)
-        if self.values.exists(L(lm)):
-            self.values.erase(L(lm))
-        self._book.forget_if_unobserved(lm)
-
-    def _remove_state(self, n: int) -> None:
-        for lm in self._book.remove_state(n):
-            self._drop_landmark(lm)
-        self._imu_factors.pop(n, None)
-        self._still.pop(n, None)
-        for key in state_keys(n):
-            self.values.erase(key)
-        del self.stamps[n]
-
-    def _marginalise_oldest(self) -> None:
-        old, new = self.keyframes[0], self.keyframes[1]
-        for listener in self._on_marginalise:
-            listener.on_marginalise(self, old, new)
-        self._prior.carry(self.values, new, self.joint_marginal, self._extrinsics, self._T_SC)
-        self.keyframes.pop(0)
-        self._imu_factors.pop(new, None)
-        self._still.pop(new, None)  # refers to the old state; the marginal prior holds its information
-        self._remove_state(old)
-
     def _result(self, n: int, cov: np.ndarray, status: str) -> FrameResult:
         T = self.values.atPose3(X(n)).matrix()
         bias = self.values.atConstantBias(B(n))
@@ -412,9 +320,3 @@ class WindowedVioEstimator(WindowReadApi):
         pose_sig = np.array([tilt_sigma, tilt_sigma, c.prior_sigma_rot_rad] + [c.prior_sigma_pos_m] * 3)
         bias_sig = np.array([c.prior_sigma_acc_bias] * 3 + [gyro_bias_sigma] * 3)
         self._prior.reset(self.values, state, pose_sig, vel_sigma, bias_sig)
-
-    def forget_triangulations(self) -> None:
-        """Every landmark leaves the graph (its observations stay; it is triangulated again from the poses)."""
-        for lm in self._book.in_graph:
-            self.values.erase(L(lm))
-        self._book.in_graph.clear()

@@ -1,0 +1,66 @@
+"""The frontend process's node (services/frontend/node.py): a backlog behind the sensor is shed oldest first, and new
+features are skipped only when the node is behind and asked to (the tracker alone: tests/test_frontend_tracker.py)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+import frontend_scene as fs
+from services.frontend.config import FrontendConfig
+from test_frontend_tracker import DT
+
+
+def test_a_frontend_process_behind_the_sensor_skips_its_oldest_frames():
+    """Live, frames that wait beyond frontend.max_backlog_frames are skipped oldest first (the runner counts them as
+    drops), so the pose latency stays bounded; 0 keeps every frame; a negative bound is refused."""
+    from services.frontend.node import make_node
+    from services.app.system_config import load_system_config
+    from shared import topics
+
+    cfg = load_system_config(None, [])
+    node = make_node(cfg, fs.rig())
+    trigger = next(i for i in node.inputs if i.role == "trigger")
+    assert trigger.topic is topics.FRAME and getattr(node, trigger.shed) == node.shed  # the runner sheds through it
+    pending = list(range(7))
+    kept, skipped = node.shed(pending)
+    bound = cfg.frontend.max_backlog_frames
+    assert bound > 0 and kept == pending[-bound:] and skipped == 7 - bound
+    assert node.shed(pending[:bound]) == (pending[:bound], 0)
+    unbounded = make_node(load_system_config(None, ["frontend.max_backlog_frames=0"]), fs.rig())
+    assert unbounded.shed(pending) == (pending, 0)
+    with pytest.raises(ValueError, match="max_backlog_frames"):
+        dataclasses.replace(FrontendConfig(), max_backlog_frames=-1)
+
+
+@pytest.mark.parametrize("skip", [False, True])
+def test_the_frontend_node_skips_detection_only_when_behind_and_asked_to(stereo_seq, skip):
+    """FrontendNode.after_publish: with frontend.skip_detection_when_behind, a frame taken while the next one waited
+    (the runner's ``backlog`` > 0) gets no new features; a frame taken on time always does, and so does every frame
+    without the setting. The frames are tracked alone (FrontendNode.track: no fast path, whose placeholder states
+    would say 'initialising')."""
+    from services.frontend.node import make_node
+    from services.app.system_config import load_system_config
+    from shared.messages import Header, MultiCameraFrame
+
+    room, cams, poses, images = stereo_seq
+    cfg = load_system_config(None, ["frontend.kf_min_parallax_px=4.0",
+                                    f"frontend.skip_detection_when_behind={str(skip).lower()}"])
+    node = make_node(cfg, cams)
+    node.estimator_status = "tracking"  # detection is deferred only while the estimator tracks
+    done = {True: 0, False: 0}
+    for k, ims in enumerate(images):
+        t = int(round(k * DT * 1e9))
+        node.track(MultiCameraFrame(header=Header(stamp_ns=t, seq=k, frame_id="rig"), images=tuple(ims),
+                                    camera_names=tuple(node.names), stamps_ns=np.full(len(ims), t, np.int64)))
+        behind = k % 4 == 1  # here every other frame is a keyframe: behind at half of the others
+        pending = node.tracker.detection_pending
+        node.backlog = int(behind)
+        node.after_publish()
+        assert not node.tracker.detection_pending
+        done[behind] += pending
+    assert done[True] > 0 and done[False] > 0
+    assert node.tracker.totals["detection_skipped"] == (done[True] if skip else 0)
+    assert node.counters()["detections_skipped"]() == (done[True] if skip else 0)  # in stats/frontend
