@@ -85,6 +85,31 @@ def test_wall_profile_matches_eq3_and_running_mean():
     assert res.n_clear > 0 and res.n_voxel_blocks > 0
 
 
+def test_a_pixel_without_depth_updates_nothing_along_its_ray():
+    """Pixels without depth (NaN: outside the range, dropped as uncertain or at an edge) leave their rays alone, also
+    among valid pixels. The kernel's fast-math once assumed no NaN and carved every such ray free, through and behind
+    the surfaces (a tenth of a real frame's voxel updates)."""
+    cfg = SensorModelConfig()
+    depth, sigma = wall(2.0, 0.03)
+    cols = np.arange(W)
+    no_depth = (cols // 6) % 2 == 1  # stripes of 6 px without depth between stripes with
+    depth[:, no_depth] = np.nan
+    store, _ = integrate_once(depth, sigma, cfg=cfg)
+    f = BlockField.of(store)
+    ijk = np.stack(np.meshgrid(np.arange(-30, 30), [0], np.arange(20, 90), indexing="ij"), -1).reshape(-1, 3)
+    p = (ijk + 0.5) * cfg.voxel_size_m
+    u = np.floor(K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2] + 0.5).astype(int)
+    v = np.floor(K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2] + 0.5).astype(int)
+    inside = (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    L, w = f.voxels(ijk)
+    # near and behind the wall (in front of it, whole blocks far enough from it are carved as one: min_valid_fraction)
+    on_nan = inside & no_depth[np.clip(u, 0, W - 1)] & (p[:, 2] > 1.85)
+    on_valid = inside & ~no_depth[np.clip(u, 0, W - 1)] & (p[:, 2] < 1.9)
+    assert on_nan.sum() > 200 and on_valid.sum() > 500
+    assert (w[on_nan] == 0).all(), f"{int((w[on_nan] > 0).sum())} voxels on rays without depth were updated"
+    assert (w[on_valid] > 0).all() and (L[on_valid] < 0).all()
+
+
 def test_w_saturates_at_w_max():
     cfg = SensorModelConfig(w_max=3)
     depth, sigma = wall(1.0, 0.03)

@@ -158,7 +158,12 @@ def _select_blocks(lo, hi, block_m, R, t, fx, fy, cx, cy, W, H, planes, dmin, dm
     return n
 
 
-@nb.njit(parallel=True, fastmath=True, cache=True)
+# Fast-math without 'nnan'/'ninf': pixels without depth are NaN, and under 'nnan' the compiler may (and did) drop the
+# `D > 0` test that skips them: each such pixel then carved its whole ray free, through and behind the surfaces.
+_FAST = {"contract", "arcp", "reassoc", "nsz", "afn"}
+
+
+@nb.njit(parallel=True, fastmath=_FAST, cache=True)
 def _update_voxels(bijk, rows, Lv, wv, R, t, fx, fy, cx, cy, depth, sigma, vs, l_min, w_max,
                    tau_k, tau_sigma_k, tau_min, tau_max, near, changed):
     H, W = depth.shape
