@@ -80,7 +80,7 @@ def run_once(dataset: Path, out: Path, rate: float, seconds: float, services: st
              sets: list[str], timeout_s: float) -> dict:
     """One measured pipeline run into ``out`` (``rate`` <= 0: lockstep); returns the raw measurements (see
     :func:`summarise`)."""
-    from services.app.run_pipeline import run_pipeline
+    from services.app.run_pipeline import run_pipeline, services_overrides
     from services.app.system_config import load_system_config
 
     out.mkdir(parents=True, exist_ok=True)
@@ -88,11 +88,7 @@ def run_once(dataset: Path, out: Path, rate: float, seconds: float, services: st
     overrides = [f"transport.namespace=sigmaslam/bench-{uuid.uuid4().hex[:8]}",
                  f"transport.connect=[tcp/127.0.0.1:{port}]", f"transport.router_listen=[tcp/127.0.0.1:{port}]",
                  "loop.final_ba=false",  # the bench measures the real-time part; --set loop.final_ba=true to add it
-                 "supervisor.shutdown_timeout_s=120"]  # the mapper meshes and writes DIR/mesh.ply after SIGTERM
-    if services != "config":
-        names = [s for s in services.split(",") if s]
-        overrides.append("supervisor.services=[" + ", ".join(f"{{name: {s}, argv: [{s}]}}" for s in names) + "]")
-    overrides += sets
+                 *services_overrides(services), *sets]
     transport_cfg = load_system_config(config, overrides).transport
     frames = frames_within(dataset, seconds)
     log, stop, ready = ArrivalLog(), threading.Event(), threading.Event()

@@ -65,6 +65,16 @@ def frames_within(dataset: Path, seconds: float) -> int:
     return int(np.sum(stamps - stamps[0] <= int(seconds * 1e9)))
 
 
+def services_overrides(services: str) -> list[str]:
+    """The settings that run the processes of ``services`` (comma-separated commands, e.g. 'frontend,backend,depth';
+    'config': those of the config) and give the mapping the time to write its map after SIGTERM."""
+    out = ["supervisor.shutdown_timeout_s=120"]
+    if services != "config":
+        names = [s for s in services.split(",") if s]
+        out.append("supervisor.services=[" + ", ".join(f"{{name: {s}, argv: [{s}]}}" for s in names) + "]")
+    return out
+
+
 def pipeline_services(cfg, dataset: str, out: Path, rate: float, record: bool,
                       player_args: Sequence[str]) -> list[ServiceSpec]:
     """The configured services with the player of ``dataset`` (replacing a configured one) appended; ``rate`` 0:

@@ -268,13 +268,10 @@ def live_figures(run_stats: dict, processes: dict) -> dict:
 def run_pipeline_measured(args: argparse.Namespace, replica: Path, run_out: Path, rate: float, sets: list[str]):
     """The pipeline (the services of ``--services``, final bundle adjustment on) on ``replica`` into ``run_out``/run,
     its stages logged to ``run_out``/stage_log and its processes sampled (``rate`` <= 0: lockstep)."""
-    from services.app.run_pipeline import frames_within, run_pipeline
+    from services.app.run_pipeline import frames_within, run_pipeline, services_overrides
 
-    overrides = ["supervisor.shutdown_timeout_s=120"]  # the mapper meshes and writes DIR/mesh.ply after SIGTERM
-    if args.services != "config":
-        names = [s for s in args.services.split(",") if s]
-        overrides.append("supervisor.services=[" + ", ".join(f"{{name: {s}, argv: [{s}]}}" for s in names) + "]")
-    return run_pipeline(replica, run_out / "run", args.config, [*overrides, "loop.final_ba=true", *sets],
+    overrides = [*services_overrides(args.services), "loop.final_ba=true", *sets]
+    return run_pipeline(replica, run_out / "run", args.config, overrides,
                         rate=max(rate, 0.0), max_frames=frames_within(replica, args.seconds),
                         timeout_s=args.timeout_s, final_timeout_s=120.0, stage_log=run_out / "stage_log",
                         sample_processes=True)
