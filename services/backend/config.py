@@ -60,7 +60,7 @@ class BackendConfig(VioConfig):
     estimate_time_offset: bool = param(True, "estimate the camera-IMU time offset td (an image stamped t was taken at "
                                        "IMU time t + td) from the keyframes' residuals against their image motion; "
                                        "the frontend moves its published tracks by -td x their image velocity (on by "
-                                       "default since stop 38: docs/results/estimator.md)")
+                                       "default since stop 38: docs/results/README.md)")
     time_offset_sigma_ms: float = param(10.0, "how far the stamps may be off at the start (1 sigma)", "ms")
     time_offset_walk_ms: float = param(0.1, "random walk of the offset per keyframe", "ms")
     time_offset_rotation_sigma_deg: float = param(0.01, "noise of one keyframe interval's rotation, window against "

@@ -48,12 +48,12 @@ class FrontendConfig:
     match_gain: bool = param(False, "before each KLT (frame to frame, camera to camera) scale the brighter image "
                              "of the pair to the darker one's mean grey level: KLT assumes constant brightness, "
                              "which auto-exposure jumps and left/right gain differences break (off: on whole "
-                             "replicas it helps the hard profile and costs the plain one, docs/results/estimator.md; "
+                             "replicas it helps the hard profile and costs the plain one, docs/results/README.md; "
                              "replaces stop 39's running-level gain_time_constant_s)")
     match_gain_cross: bool = param(True, "match_gain for the camera-to-camera KLT of new features only: the "
                                    "cameras' auto exposure differs, and a left/right brightness difference leaves "
                                    "fewer stereo matches and biases the rest (hard MH_02: 20 % matched at 0.9 px "
-                                   "median error -> 93 % at 0.2 px, docs/results/estimator.md, stop 41)")
+                                   "median error -> 93 % at 0.2 px, docs/results/README.md, stop 41)")
     normalise_gain: bool = param(False, "scale every image to the same mean brightness before tracking and matching "
                                  "(KLT assumes constant brightness: auto-exposure jumps and left/right gain "
                                  "differences break it)")

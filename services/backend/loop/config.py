@@ -47,7 +47,7 @@ class LoopConfig:
                               "window's relative pose of its query keyframe, instead of waiting until that keyframe "
                               "leaves the window (window_keyframes later): the published poses are corrected "
                               "seconds sooner (lockstep MH_03, five starts: causal ATE median 0.0416 -> 0.0401 m, "
-                              "docs/results/estimator.md stop 48). The final BA still gets the loop at the query "
+                              "docs/results/README.md stop 48). The final BA still gets the loop at the query "
                               "keyframe")
     min_solve_interval_s: float = param(1.0, "pose-graph solves at most this often (sensor time); loops found in "
                                         "between wait for the next solve", "s")
