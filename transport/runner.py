@@ -2,8 +2,10 @@
 
 ::
 
-    node = FrontendNode(cfg.frontend, cameras)
+    node = make_node(cfg, cameras)       # services/frontend/node.py: the frontend's node
     run_node(node, cfg.transport)        # until SIGTERM/SIGINT
+
+(``sigmaslam <process>`` does this for every process from its description: services/app/process_cmd.py.)
 
 The node's declared inputs become subscribers (their queue policy and depth), its outputs publishers. The loop
 blocks on the trigger input; before each trigger message it drains the side inputs (first those the trigger waits
