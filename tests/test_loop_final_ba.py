@@ -12,6 +12,8 @@ from shared.vio.cameras import VioCamera
 from services.backend.loop.config import LoopConfig
 from services.backend.loop.final_ba import bundle_adjust, follow_keyframes
 from services.backend.loop.history import KeyframeHistory
+from services.backend.loop.stage import LoopClosure
+from shared.map_folder import UNALIGNED_FRAME
 from shared.geometry import inv_T, make_T, so3_exp, so3_log
 from shared.metrics.ate import compute_ate
 
@@ -92,6 +94,29 @@ def test_follow_keyframes_blends_the_correction_between_keyframes():
     D = inv_T(shift) @ C
     step = make_T(so3_exp(so3_log(D[:3, :3]) / 3), D[:3, 3] / 3)
     assert np.allclose(out[0], shift @ step @ T[1]) and np.allclose(out[2], C @ T[3])
+
+
+def test_frames_before_a_relocalisation_follow_their_own_frame_when_the_window_solved_their_keyframe_after_it():
+    """A run localising in a saved map publishes its first frames in its own frame 'odom', later ones in the map's.
+    The window may take a keyframe published in 'odom' after the relocalisation: its anchor is then in the map's
+    frame, and the frames after that keyframe (still in 'odom') must not be moved by it (they were 2.5 m off in a
+    live V2_01 run in a V1_02 map)."""
+    truth = np.array([make_T(so3_exp(np.array([0.0, 0.0, 0.05 * i])), np.array([0.1 * i, 0.0, 1.0]))
+                      for i in range(20)])
+    T_map_odom = make_T(so3_exp(np.array([0.0, 0.0, 0.7])), np.array([2.0, -1.0, 0.3]))
+    stamps = np.arange(20, dtype=np.int64) * 50_000_000
+    odom = np.arange(20) < 10  # relocalised between frames 9 and 10
+    published = np.where(odom[:, None, None], inv_T(T_map_odom) @ truth, truth)
+    loop = LoopClosure(LoopConfig(), None, None, None, None)
+    loop._frame_ids = [UNALIGNED_FRAME if o else "W" for o in odom]
+    kf = np.array([0, 5, 10, 15])
+    for i in kf:  # keyframe 5 was taken by the window after the relocalisation: its anchor is in the map's frame
+        frame = UNALIGNED_FRAME if i < 5 else "W"
+        anchor = published[i] if frame == UNALIGNED_FRAME else truth[i]
+        loop._kf_anchor[int(stamps[i])] = (anchor, frame)
+    out = loop._follow(stamps, published, stamps[kf], truth[kf])  # the final BA put every keyframe in the map's frame
+    assert np.abs(out[:, :3, 3] - truth[:, :3, 3]).max() < 1e-9
+    assert np.abs(out[:, :3, :3] - truth[:, :3, :3]).max() < 1e-9
 
 
 def test_loop_observations_merge_a_new_track_into_the_old_landmark():

@@ -159,7 +159,7 @@ class LoopClosure:
     def _note_anchor(self, state: EstimatorState, T: np.ndarray) -> None:
         """Keep the back end's pose of the frame of ``state`` (moved by the correction ``T`` the published states
         get): the anchor the fast path's next frames are solved against (estimator/window), see :meth:`_follow`."""
-        self._kf_anchor[int(state.header.stamp_ns)] = T @ np.asarray(state.T_WS, float)
+        self._kf_anchor[int(state.header.stamp_ns)] = (T @ np.asarray(state.T_WS, float), state.header.frame_id)
 
     def record_state(self, state: EstimatorState) -> None:
         """A published causal state (estimator/state, in W'): the frames the final trajectory is given for, and
@@ -234,17 +234,25 @@ class LoopClosure:
         # were solved against the window's pose of it (a young window's fast path was 6 cm off at V2_01's second
         # keyframe, which the window then solved right); the back end's first keyframe has no published state
         # ('initialising') but its pose anchors the frames up to the second
-        anchor = np.array([self._kf_anchor.get(int(s), np.full((4, 4), np.nan)) for s in kf_stamps]).reshape(-1, 4, 4)
         ids = np.array(self._frame_ids[:len(stamps)])
         if len(set(ids.tolist())) <= 1:
-            return follow_keyframes(stamps, T_pub, kf_stamps, kf_T, anchor)
+            return follow_keyframes(stamps, T_pub, kf_stamps, kf_T, self._anchors(kf_stamps, ids[0] if len(ids) else ""))
         out = np.array(T_pub, float)
         for f in set(ids.tolist()):
             sel = ids == f
             kf = np.isin(kf_stamps, stamps[sel])
             if kf.any():
-                out[sel] = follow_keyframes(stamps[sel], T_pub[sel], kf_stamps[kf], kf_T[kf], anchor[kf])
+                out[sel] = follow_keyframes(stamps[sel], T_pub[sel], kf_stamps[kf], kf_T[kf],
+                                            self._anchors(kf_stamps[kf], f))
         return out
+
+    def _anchors(self, kf_stamps: np.ndarray, frame_id: str) -> np.ndarray:
+        """The anchors (K,4,4) of these keyframes that were taken in ``frame_id`` (NaN otherwise): the window may
+        solve a keyframe after the run relocalised in a saved map although its frame was published before, in the
+        run's own frame; an anchor in the map's frame would move those frames by the map's offset."""
+        nan = np.full((4, 4), np.nan)
+        out = [a if f == frame_id else nan for a, f in (self._kf_anchor.get(int(s), (nan, frame_id)) for s in kf_stamps)]
+        return np.array(out).reshape(-1, 4, 4)
 
     def poll_end(self, stream_ends, idle_s: float = 2.0) -> FinalTrajectory | None:
         """Call while no frame is waiting, with the StreamEnd messages received since the last call: returns the
