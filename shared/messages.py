@@ -17,7 +17,7 @@ from shared.codec import Header, Message, array_field, register, scalar_field
 __all__ = [
     "Header", "ImuSample", "MultiCameraFrame", "FeatureFrame", "EstimatorState", "Keyframes",
     "DepthFrame", "SubmapMesh", "ServiceStats", "Heartbeat", "Control", "StreamEnd",
-    "KeyframeFeatures", "FinalTrajectory", "OccupancyField", "SubmapPoints", "Landmarks", "EstimatorWindow",
+    "KeyframeFeatures", "FinalTrajectory", "OccupancyField", "OccupancyGrid2D", "SubmapPoints", "Landmarks", "EstimatorWindow",
 ]
 
 
@@ -173,6 +173,33 @@ class OccupancyField(Message):
     block_ijk: object = array_field("integer block coordinates, sorted by packed key", "int32", ("N", 3))
     log_odds: object = array_field("mean log-odds L per voxel (eq. 4), [block, x, y, z]", "float32", ("N", "B", "B", "B"))
     counts: object = array_field("observation count w per voxel (0 = unknown)", "uint16", ("N", "B", "B", "B"))
+
+
+@register(51)
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class OccupancyGrid2D(Message):
+    """A 2D occupancy grid of the combined map over a height band of the gravity-aligned world frame W
+    (header.frame_id = 'W', header.stamp_ns = time of the newest state the map was built with). Cell (row r, col c)
+    covers ``x in origin_xy_m[0] + [c, c + 1) * resolution_m``, ``y in origin_xy_m[1] + [r, r + 1) * resolution_m``
+    (row 0 at the lowest y, as in a ROS nav_msgs/OccupancyGrid); a cell is occupied when any voxel of the band in it
+    is occupied, free when the band is observed free, else unknown. Values follow nav_msgs/OccupancyGrid: 0 free ..
+    100 occupied, 255 unknown (-1 read as int8)."""
+
+    resolution_m: float = scalar_field("cell edge length [m]")
+    origin_xy_m: object = array_field("x, y in W of the corner of cell (0, 0) (its lowest x and y) [m]", "float64", (2,))
+    z_band_m: object = array_field("height band [z_min, z_max] in W the grid summarises [m]", "float64", (2,))
+    cells: object = array_field("occupancy per cell, [row (y), col (x)]: 0 free .. 100 occupied, 255 unknown",
+                                "uint8", ("H", "W"))
+
+    @property
+    def width(self) -> int:
+        """Cells along x (columns)."""
+        return int(self.cells.shape[1])
+
+    @property
+    def height(self) -> int:
+        """Cells along y (rows)."""
+        return int(self.cells.shape[0])
 
 
 # --- loop closure and the non-causal trajectory (type ids 70-79) ---

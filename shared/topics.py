@@ -42,6 +42,8 @@ TRAJECTORY_FINAL = Topic("estimator/trajectory_final", m.FinalTrajectory, "all",
                          "non-causal trajectory after the final bundle adjustment (end of stream)")
 MAP_FIELD = Topic("map/field", m.OccupancyField, "latest", 16,
                   "near-surface occupancy of a submap (L, w per voxel) for occupancy-to-point factors")
+MAP_GRID = Topic("map/grid", m.OccupancyGrid2D, "latest", 2,
+                 "2D occupancy grid of the combined map over a height band in W (navigation), at mapping.grid.rate_hz")
 MAP_O2P_POINTS = Topic("map/o2p_points", m.SubmapPoints, "all", 64,
                        "lowest-sigma fused-depth points of a closed submap (map-to-map occupancy-to-point factors)")
 LANDMARKS = Topic("estimator/landmarks", m.Landmarks, "latest", 4,
@@ -51,7 +53,7 @@ WINDOW = Topic("estimator/window", m.EstimatorWindow, "latest", 4,
 
 ALL: tuple[Topic, ...] = (IMU, FRAME, FEATURES, STATE, KEYFRAMES, DEPTH_STEREO, DEPTH_FUSED, SUBMAP,
                           STATS, HEARTBEAT, CONTROL, STREAM_END, KEYFRAME_FEATURES, TRAJECTORY_FINAL, MAP_FIELD,
-                          MAP_O2P_POINTS, LANDMARKS, WINDOW)
+                          MAP_GRID, MAP_O2P_POINTS, LANDMARKS, WINDOW)
 
 
 def per_service(topic: Topic, service: str) -> str:

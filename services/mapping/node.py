@@ -60,10 +60,11 @@ class MappingNode(ProcessNode):
               note="depth to integrate"),
         Input(topics.TRAJECTORY_FINAL, "on_final", note="submaps move onto it (mapping.follow_final)"),
     )
-    outputs = (topics.SUBMAP, topics.MAP_FIELD, topics.MAP_O2P_POINTS)
+    outputs = (topics.SUBMAP, topics.MAP_FIELD, topics.MAP_O2P_POINTS, topics.MAP_GRID)
     output_notes = {topics.SUBMAP.key: "changed submaps, at most every mapping.mesh_period_s",
                     topics.MAP_FIELD.key: "a closed submap's field; the current one every mapping.field_period_s",
-                    topics.MAP_O2P_POINTS.key: "per closed submap (mapping.o2p_points > 0)"}
+                    topics.MAP_O2P_POINTS.key: "per closed submap (mapping.o2p_points > 0)",
+                    topics.MAP_GRID.key: "the combined map's 2D grid over mapping.grid's height band"}
 
     def __init__(self, cfg: MappingConfig, store: MapStore, clock: Callable[[], float] = time.monotonic) -> None:
         self.cfg, self.store, self.clock = cfg, store, clock

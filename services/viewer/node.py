@@ -19,7 +19,7 @@ from shared.ratelimit import RateLimitedLog
 log = logging.getLogger("sigmaslam.viewer")
 
 SHOWN_TOPICS = (topics.STATE, topics.KEYFRAMES, topics.SUBMAP, topics.FRAME, topics.DEPTH_STEREO, topics.DEPTH_FUSED,
-                topics.LANDMARKS, topics.STATS, topics.STREAM_END)
+                topics.LANDMARKS, topics.STATS, topics.STREAM_END, topics.MAP_GRID)
 
 
 class ViewerNode(ProcessNode):

@@ -96,7 +96,10 @@ class ViewerModel:
         self._last_depth_s = -math.inf
         self._last_stats_s = -math.inf
         self._last_gt_s = -math.inf
-        self.counts = {"state": 0, "keyframes": 0, "submap": 0, "frame": 0, "depth": 0, "landmarks": 0, "stats": 0}
+        self.counts = {"state": 0, "keyframes": 0, "submap": 0, "frame": 0, "depth": 0, "landmarks": 0, "stats": 0,
+                       "grid": 0}
+        self.grid: m.OccupancyGrid2D | None = None  # the newest 2D occupancy grid (map/grid)
+        self._grid_new = False
         self._status_dirty = True
 
     # ------------------------------------------------------------------ receiving (any thread, cheap)
@@ -149,12 +152,18 @@ class ViewerModel:
         self.counts["stats"] += 1
         self._stats[msg.service] = (msg, now_s)
 
+    def _on_grid(self, msg: m.OccupancyGrid2D, now_s: float) -> None:
+        if msg.resolution_m <= 0 or not np.isfinite(msg.origin_xy_m).all():
+            raise ValueError("OccupancyGrid2D with a non-positive resolution or a non-finite origin")
+        self.counts["grid"] += 1
+        self.grid, self._grid_new = msg, True
+
     def _on_end(self, msg: m.StreamEnd, now_s: float) -> None:
         self._stream_ended = msg
 
     _HANDLERS = {m.EstimatorState: _on_state, m.Keyframes: _on_keyframes, m.SubmapMesh: _on_submap,
                  m.MultiCameraFrame: _on_frame, m.DepthFrame: _on_depth, m.Landmarks: _on_landmarks,
-                 m.ServiceStats: _on_stats, m.StreamEnd: _on_end}
+                 m.ServiceStats: _on_stats, m.StreamEnd: _on_end, m.OccupancyGrid2D: _on_grid}
 
     def _set_camera(self, name: str, T_SC: np.ndarray, fy: float, width: int, height: int) -> None:
         if name not in self._cameras:
