@@ -15,7 +15,8 @@
    vertices more than 5 / 10 / 20 cm off, and an error-coloured top view per variant.
 
 Every frame's depth, sigma and ground-truth depth are cached in ``OUT/frames/`` (float16), so variants rerun
-without the networks (``--reuse``). Writes ``OUT/map_error.json`` and ``OUT/map_error.md``.
+without the networks (``--reuse``). The depth is the service's, with its filters as configured: ``--set
+depth.flying_radius_px=0`` keeps the flying pixels, whose removal the variant ``net-flying`` then measures. Writes ``OUT/map_error.json`` and ``OUT/map_error.md``.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 RANGES_M = (0.0, 1.0, 2.0, 3.0, 4.0, 6.0, np.inf)
+EUROC_BASELINE_M = 0.11  # frames cached before the baseline was stored: the EuRoC rig's
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -113,7 +115,8 @@ def compute_frames(args: argparse.Namespace, out: Path) -> list[Path]:
         pipe.remember_frame(stamp, raw_l)
         res = pipe.process(stamp, raw_l, raw_r, T_WS)
         T_WC = T_WS @ pipe.T_SC
-        arrays = {"d_gt": gt.depth(T_WC), "T_WC": T_WC, "K": pipe.K, "T_SC": pipe.T_SC, "stamp": np.int64(stamp)}
+        arrays = {"d_gt": gt.depth(T_WC), "T_WC": T_WC, "K": pipe.K, "T_SC": pipe.T_SC, "stamp": np.int64(stamp),
+                  "baseline_m": np.float64(pipe.baseline_m)}
         for name, ds in (("stereo", res.stereo), ("fused", res.fused)):
             if ds is not None:
                 arrays[f"d_{name}"], arrays[f"s_{name}"] = ds
@@ -203,12 +206,21 @@ def _variant_frame(name: str, f: dict, edge_px: int, rng: np.random.Generator) -
             return np.where(bad, nan, d), s
         if name == "net-within-3m":
             return np.where(d <= 3.0, d, nan), s
-        if name == "net-debiased-range":  # the ground truth with the network's error minus its range-wise median
-            return d, s  # replaced in run_variant (needs the statistics)
+        if name == "net-edge-filter":  # realisable: edges of the predicted depth, not of the ground truth
+            return np.where(depth_edges(d, 1), nan, d), s
+        if name == "net-flying":  # realisable: the depth service's own filter (depth.flying_*), with its defaults
+            from services.depth.config import DepthConfig
+            from services.depth.flying import flying_pixels
+
+            c = DepthConfig()
+            fly = flying_pixels(d, float(f["K"][0, 0]) * float(f.get("baseline_m", EUROC_BASELINE_M)),
+                                c.flying_radius_px, c.flying_rel_jump, c.flying_min_gradient, c.flying_margin)
+            return np.where(fly, nan, d), s
     raise KeyError(name)
 
 
-VARIANTS = ("gt-heuristic", "gt-net-sigma", "gt-net-noise", "net", "net-no-edges", "net-inliers", "net-within-3m")
+VARIANTS = ("gt-heuristic", "gt-net-sigma", "gt-net-noise", "net", "net-no-edges", "net-inliers", "net-within-3m",
+            "net-edge-filter", "net-flying")
 
 
 def run_variant(name: str, paths: list[Path], source: str, edge_px: int, replica: Path, out: Path) -> dict:

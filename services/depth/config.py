@@ -29,6 +29,15 @@ class DepthConfig:
                                       "(docs/depth.md, 'Uncertain pixels'); 0: keep all. Learned sigma only: "
                                       "SGBM's and the heuristic sigma grow with depth alone, and the cap would cut "
                                       "far depth")
+    flying_radius_px: int = param(2, "pixels between the near and the far side of a depth edge within this distance "
+                                  "are dropped (NaN) from every output and counted: the curtain a network draws "
+                                  "across an object's silhouette (services/depth/flying.py); 0: keep them", "px")
+    flying_rel_jump: float = param(0.04, "a depth edge: the depth around a pixel spans more than this fraction of its "
+                                   "depth ...")
+    flying_min_gradient: float = param(0.15, "... and its disparity changes by more than this per pixel (a far floor "
+                                       "seen at a grazing angle changes by less)", "px/px")
+    flying_margin: float = param(0.15, "a flying pixel lies more than this fraction of the edge's span from both its "
+                                 "near and its far side")
     stereo_weights: str = param("", "stereo network weights (.pt with .json beside); '' = services/depth/weights/"
                                 "stereo.pt; a bare name = that file there (stereo_refine.pt: real cameras, "
                                 "configs/real.yaml)")
@@ -87,6 +96,11 @@ class DepthConfig:
         if self.prior_max_points < 0 or not self.prior_max_age_s >= 0:
             raise ValueError(f"depth.prior_max_points and depth.prior_max_age_s must be >= 0, got "
                              f"{self.prior_max_points}, {self.prior_max_age_s}")
+        if (self.flying_radius_px < 0 or not self.flying_rel_jump > 0 or not self.flying_min_gradient >= 0
+                or not 0 <= self.flying_margin < 0.5):
+            raise ValueError("depth.flying_radius_px >= 0, flying_rel_jump > 0, flying_min_gradient >= 0 and 0 <= "
+                             f"flying_margin < 0.5 are required, got {self.flying_radius_px}, {self.flying_rel_jump}, "
+                             f"{self.flying_min_gradient}, {self.flying_margin}")
         if not self.max_relative_sigma >= 0:
             raise ValueError(f"depth.max_relative_sigma must be >= 0, got {self.max_relative_sigma}")
         if self.inject_delay_ms < 0:

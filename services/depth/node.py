@@ -109,7 +109,7 @@ class DepthNode(ProcessNode):
                "landmarks_refused": lambda: self.dropped_landmarks,
                # pixels of the published maps: with depth, and dropped as too uncertain (depth.max_relative_sigma)
                "confident_pixels": lambda: self.pipe.confident_px,
-               "uncertain_pixels": lambda: self.pipe.uncertain_px}
+               "uncertain_pixels": lambda: self.pipe.uncertain_px, "flying_pixels": lambda: self.pipe.flying_px}
         if self.dc.mono:
             out["mono_without_mvs"] = lambda: self.no_mvs
         return out

@@ -30,6 +30,7 @@ import numpy as np
 
 from services.depth.config import DepthConfig
 from services.depth.coverage import covered, stereo_valid, valid_region
+from services.depth.flying import flying_pixels
 from services.depth.prior import landmark_prior
 from services.depth.sgbm import SgbmParams, sgbm_depth, stereo_heuristic_sigma
 from services.depth.uncertainty import disparity_to_depth, fuse, logdepth_to_depth
@@ -37,6 +38,9 @@ from services.depth.views import select_sources
 from shared.camera import CameraCalib, rectified_intrinsics, stereo_rectification
 
 log = logging.getLogger(__name__)
+
+
+FLYING_MONO_BASELINE_M = 0.1  # depth.mono: the baseline that turns inverse depth into disparity for the flying pixels
 
 
 @dataclass
@@ -90,6 +94,7 @@ class DepthPipeline:
         self._landmarks: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # p_W, last_seen_ns, num_obs
         self.prior_rejected = 0  # landmarks not in the prior (outside the view or depth range, or over the cap)
         self.confident_px = self.uncertain_px = 0  # pixels of the fused (published) maps kept / dropped as uncertain
+        self.flying_px = 0  # stereo pixels dropped as flying (services/depth/flying.py)
         if self.method == "network":
             self._load_networks()
         # a learned sigma says which pixels are unsure (depth.max_relative_sigma); SGBM's or the heuristic one only
@@ -211,9 +216,16 @@ class DepthPipeline:
             with self._inference():
                 self.mvs_net.encoder(torch.from_numpy(blank).float()[None, None].to(self.device))
 
-    def _mask(self, ds: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """Depth and sigma with NaN outside ``self.valid``."""
-        return tuple(np.where(self.valid, a, np.float32(np.nan)).astype(np.float32, copy=False) for a in ds)
+    def _mask(self, ds: tuple[np.ndarray, np.ndarray], count: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Depth and sigma with NaN outside ``self.valid`` and on flying pixels (services/depth/flying.py; ``count``
+        adds them to ``self.flying_px``)."""
+        d, s = (np.where(self.valid, a, np.float32(np.nan)).astype(np.float32, copy=False) for a in ds)
+        cfg = self.cfg
+        fly = flying_pixels(d, self.f_px * (self.baseline_m or FLYING_MONO_BASELINE_M), cfg.flying_radius_px,
+                            cfg.flying_rel_jump, cfg.flying_min_gradient, cfg.flying_margin)
+        if count:
+            self.flying_px += int(np.count_nonzero(fly))
+        return np.where(fly, np.float32(np.nan), d), np.where(fly, np.float32(np.nan), s)
 
     def _confident(self, ds: tuple[np.ndarray, np.ndarray] | None, count: bool = False
                    ) -> tuple[np.ndarray, np.ndarray] | None:
@@ -271,7 +283,7 @@ class DepthPipeline:
         if raw_left.shape != self.raw_shapes[0] or raw_right.shape != self.raw_shapes[1]:
             raise ValueError(f"images of shape {raw_left.shape}/{raw_right.shape}, calibration says {self.raw_shapes}")
         left, right = self.rect.rectify(raw_left, raw_right)
-        stereo = self._mask(self.stereo(left, right))
+        stereo = self._mask(self.stereo(left, right), count=True)
         T_WC, mvs, n_src, n_prior = self._posed_mvs(stamp_ns, left, T_WS)
         fused = stereo if mvs is None else fuse(*stereo, *mvs, self.cfg.fusion_correlation)
         return DepthResult(self._confident(stereo), self._confident(mvs), self._confident(fused, count=True), T_WC,
