@@ -88,6 +88,9 @@ class ProcessDescription:
     output: Output | None = None  # what --out writes (None: no --out)
     scheduling: Scheduling = Scheduling()
     default_pipeline: bool = False  # started by ``sigmaslam run`` when the config names no pipeline process
+    # a boolean field of the system config ('ros2.enabled') that, when true, starts the process beside the configured
+    # ones (``sigmaslam run``, ``up``, ``demo``); empty: started only when supervisor.services names it
+    switch: str = ""
     in_process: bool = False  # one of the nodes the in-process runner can drive (services/app/inprocess.py)
 
     def __post_init__(self) -> None:

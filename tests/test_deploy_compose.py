@@ -25,7 +25,7 @@ from tests.helpers_zenoh import REPO
 COMPOSE = REPO / "docker" / "compose.yaml"
 GPU = REPO / "docker" / "compose.gpu.yaml"
 HOST = REPO / "docker" / "compose.host.yaml"
-PIPELINE = ("router", "player", "frontend", "backend", "depth", "mapping", "viewer", "recorder")
+PIPELINE = ("router", "player", "frontend", "backend", "depth", "mapping", "viewer", "recorder", "ros2")
 
 
 def _resolved(*files: Path) -> dict:
@@ -85,6 +85,9 @@ def test_compose_validates_with_gpu_override() -> None:
 
 def test_one_service_per_process(compose: dict) -> None:
     assert sorted(compose["services"]) == sorted(PIPELINE)
+    # the ROS 2 face is off unless asked for (`--profile ros2`); everything else starts with a plain `up`
+    assert [n for n, svc in compose["services"].items() if svc.get("profiles")] == ["ros2"]
+    assert compose["services"]["ros2"]["profiles"] == ["ros2"]
     for name, svc in compose["services"].items():
         assert svc.get("restart") in ("unless-stopped", "on-failure", "always"), name
         assert "healthcheck" in svc, name

@@ -27,12 +27,13 @@ from services.frontend.node import DESCRIPTION as FRONTEND
 from services.mapping.node import DESCRIPTION as MAPPING
 from services.player.node import DESCRIPTION as PLAYER
 from services.recorder.node import DESCRIPTION as RECORDER
+from services.ros2.node import DESCRIPTION as ROS2
 from services.viewer.node import DESCRIPTION as VIEWER
 from shared.process_description import ProcessDescription, Start
 
 # one line per process; the in-process pipeline runs its nodes in this order (the frontend's fast path before the
 # back end: a keyframe's state comes from the previous window, as in a live run)
-PROCESSES: tuple[ProcessDescription, ...] = (PLAYER, FRONTEND, BACKEND, DEPTH, MAPPING, VIEWER, RECORDER)
+PROCESSES: tuple[ProcessDescription, ...] = (PLAYER, FRONTEND, BACKEND, DEPTH, MAPPING, VIEWER, RECORDER, ROS2)
 
 
 def by_command(command: str) -> ProcessDescription | None:
@@ -49,6 +50,20 @@ def heartbeat_name(command: str) -> str:
 def default_pipeline() -> list[ServiceSpec]:
     """What ``sigmaslam run`` starts when ``supervisor.services`` names no pipeline process."""
     return [ServiceSpec(name=d.name, argv=(d.cli_command,)) for d in PROCESSES if d.default_pipeline]
+
+
+def switched_on(cfg, services) -> list[ServiceSpec]:
+    """The processes whose config switch (their description's ``switch``, e.g. ``ros2.enabled``) is on in ``cfg`` and
+    that ``services`` (ServiceSpec entries) does not start already: what ``run``, ``up`` and ``demo`` add."""
+    started = {s.argv[0] for s in services if s.argv and s.enabled}
+    out = []
+    for d in PROCESSES:
+        value = cfg
+        for part in d.switch.split(".") if d.switch else ():
+            value = getattr(value, part)
+        if d.switch and value is True and d.cli_command not in started:
+            out.append(ServiceSpec(name=d.name, argv=(d.cli_command,)))
+    return out
 
 
 def with_defaults(spec: ServiceSpec) -> ServiceSpec:

@@ -81,7 +81,8 @@ def pipeline_services(cfg, dataset: str, out: Path, rate: float, record: bool,
     the player in lockstep."""
     services = []
     configured = [s for s in cfg.supervisor.services if s.argv and s.argv[0] not in ("player", "record")]
-    for s in (cfg.supervisor.services if configured else [*processes.default_pipeline(), *cfg.supervisor.services]):
+    listed = cfg.supervisor.services if configured else [*processes.default_pipeline(), *cfg.supervisor.services]
+    for s in [*listed, *processes.switched_on(cfg, listed)]:
         d = processes.by_command(s.argv[0]) if s.argv else None
         if not s.enabled or s.name == "player" or (d is not None and d.name == "player"):
             continue

@@ -22,6 +22,7 @@ from services.backend.loop.config import LoopConfig
 from services.mapping.config import MappingConfig
 from services.player.config import PlayerConfig
 from services.recorder.config import RecorderConfig
+from services.ros2.config import Ros2Config
 from services.viewer.config import ViewerConfig
 from shared.rig import RigConfig
 from transport.config import TransportConfig
@@ -43,6 +44,8 @@ class SystemConfig:
     depth: DepthConfig = param(DepthConfig(), "stereo/MVS depth with learned uncertainty (sigmaslam depth)")
     mapping: MappingConfig = param(MappingConfig(), "occupancy submapping (sigmaslam mapping)")
     player: PlayerConfig = param(PlayerConfig(), "dataset player: pacing of sensors/imu and sensors/frame (sigmaslam player)")
+    ros2: Ros2Config = param(Ros2Config(), "ROS 2 on Zenoh (rmw_zenoh wire format): the outputs as ROS 2 topics "
+                             "(sigmaslam ros2), a robot's sensors as input (sigmaslam ros2_input); off by default")
 
 
 def load_system_config(path: str | Path | None = None, overrides: list[str] | None = None) -> SystemConfig:

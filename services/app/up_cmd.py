@@ -13,10 +13,11 @@ import signal
 import time
 from pathlib import Path
 
+from services.app import processes
 from services.app.cli import command_names
 from services.app.supervisor import Supervisor, validate
 from services.app.system_config import load_system_config
-from shared.config import to_yaml
+from shared.config import override, to_yaml
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -27,6 +28,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     cfg = load_system_config(args.config, args.set)
+    extra = processes.switched_on(cfg, cfg.supervisor.services)  # e.g. ros2.enabled: the ROS 2 face
+    if extra:
+        cfg = override(cfg, {"supervisor.services": [*cfg.supervisor.services, *extra]})
     validate(cfg.supervisor, command_names())
     run_dir = Path(args.run_dir) if args.run_dir else (
         Path(cfg.supervisor.run_dir) / f"{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}-{os.getpid()}")
