@@ -129,17 +129,18 @@ class RosMessages:
                  mesh_use_embedded_materials=False)
 
     def occupancy_grid(self, grid, frame: str):
-        """nav_msgs/OccupancyGrid of a 2D grid message (cells 0..100, 255 unknown -> -1), origin at its corner."""
-        cells = np.asarray(grid.cells, np.uint8).reshape(int(grid.height), int(grid.width))
+        """nav_msgs/OccupancyGrid of an OccupancyGrid2D (cells 0..100 kept, 255 unknown -> -1; row 0 at the lowest
+        y in both), its origin the corner of cell (0, 0) at the bottom of the height band."""
+        cells = np.asarray(grid.cells, np.uint8)
         data = np.where(cells > 100, -1, cells.astype(np.int16)).astype(np.int8).ravel()
         ox, oy = (float(v) for v in np.asarray(grid.origin_xy_m).ravel()[:2])
-        z = float(np.asarray(grid.z_band_m).ravel()[0]) if np.asarray(grid.z_band_m).size else 0.0
         origin = np.eye(4)
-        origin[:3, 3] = (ox, oy, z)
-        info = self.T["nav_msgs/msg/MapMetaData"](map_load_time=self.stamp(grid.stamp_ns),
-                                                   resolution=float(grid.resolution_m), width=int(grid.width),
-                                                   height=int(grid.height), origin=self.pose(origin))
-        return self.T["nav_msgs/msg/OccupancyGrid"](header=self.header(grid.stamp_ns, frame), info=info, data=data)
+        origin[:3, 3] = (ox, oy, float(np.asarray(grid.z_band_m).ravel()[0]))
+        ns = int(grid.header.stamp_ns)
+        info = self.T["nav_msgs/msg/MapMetaData"](map_load_time=self.stamp(ns), resolution=float(grid.resolution_m),
+                                                   width=int(cells.shape[1]), height=int(cells.shape[0]),
+                                                   origin=self.pose(origin))
+        return self.T["nav_msgs/msg/OccupancyGrid"](header=self.header(ns, frame), info=info, data=data)
 
     def image32(self, ns: int, a: np.ndarray, frame: str):
         h, w = a.shape

@@ -174,6 +174,22 @@ def test_base_link_offset_static_tf_clouds_and_mesh():
     assert [mk.points[i].z for i in range(6)] == [0, 0, 0, 0, 0, 1]
 
 
+@pytest.mark.unit
+def test_occupancy_grid_keeps_rows_values_and_origin():
+    node, sent, cam, clock = _node()
+    cells = np.array([[0, 100, 255], [50, 255, 0]], np.uint8)  # 2 rows (y) x 3 columns (x)
+    node.on_grid(m.OccupancyGrid2D(header=Header(stamp_ns=3_500_000_000, frame_id="W"), resolution_m=0.05,
+                                   origin_xy_m=np.array([-1.0, 2.0]), z_band_m=np.array([0.1, 1.5]), cells=cells))
+    g = _decoded(sent, "map_grid")[0]
+    assert g.header.frame_id == "map" and (g.header.stamp.sec, g.header.stamp.nanosec) == (3, 500_000_000)
+    assert (g.info.width, g.info.height) == (3, 2) and g.info.resolution == pytest.approx(0.05)
+    assert (g.info.origin.position.x, g.info.origin.position.y, g.info.origin.position.z) == (-1.0, 2.0, 0.1)
+    assert g.data.tolist() == [0, 100, -1, 50, -1, 0]  # row-major from the lowest y, unknown as -1
+    with pytest.raises(Exception, match="shape"):
+        node.on_grid(m.OccupancyGrid2D(header=Header(stamp_ns=1), resolution_m=0.05, origin_xy_m=np.zeros(2),
+                                       z_band_m=np.zeros(2), cells=np.zeros(3, np.uint8)))
+
+
 # ----------------------------------------------------------------------------- the process
 
 @pytest.mark.service

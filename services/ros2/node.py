@@ -8,7 +8,7 @@ map -> odom: the keyframes' loop-closed pose times the inverse of the causal pos
 the stream the final trajectory does the same. ``landmarks`` per landmark update; ``map_cloud`` (every submap's
 surface points) and ``map_mesh`` (a TRIANGLE_LIST marker per changed submap) at most every
 ``ros2.cloud_period_s`` / ``mesh_period_s``; ``tf_static`` (base_link -> each camera and the IMU) at the start and
-every ``ros2.static_period_s``. What it sends goes through a sink (``sink(output, cdr_bytes)``): the Zenoh
+every ``ros2.static_period_s``; ``map_grid`` (nav_msgs/OccupancyGrid) per map/grid message. What it sends goes through a sink (``sink(output, cdr_bytes)``): the Zenoh
 participant of transport/rmw_zenoh.py in the process, a list in tests. Counters per output in ``stats/ros2``.
 """
 
@@ -43,7 +43,8 @@ class Ros2Node(ProcessNode):
               Input(topics.KEYFRAMES, "on_keyframes", note="path; map -> odom"),
               Input(topics.TRAJECTORY_FINAL, "on_final", note="path and map -> odom at the end"),
               Input(topics.LANDMARKS, "on_landmarks", note="landmarks"),
-              Input(topics.SUBMAP, "on_submap", policy="all", depth=64, note="map_cloud, map_mesh"))
+              Input(topics.SUBMAP, "on_submap", policy="all", depth=64, note="map_cloud, map_mesh"),
+              Input(topics.MAP_GRID, "on_grid", note="map_grid"))
     outputs = ()
 
     def __init__(self, rcfg, cameras, sink: Callable[[str, bytes], None], clock=time.monotonic,
@@ -119,6 +120,13 @@ class Ros2Node(ProcessNode):
         p = np.asarray(msg.p_W, np.float64).reshape(-1, 3)
         self._send("landmarks", self.ros.cloud(int(msg.header.stamp_ns), p[np.all(np.isfinite(p), axis=1)],
                                                self.frames.odom))
+
+    def on_grid(self, msg: m.OccupancyGrid2D) -> None:
+        cells = np.asarray(msg.cells)
+        if cells.ndim != 2 or not msg.resolution_m > 0:
+            raise RejectedMessage(f"a grid of shape {cells.shape}, resolution {msg.resolution_m}")
+        with self.timer("map_grid"):
+            self._send("map_grid", self.ros.occupancy_grid(msg, self.frames.map))
 
     def on_submap(self, msg: m.SubmapMesh) -> None:
         self.submaps[int(msg.submap_id)] = msg
