@@ -73,3 +73,17 @@ class MappingConfig:
     prior_map: str = param("", "a saved map (a run's folder or its map/ folder, shared/map_folder.py) whose dense "
                            "submaps this map starts from, frozen in the saved map's frame ('' = an empty map)")
     checkpoint_period_s: float = param(10.0, "with an output folder, map/dense.npz is also saved (atomically: write, then rename) this often while running; a service the supervisor restarts resumes from it (0 = only at exit)", "s")
+
+
+@dataclasses.dataclass(frozen=True)
+class QueryConfig:
+    """Occupancy queries of the combined map (services/mapping/combined.py): what counts as occupied and free, how
+    finely segments and boxes are sampled, and how large one request may be."""
+
+    occupied_above: float = param(0.0, "a voxel is occupied when its log-odds L exceeds this (the surface is L = 0)")
+    free_below: float = param(-2.5, "a voxel is free when L is below this; between the two it is reported unknown "
+                              "(why not 0: a voxel just in front of a surface has a slightly negative L, docs/occupancy.md)")
+    sample_step_voxels: float = param(0.5, "segments and boxes are tested at points of a lattice this many voxels "
+                                      "apart (0.5: every voxel wholly inside the shape holds one)")
+    max_points: int = param(1_000_000, "most points one point query may hold (more: an error reply)")
+    max_samples: int = param(2_000_000, "most lattice points the segments or boxes of one request may need")

@@ -67,7 +67,8 @@ class BlockField:
 def _voxel(i, j, k, b, keys_sorted, slot_of_sorted, coarse_L, coarse_w, vox_slot, Lv, wv, memo):
     """L and w of voxel (i, j, k): its block's key (blocks.pack_keys' packing), a binary search in the sorted keys
     (skipped when the block is the one of the previous call, kept in ``memo`` = [key, slot]: the 8 corners of a
-    trilinear cell mostly share one), then the block's coarse value or its voxel; unallocated: 0, 0."""
+    trilinear cell mostly share one), then the block's coarse value or its voxel; unallocated: 0, 0. A slot or voxel
+    row beyond the arrays (read from a map that grows in another thread) reads as unallocated, never out of bounds."""
     key = np.int64(0)
     for c in (i // b + _OFF, j // b + _OFF, k // b + _OFF):  # floor division, as Python's
         if c < 0 or c >= 2 * _OFF:  # beyond the packable range: never allocated
@@ -82,13 +83,16 @@ def _voxel(i, j, k, b, keys_sorted, slot_of_sorted, coarse_L, coarse_w, vox_slot
                 lo = mid + 1
             else:
                 hi = mid
-        memo[0], memo[1] = key, (slot_of_sorted[lo] if lo < n and keys_sorted[lo] == key else -1)
+        memo[0], memo[1] = key, (slot_of_sorted[lo] if lo < n and lo < len(slot_of_sorted) and keys_sorted[lo] == key
+                                 else -1)
     slot = memo[1]
-    if slot < 0:
+    if slot < 0 or slot >= len(coarse_L):  # the second: arrays read while the map grew (a live snapshot)
         return np.float32(0.0), np.uint16(0)
     v = vox_slot[slot]
     if v < 0:
         return coarse_L[slot], coarse_w[slot]
+    if v >= Lv.shape[0]:  # refined after the snapshot was taken: not in its voxel pool
+        return np.float32(0.0), np.uint16(0)
     return Lv[v, i % b, j % b, k % b], wv[v, i % b, j % b, k % b]
 
 
