@@ -34,7 +34,7 @@ from typing import Any, ClassVar, Iterable, Literal
 
 from shared.codec import Message
 from shared.ratelimit import RateLimitedLog
-from shared.topics import Topic
+from shared.topics import Question, Topic
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,6 +50,18 @@ class Input:
     shed: str | None = None  # trigger input: node method (pending list) -> (kept list, skipped count)
     when: str = ""  # the condition under which the node reads it (docs), e.g. "o2p.enabled"; empty: always
     note: str = ""  # what the node uses it for (docs)
+
+
+@dataclasses.dataclass(frozen=True)
+class Served:
+    """A question a node answers (:class:`shared.topics.Question`, a Zenoh queryable at ``<namespace>/<key>`` when
+    run over Zenoh): each request goes to the node's method ``handler``, which returns the answer message or raises
+    ValueError for a request it refuses (the asker gets the error's text). The handler runs on a thread of its own,
+    beside the node's loop: it must only read what the loop writes, and tolerate reading it mid-change."""
+
+    question: Question
+    handler: str
+    note: str = ""  # what it answers from (docs)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -92,6 +104,7 @@ class ProcessNode:
     inputs: ClassVar[tuple[Input, ...]]
     outputs: ClassVar[tuple[Topic, ...]]
     output_notes: ClassVar[dict[str, str]] = {}  # topic key -> when / what is published (docs)
+    served: ClassVar[tuple[Served, ...]] = ()  # questions it answers (queryables), see :class:`Served`
     stage: ClassVar[str] = "process"  # stage name of the trigger handler in stats/<name>
     budget_ms: float | None = None  # the stage's budget (per instance: from its config)
     wait_s: float = 0.0  # longest wait for a wait_until_trigger_stamp input [s] (per instance: from its config)

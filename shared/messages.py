@@ -17,7 +17,7 @@ from shared.codec import Header, Message, array_field, register, scalar_field
 __all__ = [
     "Header", "ImuSample", "MultiCameraFrame", "FeatureFrame", "EstimatorState", "Keyframes",
     "DepthFrame", "SubmapMesh", "ServiceStats", "Heartbeat", "Control", "StreamEnd",
-    "KeyframeFeatures", "FinalTrajectory", "OccupancyField", "OccupancyGrid2D", "SubmapPoints", "Landmarks", "EstimatorWindow",
+    "KeyframeFeatures", "FinalTrajectory", "OccupancyField", "OccupancyGrid2D", "OccupancyQuery", "OccupancyAnswer", "SubmapPoints", "Landmarks", "EstimatorWindow",
 ]
 
 
@@ -200,6 +200,42 @@ class OccupancyGrid2D(Message):
     def height(self) -> int:
         """Cells along y (rows)."""
         return int(self.cells.shape[0])
+
+
+@register(52)
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class OccupancyQuery(Message):
+    """A question to the combined map (``map/query``), everything in W (header.frame_id = 'W'). ``kind``
+    'points': the state of each row of ``a_W``; 'segments': capsules from ``a_W`` to ``b_W`` with ``radius_m`` (one
+    per segment, or one for all); 'boxes': axis-aligned boxes with corners ``a_W`` (lowest) and ``b_W`` (highest)."""
+
+    kind: str = scalar_field("'points', 'segments' or 'boxes'")
+    a_W: object = array_field("points, segment starts or box lower corners [m]", "float64", ("N", 3))
+    b_W: object = array_field("segment ends or box upper corners (none for points) [m]", "float64", ("M", 3),
+                              default_factory=lambda: np.zeros((0, 3)))
+    radius_m: object = array_field("segment radius, one per segment or one for all (none: 0) [m]", "float64", ("R",),
+                                   default_factory=lambda: np.zeros(0))
+
+
+@register(53)
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class OccupancyAnswer(Message):
+    """The combined map's answer to an :class:`OccupancyQuery` (header.frame_id = 'W', header.stamp_ns = the newest
+    depth frame the map holds). Only the arrays of the query's kind are filled, the others are empty. States:
+    0 unknown, 1 free, 2 occupied."""
+
+    kind: str = scalar_field("the query's kind")
+    state: object = array_field("points: state of each point", "int8", ("N",))
+    log_odds: object = array_field("points: combined log-odds (largest observed L; NaN unobserved)", "float32", ("N",))
+    submaps: object = array_field("points: how many submaps observed the point", "int16", ("N",))
+    hit: object = array_field("segments: an occupied point lies within the radius", "bool", ("K",))
+    hit_distance_m: object = array_field("segments: distance along the segment of the first one (NaN: none) [m]",
+                                         "float64", ("K",))
+    hit_point_W: object = array_field("segments: that occupied point (NaN: none) [m]", "float64", ("K", 3))
+    free: object = array_field("segments: every point of the capsule free", "bool", ("K",))
+    any_occupied: object = array_field("boxes: an occupied point inside", "bool", ("B",))
+    occupied_fraction: object = array_field("boxes: fraction of the box occupied", "float64", ("B",))
+    unknown_fraction: object = array_field("segments and boxes: fraction unknown", "float64", ("U",))
 
 
 # --- loop closure and the non-causal trajectory (type ids 70-79) ---

@@ -24,6 +24,20 @@ class Topic:
         return f"{namespace.rstrip('/')}/{self.key}"
 
 
+@dataclasses.dataclass(frozen=True)
+class Question:
+    """A question a process answers over Zenoh (a queryable at ``<namespace>/<key>``): a request message in, an
+    answer message out, or an error reply with the reason as UTF-8 text."""
+
+    key: str
+    request: type[Message]
+    answer: type[Message]
+    doc: str = ""
+
+    def key_expr(self, namespace: str) -> str:
+        return f"{namespace.rstrip('/')}/{self.key}"
+
+
 IMU = Topic("sensors/imu", m.ImuSample, "all", 4096, "raw IMU samples from the player or a driver")
 FRAME = Topic("sensors/frame", m.MultiCameraFrame, "latest", 4, "synchronised multi-camera images")
 FEATURES = Topic("frontend/frame", m.FeatureFrame, "all", 64, "tracked features per frame")
@@ -54,6 +68,10 @@ WINDOW = Topic("estimator/window", m.EstimatorWindow, "latest", 4,
 ALL: tuple[Topic, ...] = (IMU, FRAME, FEATURES, STATE, KEYFRAMES, DEPTH_STEREO, DEPTH_FUSED, SUBMAP,
                           STATS, HEARTBEAT, CONTROL, STREAM_END, KEYFRAME_FEATURES, TRAJECTORY_FINAL, MAP_FIELD,
                           MAP_GRID, MAP_O2P_POINTS, LANDMARKS, WINDOW)
+
+MAP_QUERY = Question("map/query", m.OccupancyQuery, m.OccupancyAnswer,
+                     "occupancy of the combined map at points, along segments, in boxes (W)")
+QUESTIONS: tuple[Question, ...] = (MAP_QUERY,)
 
 
 def per_service(topic: Topic, service: str) -> str:

@@ -31,7 +31,7 @@ def short_replica() -> Path:
 
 
 def test_examples_are_numbered_narrated_and_parse_help(capsys):
-    assert [p.name[:3] for p in EXAMPLES] == ["01_", "02_", "03_", "04_"], EXAMPLES
+    assert [p.name[:3] for p in EXAMPLES] == ["01_", "02_", "03_", "04_", "05_"], EXAMPLES
     for path in EXAMPLES:
         mod = load(path.stem)
         assert mod.__doc__ and mod.__doc__.startswith(path.name[:2] + ":"), path.name  # the story comes first
@@ -85,6 +85,23 @@ def test_04_load_saved_map(tmp_path, capsys):
     other = tmp_path / "elsewhere.ply"
     facts2 = load("04_load_saved_map").main([str(run / "map" / "dense.npz"), "--out", str(other)])
     assert other.is_file() and facts2["faces"] == facts["faces"]
+
+
+def test_05_query_occupancy(tmp_path, capsys):
+    """The two-submap room saved as a run saves it, with a trajectory file: the example's answers match the room."""
+    from occupancy_room import mapped_room
+    from services.mapping.io import save_map
+    from shared.euroc import PoseSeries, write_tum
+
+    run = tmp_path / "run"
+    save_map(mapped_room()[0], run / "map" / "dense.npz")
+    p = np.array([[2.5, 1.5, 1.4], [3.0, 1.5, 1.4], [7.0, 1.5, 1.4]])  # the last through the far wall (x = 6)
+    write_tum(run / "trajectory.txt", PoseSeries(np.arange(3) * 10**9, p, np.tile([1.0, 0, 0, 0], (3, 1))))
+    facts = load("05_query_occupancy").main([str(run), "--radius", "0.05", "--extent", "0", "0", "0", "6", "5", "3"])
+    out = capsys.readouterr().out
+    assert facts["segment_hit"] and not facts["segment_free"] and abs(facts["hit_distance_m"] - 3.5) < 0.03, out
+    assert facts["points"]["free"] > 0.3 and facts["points"]["occupied"] > 0.005 and "is refused" in out
+    assert facts["box_any_occupied"] is False  # a 1 m box around (4.75, 1.5, 1.4): free space and unknown
 
 
 def test_03_subscribe_to_poses(tmp_path, capsys):

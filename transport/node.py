@@ -63,6 +63,7 @@ class Node:
         self._signals_seen = 0
         self._publishers: list[Publisher] = []
         self._subscribers: list[Subscriber] = []
+        self._servers: list = []  # transport.queryable.QueryServer of each question the node answers
         self._closing = threading.Event()
         self._thread: threading.Thread | None = None
         self._state = "starting"
@@ -107,6 +108,9 @@ class Node:
                 self._state = "stopping"
                 self._publish_heartbeat()
         finally:
+            for server in self._servers:
+                server.close()
+            self._servers.clear()
             for sub in self._subscribers:
                 sub.close()
             for pub in self._publishers:
@@ -173,6 +177,18 @@ class Node:
         self._subscribers.append(sub)
         self.stats.add_queue(rel, sub.counters)
         return sub
+
+    def queryable(self, key: str, request: type[Message], handler: Callable[[Message], Message]):
+        """Answer requests of type ``request`` at ``<namespace>/<key>`` with ``handler`` on a thread of their own
+        (transport/queryable.py); the answered and refused counts appear in this node's stats."""
+        from transport.queryable import QueryServer
+
+        self._require_open()
+        server = QueryServer(self.session, self.key_expr(key), request, handler, name=key)
+        self._servers.append(server)
+        for what in ("answered", "refused", "failed"):
+            self.stats.add_counter(f"{key}_{what}", lambda s=server, w=what: getattr(s, w))
+        return server
 
     def timer(self, stage: str, budget_ms: float | None = None) -> StageTimer:
         """Stage timer reported in this node's stats (the same one if asked twice)."""

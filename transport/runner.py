@@ -56,6 +56,8 @@ class _Wiring:
         for name, fn in node.counters().items():
             tn.stats.add_counter(name, fn)
         self.pubs = {t: tn.publisher(t) for t in node.outputs}
+        for served in type(node).served:
+            tn.queryable(served.question.key, served.question.request, getattr(node, served.handler))
         self.newest = {inp: -1 for inp in node.inputs}
         self.bad_log = RateLimitedLog(log)
 

@@ -196,6 +196,15 @@ class CombinedMap:
         return np.split(st, np.cumsum([s.size // 3 for s in samples])[:-1])
 
 
+def warm_up(voxel_size_m: float = 0.025) -> None:
+    """Load the compiled query kernel (numba's on-disk cache) with an empty submap, so that a process's first
+    query does not pay for it."""
+    from shared.occupancy.blocks import BlockStore
+
+    store = BlockStore(voxel_size_m)
+    CombinedMap([SubmapView.of(0, np.eye(4), BlockField.of(store))], voxel_size_m).points(np.zeros((1, 3)))
+
+
 def _points(p: np.ndarray, what: str, max_points: int) -> np.ndarray:
     """``p`` as a C-contiguous (N, 3) float64 array; ValueError for a wrong shape, non-finite values or too many."""
     try:

@@ -48,11 +48,26 @@ class SubmapConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class QueryConfig:
+    """Occupancy queries of the combined map (services/mapping/combined.py): what counts as occupied and free, how
+    finely segments and boxes are sampled, and how large one request may be."""
+
+    occupied_above: float = param(0.0, "a voxel is occupied when its log-odds L exceeds this (the surface is L = 0)")
+    free_below: float = param(-2.5, "a voxel is free when L is below this; between the two it is reported unknown "
+                              "(why not 0: a voxel just in front of a surface has a slightly negative L, docs/occupancy.md)")
+    sample_step_voxels: float = param(0.5, "segments and boxes are tested at points of a lattice this many voxels "
+                                      "apart (0.5: every voxel wholly inside the shape holds one)")
+    max_points: int = param(1_000_000, "most points one point query may hold (more: an error reply)")
+    max_samples: int = param(2_000_000, "most lattice points the segments or boxes of one request may need")
+
+
+@dataclasses.dataclass(frozen=True)
 class MappingConfig:
     """The ``sigmaslam mapping`` service: inputs, poses, outputs."""
 
     sensor: SensorModelConfig = param(SensorModelConfig(), "inverse sensor model and voxel size")
     submaps: SubmapConfig = param(SubmapConfig(), "submap switching and meshing")
+    query: QueryConfig = param(QueryConfig(), "occupancy queries of the combined map (map/query, grid, exports)")
     depth_topic: Literal["depth/stereo", "depth/fused"] = param("depth/stereo", "depth input topic (why stereo: "
                                                                 "docs/mapping.md)")
     pose_source: Literal["estimator", "frame"] = param("estimator", "'estimator': T_WS(stamp) from estimator/state; 'frame': the DepthFrame's T_WC (ground-truth-pose runs; falls back to the estimator when T_WC is identity)")
@@ -74,16 +89,3 @@ class MappingConfig:
                            "submaps this map starts from, frozen in the saved map's frame ('' = an empty map)")
     checkpoint_period_s: float = param(10.0, "with an output folder, map/dense.npz is also saved (atomically: write, then rename) this often while running; a service the supervisor restarts resumes from it (0 = only at exit)", "s")
 
-
-@dataclasses.dataclass(frozen=True)
-class QueryConfig:
-    """Occupancy queries of the combined map (services/mapping/combined.py): what counts as occupied and free, how
-    finely segments and boxes are sampled, and how large one request may be."""
-
-    occupied_above: float = param(0.0, "a voxel is occupied when its log-odds L exceeds this (the surface is L = 0)")
-    free_below: float = param(-2.5, "a voxel is free when L is below this; between the two it is reported unknown "
-                              "(why not 0: a voxel just in front of a surface has a slightly negative L, docs/occupancy.md)")
-    sample_step_voxels: float = param(0.5, "segments and boxes are tested at points of a lattice this many voxels "
-                                      "apart (0.5: every voxel wholly inside the shape holds one)")
-    max_points: int = param(1_000_000, "most points one point query may hold (more: an error reply)")
-    max_samples: int = param(2_000_000, "most lattice points the segments or boxes of one request may need")

@@ -34,7 +34,7 @@ from services.mapping.config import MappingConfig
 from services.mapping.poses import PoseBuffer
 from shared import messages, topics
 from shared.codec import Header
-from shared.dataflow import Emit, Input, ProcessNode
+from shared.dataflow import Emit, Input, ProcessNode, Served
 from shared.occupancy.o2p_points import SubmapPointPool
 from shared.process_description import Output, ProcessDescription, Scheduling, Start
 
@@ -61,6 +61,7 @@ class MappingNode(ProcessNode):
         Input(topics.TRAJECTORY_FINAL, "on_final", note="submaps move onto it (mapping.follow_final)"),
     )
     outputs = (topics.SUBMAP, topics.MAP_FIELD, topics.MAP_O2P_POINTS, topics.MAP_GRID)
+    served = (Served(topics.MAP_QUERY, "on_query", note="the combined map, each submap at its current pose"),)
     output_notes = {topics.SUBMAP.key: "changed submaps, at most every mapping.mesh_period_s",
                     topics.MAP_FIELD.key: "a closed submap's field; the current one every mapping.field_period_s",
                     topics.MAP_O2P_POINTS.key: "per closed submap (mapping.o2p_points > 0)",
@@ -91,6 +92,16 @@ class MappingNode(ProcessNode):
         now = clock()
         self.last_mesh = self.last_field = self.last_checkpoint = now
         self.final_pending = False
+        self.newest_stamp_ns = 0  # of the newest depth frame integrated
+
+    def on_query(self, msg: messages.OccupancyQuery) -> messages.OccupancyAnswer:
+        """``map/query`` (on the query thread): a snapshot of the submaps at their current poses answers it
+        (services/mapping/combined.py); ValueError for a request it refuses."""
+        from services.mapping.combined import CombinedMap
+        from services.mapping.query_service import answer
+
+        with self.timer("query"):
+            return answer(CombinedMap.of(self.mapper, self.cfg.query), msg, self.newest_stamp_ns)
 
     def on_state(self, msg: messages.EstimatorState) -> None:
         if msg.status == "reset":  # a restarted back end: new world frame and keyframe ids
@@ -167,6 +178,7 @@ class MappingNode(ProcessNode):
             log.warning("depth frame %d dropped: %s", msg.header.stamp_ns, exc)
             return 0
         self.integrate_ms.append(1e3 * (time.perf_counter() - t0))
+        self.newest_stamp_ns = max(self.newest_stamp_ns, int(msg.header.stamp_ns))
         self.unflushed = True
         self.counts["integrated"] += 1
         if self.points is not None:
@@ -295,9 +307,11 @@ def _build(cfg, start: Start) -> MappingNode:
 
 
 def _warm_up(node: MappingNode) -> None:
+    from services.mapping.combined import warm_up as warm_up_queries
     from services.mapping.integrate import warm_up
 
     warm_up(node.cfg.sensor)
+    warm_up_queries(node.cfg.sensor.voxel_size_m)
 
 
 DESCRIPTION = ProcessDescription(

@@ -86,7 +86,8 @@ def _voxel(i, j, k, b, keys_sorted, slot_of_sorted, coarse_L, coarse_w, vox_slot
         memo[0], memo[1] = key, (slot_of_sorted[lo] if lo < n and lo < len(slot_of_sorted) and keys_sorted[lo] == key
                                  else -1)
     slot = memo[1]
-    if slot < 0 or slot >= len(coarse_L):  # the second: arrays read while the map grew (a live snapshot)
+    if slot < 0 or slot >= len(coarse_L) or slot >= len(coarse_w) or slot >= len(vox_slot):  # arrays read while
+        # the map grew in another thread (a live snapshot) may differ in length
         return np.float32(0.0), np.uint16(0)
     v = vox_slot[slot]
     if v < 0:
