@@ -11,8 +11,11 @@ the player at ``--rate`` times sensor rate (1 = real time), while this process
 - samples CPU share and resident memory of every service process (psutil);
 - reads queue drops and the services' own overrun counts from the run's stats.json.
 
-Prints the tables and the pass/over table against the budgets, writes ``--out``/bench.json, bench_series.npz and
-PNG plots. ``--max-rate`` instead bisects the playback rate factor for the highest one at which the estimator
+``--cpus LIST`` runs all of it (and this process) on those cores only (``--cpus 0``: one core), ``--load N`` beside N
+busy processes at normal priority that it starts and stops itself (tools/bench_load.py): the pipeline on a small or
+busy computer. Prints the tables, the run's health on that machine (frames without a state, pose latency p50 / p99,
+depth rate, mapping drops, causal ATE where the dataset has ground truth; load average before and after) and the
+pass/over table against the budgets, writes ``--out``/bench.json, bench_series.npz and PNG plots. ``--max-rate`` instead bisects the playback rate factor for the highest one at which the estimator
 (frontend sensors/frame queue, backend frontend/frame queue) drops no frame, with a few short runs.
 """
 
@@ -29,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from tools.bench_budgets import check_budgets, format_table, load_budgets
+from tools.bench_load import BusyLoad, parse_cpus, pinned
 from services.app.metrics.stages import stage_items
 from services.app.run_pipeline import frames_within
 from services.app.metrics.latency import ArrivalLog, first_arrivals, map_latencies, matched_latencies, summary
@@ -56,6 +60,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-rate", action="store_true", help="search the highest rate factor without estimator drops")
     p.add_argument("--max-rate-runs", type=int, default=4, help="runs of the --max-rate search")
     p.add_argument("--max-rate-seconds", type=float, default=8.0, help="seconds of data per --max-rate run [s]")
+    p.add_argument("--cpus", metavar="LIST", help="run the whole pipeline on these cores only, e.g. 0 (one core), "
+                                                  "0,1 or 0-1 (default: all this process may use)")
+    p.add_argument("--load", type=int, default=0, metavar="N",
+                   help="N busy processes at normal priority on the same cores while each run lasts (default 0)")
     p.add_argument("--timeout-s", type=float, default=900.0, help="give up a run after this long [s]")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
 
@@ -77,9 +85,10 @@ def _probe(log: ArrivalLog, transport_cfg, stop: threading.Event, ready: threadi
 
 
 def run_once(dataset: Path, out: Path, rate: float, seconds: float, services: str, config: str | None,
-             sets: list[str], timeout_s: float) -> dict:
-    """One measured pipeline run into ``out`` (``rate`` <= 0: lockstep); returns the raw measurements (see
-    :func:`summarise`)."""
+             sets: list[str], timeout_s: float, load: int = 0, cpus: list[int] | None = None) -> dict:
+    """One measured pipeline run into ``out`` (``rate`` <= 0: lockstep) beside ``load`` busy processes on ``cpus``
+    (this process is already pinned there, see :func:`main`); returns the raw measurements (see :func:`summarise`)."""
+    from services.app.run_outputs import find_ground_truth
     from services.app.run_pipeline import run_pipeline, services_overrides
     from services.app.system_config import load_system_config
 
@@ -95,15 +104,21 @@ def run_once(dataset: Path, out: Path, rate: float, seconds: float, services: st
     probe = threading.Thread(target=_probe, args=(log, transport_cfg, stop, ready), name="bench-probe", daemon=True)
     probe.start()
     ready.wait(30.0)
+    load_before = os.getloadavg()
     try:
-        res = run_pipeline(dataset, out / "run", config, overrides, rate=max(rate, 0.0), max_frames=frames,
-                           timeout_s=timeout_s, final_timeout_s=120.0, stage_log=out / "stage_log",
-                           sample_processes=True)
+        with BusyLoad(load, cpus) as busy:
+            if load:
+                print(f"[bench pipeline] {load} busy process(es) at normal priority: pids {busy.pids}", flush=True)
+            res = run_pipeline(dataset, out / "run", config, overrides, rate=max(rate, 0.0), max_frames=frames,
+                               timeout_s=timeout_s, final_timeout_s=120.0, stage_log=out / "stage_log",
+                               sample_processes=True, gt=find_ground_truth(dataset))
     finally:
         stop.set()
         probe.join(timeout=10)
+    machine = {"cpus": cpus, "load": load, "loadavg_before": list(load_before), "loadavg_after": list(os.getloadavg())}
     return {"rc": res.rc, "wall_s": res.wall_s, "rate": rate, "frames_requested": frames, "dataset": str(dataset),
-            "log": log, "sampler": res.sampler, "stage_dir": res.stage_dir, "run_stats": res.stats}
+            "log": log, "sampler": res.sampler, "stage_dir": res.stage_dir, "run_stats": res.stats,
+            "ate": res.ate, "machine": machine}
 
 
 # ----------------------------------------------------------------------------- summary
@@ -163,11 +178,43 @@ def summarise(raw: dict, budgets) -> tuple[dict, dict]:
         "states": raw["run_stats"].get("states", {}), "stages": stages, "latency_ms": latency,
         "drops": {"estimator_frames": int(est_drops), "queues": queues},
         "service_overruns": service_overruns, "processes": raw["sampler"].summary(),
-        "cpu_count": os.cpu_count(), "loadavg_1min": os.getloadavg()[0],
+        "cpu_count": os.cpu_count(), "loadavg_1min": os.getloadavg()[0], "machine": raw.get("machine", {}),
     }
+    result["health"] = run_health(result, raw["run_stats"], raw.get("ate"))
     series = {"stages": items, "latency": lat, "processes": raw["sampler"].series(),
               "t0_ns": min(published.values()) if published else 0}
     return result, series
+
+
+def run_health(res: dict, run_stats: dict, ate: dict | None) -> dict:
+    """What a small or busy computer costs the run: frames without a state, pose latency, depth rate, what the mapping
+    lost, keyframes the back end skipped, causal ATE (None without ground truth)."""
+    svc = run_stats.get("services", {})
+    mapping = svc.get("mapping", {})
+    map_counters = mapping.get("counters", {})
+    map_dropped = {k: v for k, v in map_counters.items() if k.startswith("dropped") and v}
+    map_dropped.update({f"queue {q}": v["dropped"] for q, v in mapping.get("queues", {}).items() if v.get("dropped")})
+    state, depth = res["latency_ms"]["state"], res["latency_ms"]["depth"]
+    return {"frames_sent": run_stats.get("frames_sent"), "frames_without_state": run_stats.get("frames_without_state"),
+            "pose_latency_p50_ms": state.get("median"), "pose_latency_p99_ms": state.get("p99"),
+            "depth_frames": depth.get("n"), "depth_rate_hz": depth.get("rate_hz"),
+            "mapping_integrated": res["stages"].get("mapping.integrate", {}).get("n", 0),
+            "mapping_dropped": map_dropped,
+            "keyframes_skipped": svc.get("backend", {}).get("counters", {}).get("keyframes_skipped"),
+            "causal_ate_m": ate["ate_rmse_m"] if ate else None}
+
+
+def format_health(res: dict) -> str:
+    h, m = res["health"], res.get("machine", {})
+    cores = ",".join(map(str, m["cpus"])) if m.get("cpus") else f"all {res['cpu_count']}"
+    before, after = m.get("loadavg_before", [float("nan")] * 3), m.get("loadavg_after", [float("nan")] * 3)
+    ate = "-" if h["causal_ate_m"] is None else f"{h['causal_ate_m']:.4f} m"
+    return (f"on cores {cores} with {m.get('load', 0)} busy process(es) (load average before {before[0]:.2f} "
+            f"{before[1]:.2f} {before[2]:.2f}, after {after[0]:.2f} {after[1]:.2f} {after[2]:.2f}): "
+            f"{h['frames_without_state']} of {h['frames_sent']} frames without a state; pose latency p50 "
+            f"{_f(h['pose_latency_p50_ms'])} / p99 {_f(h['pose_latency_p99_ms'])} ms; depth {h['depth_frames']} "
+            f"frames ({_f(h['depth_rate_hz'])} Hz); mapping integrated {h['mapping_integrated']}, dropped "
+            f"{h['mapping_dropped'] or 'none'}; keyframes skipped {h['keyframes_skipped']}; causal ATE {ate}")
 
 
 # ----------------------------------------------------------------------------- printing
@@ -205,6 +252,7 @@ def format_report(res: dict) -> str:
     ov = {k: f"{v['overruns']}/{v['count']} > {v['budget_ms']:g} ms" for k, v in res["service_overruns"].items()
           if v["overruns"]}
     lines.append(f"services' own budget overruns: {ov or 'none'}")
+    lines += ["", format_health(res)] if "health" in res else []
     lines += ["", format_table([*map(_row, res["checks"])])] if res.get("checks") else []
     return "\n".join(lines)
 
@@ -230,7 +278,7 @@ def search_max_rate(args, dataset: Path, budgets) -> dict:
     lo, hi, rate, tried = None, None, args.rate, []
     for i in range(max(args.max_rate_runs, 1)):
         raw = run_once(dataset, Path(args.out) / f"rate_{i}_{rate:.3g}", rate, args.max_rate_seconds, args.services,
-                       args.config, args.set, args.timeout_s)
+                       args.config, args.set, args.timeout_s, args.load, args.cpus)
         res, _ = summarise(raw, budgets)
         drops = res["drops"]["estimator_frames"]
         ok = raw["rc"] == 0 and drops == 0 and res["frames_published"] > 0
@@ -257,15 +305,21 @@ def _dataset(arg: str | None) -> Path:
 
 
 def main(args: argparse.Namespace) -> int:
-    if args.rate <= 0 or args.seconds < 0:
-        print("bench pipeline: --rate must be positive and --seconds >= 0", file=sys.stderr)
+    if args.rate <= 0 or args.seconds < 0 or args.load < 0:
+        print("bench pipeline: --rate must be positive, --seconds and --load >= 0", file=sys.stderr)
         return 2
     try:
         dataset = _dataset(args.dataset)
         frames_within(dataset, 0.0)
+        args.cpus = parse_cpus(args.cpus) if args.cpus else None
     except (FileNotFoundError, ValueError) as exc:
         print(f"bench pipeline: {exc}", file=sys.stderr)
         return 2
+    with pinned(args.cpus):  # before any thread or process is started: they all inherit the cores
+        return _bench(args, dataset)
+
+
+def _bench(args: argparse.Namespace, dataset: Path) -> int:
     budgets = load_budgets(args.budgets)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -275,7 +329,8 @@ def main(args: argparse.Namespace) -> int:
         print(f"[bench pipeline] highest rate without estimator drops: {res['max_rate']} "
               f"(first failing: {res['first_failing_rate']}); wrote {out / 'max_rate.json'}", flush=True)
         return 0 if res["max_rate"] is not None else 1
-    raw = run_once(dataset, out, args.rate, args.seconds, args.services, args.config, args.set, args.timeout_s)
+    raw = run_once(dataset, out, args.rate, args.seconds, args.services, args.config, args.set, args.timeout_s,
+                   args.load, args.cpus)
     res, series = summarise(raw, budgets)
     if args.transport_s > 0:
         from tools.bench_transport import benchmark
