@@ -50,7 +50,7 @@ def test_the_cli_and_the_supervisor_take_the_processes_from_the_registry():
     assert all(commands.count(d.cli_command) == 1 for d in PROCESSES)
     assert [s.argv[0] for s in default_pipeline()] == ["frontend", "backend"]
     mapping = with_defaults(ServiceSpec(name="m", argv=("mapping",)))  # unset: the description's scheduling
-    assert (mapping.nice, mapping.sched, mapping.stop_timeout_s) == (0, "normal", 60.0)
+    assert (mapping.nice, mapping.sched, mapping.stop_timeout_s) == (19, "normal", 60.0)
     assert with_defaults(ServiceSpec(name="m", argv=("mapping",), nice=5, stop_timeout_s=2.0)).stop_timeout_s == 2.0
 
 

@@ -124,8 +124,8 @@ def test_up_restarts_a_killed_child_and_stops_everything_on_sigterm(tmp_path):
         child = psutil.Process(first)
         assert child.ppid() == up.proc.pid and child.pid != up.proc.pid
         # its own process group (a terminal's Ctrl-C reaches the supervisor only, which stops the children in
-        # order) but the supervisor's session: with autogroup scheduling each session is a group of its own that
-        # competes at full weight, and a child's nice or SCHED_IDLE would then rank it only within itself
+        # order) in the supervisor's session: the recorder (nice 10) is not on the path to a pose, so it shares the
+        # supervisor's scheduling group, ranked there by its nice (the next test)
         assert os.getpgid(first) == first and os.getsid(first) == os.getsid(up.proc.pid)
         cmd = child.cmdline()  # python -m services.app.cli record <run>/config.yaml --out rec.mcap
         assert cmd[1:4] == ["-m", "services.app.cli", "record"] and cmd[4].endswith("config.yaml") and cmd[5:] == ["--out", str(out)]
@@ -201,18 +201,34 @@ def test_stop_timeout_per_service(tmp_path):
         validate(SupervisorConfig(services=[ServiceSpec(name="x", argv=["record"], stop_timeout_s=-1.0)]), {"record": None})
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="scheduling classes are Linux's")
-def test_child_setup_sets_niceness_and_scheduling_class():
-    """What the supervisor runs in each child before exec: the niceness added and SCHED_IDLE / SCHED_BATCH."""
+@pytest.mark.service
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="scheduling classes and autogroups are Linux's")
+def test_children_get_a_session_nice_class_and_group_nice_of_their_own(tmp_path):
+    """What the supervisor gives each child: the nice of its spec added to the supervisor's (down to the lowest
+    allowed here) and its scheduling class; a child asked for a nice below 0 (the path to a pose) also a session of
+    its own, a scheduling autogroup with that nice, so that it ranks against other programs' processes by it; the
+    others stay in the supervisor's session and group."""
     import os
 
-    code = ("import os, sys; from services.app.supervisor import _child_setup; "
-            "_child_setup(os.getppid(), int(sys.argv[1]), sys.argv[2]); "
-            "print(os.sched_getscheduler(0), os.nice(0))")
-    base = os.nice(0)
-    for sched, nice, policy in (("idle", 0, os.SCHED_IDLE), ("batch", 3, os.SCHED_BATCH), ("normal", 2, os.SCHED_OTHER)):
-        out = subprocess.run([sys.executable, "-c", code, str(nice), sched], cwd=REPO, env=child_env(),
-                             capture_output=True, text=True, timeout=60)
-        assert out.returncode == 0, out.stderr
-        got_policy, got_nice = map(int, out.stdout.split())
-        assert got_policy == policy and got_nice == base + nice, (sched, out.stdout)
+    from services.app.scheduling import lowest_nice
+
+    probe = ("import os, sys\n"
+             "g = open('/proc/self/autogroup').read().split()[-1] if os.path.exists('/proc/self/autogroup') else 'none'\n"
+             "open(sys.argv[1], 'w').write(f'{os.getsid(0) == os.getpid()} {os.getpriority(os.PRIO_PROCESS, 0)} '\n"
+             "                             f'{os.sched_getscheduler(0)} {g}')\n")
+    base, low = os.getpriority(os.PRIO_PROCESS, 0), lowest_nice()
+    mine = int(open("/proc/self/autogroup").read().split()[-1]) if os.path.exists("/proc/self/autogroup") else None
+    sup = Supervisor(SupervisorConfig(start_router=False), tmp_path / "c.yaml", tmp_path)
+    for sched, nice, policy in (("idle", 0, os.SCHED_IDLE), ("batch", 3, os.SCHED_BATCH), ("normal", 19, os.SCHED_OTHER),
+                                ("normal", -10, os.SCHED_OTHER)):
+        result = tmp_path / f"{sched}{nice}.txt"
+        child = Child(ServiceSpec(name="probe", argv=["x"], nice=nice, sched=sched),
+                      [sys.executable, "-c", probe, str(result)])
+        sup._start(child)
+        assert child.proc.wait(timeout=30) == 0
+        out = result.read_text()
+        own_session, got_nice, got_policy, group = out.split()
+        want = max(low, min(19, base + nice))
+        assert own_session == str(nice < 0) and int(got_nice) == want and int(got_policy) == policy, (sched, nice, out)
+        if group != "none":
+            assert int(group) == (want if nice < 0 else mine), (sched, nice, out)

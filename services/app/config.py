@@ -21,9 +21,12 @@ class ServiceSpec:
     window_s: float = param(60.0, "sliding window over which restarts are counted", "s")
     backoff_s: float = param(0.5, "delay before the first restart in the window; doubles with each further one", "s")
     backoff_max_s: float = param(10.0, "longest delay before a restart", "s")
-    nice: int | None = param(None, "OS scheduling niceness added to the process (0..19); e.g. 10 for depth and "
-                             "mapping so that, on a loaded CPU, the estimator's processes get the cores first "
-                             "(null: the process's default, its description's scheduling)")
+    nice: int | None = param(None, "OS scheduling niceness added to the process and given to its scheduling group "
+                             "(-20..19; below the supervisor's own needs CAP_SYS_NICE or a nice limit, else the "
+                             "lowest allowed is used and the supervisor says so); e.g. 19 for depth and mapping so "
+                             "that, on a loaded CPU, the path to a pose gets the cores first (null: the process's "
+                             "default, its description's scheduling: frontend, back end, player and router -10, "
+                             "depth and mapping 19, recorder 10)")
     sched: Literal["default", "normal", "batch", "idle"] = param(
         "default", "Linux scheduling class of the process: 'idle' (SCHED_IDLE) runs it only on CPU time no normal "
         "process wants, so that on two cores depth, mapping and the viewer never delay a pose; 'batch' (SCHED_BATCH) "

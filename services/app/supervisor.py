@@ -2,7 +2,8 @@
 
 Each enabled :class:`ServiceSpec` (its unset scheduling taken from its process's description:
 :func:`services.app.processes.with_defaults`) runs as ``[sys.executable, "-m", "services.app.cli", argv[0], CONFIG,
-*argv[1:]]`` in its own session / process group, where CONFIG is the resolved system config the
+*argv[1:]]`` in its own process group (the path to a pose, nice < 0: in a session and scheduling group of its own,
+services/app/scheduling.py), where CONFIG is the resolved system config the
 supervisor wrote to ``<run_dir>/config.yaml`` (also in ``$SIGMASLAM_CONFIG``; ``$SIGMASLAM_RUN_DIR``
 is the run folder; ``$SIGMASLAM_RESTARTS`` counts the restarts of that service, 0 at its first start). With ``start_router`` the router (``sigmaslam router CONFIG``) starts first.
 
@@ -28,6 +29,7 @@ from pathlib import Path
 
 from services.app.config import ServiceSpec, SupervisorConfig
 from services.app.processes import with_defaults
+from services.app.scheduling import apply_in_child, resolve_nice
 from shared.config import ConfigError
 from services.app.supervision import RESTARTS_ENV
 
@@ -98,8 +100,8 @@ def validate(cfg: SupervisorConfig, known_commands: dict[str, object] | None = N
                               "frontend's process ('sigmaslam frontend' publishes estimator/state); remove this entry")
         if known_commands is not None and spec.enabled and spec.argv[0] not in known_commands:
             raise ConfigError(f"{where}.argv[0]: {spec.argv[0]!r} is not a sigmaslam subcommand ({sorted(known_commands)})")
-        if spec.nice is not None and not 0 <= spec.nice <= 19:
-            raise ConfigError(f"{where}.nice: must be 0..19, got {spec.nice}")
+        if spec.nice is not None and not -20 <= spec.nice <= 19:
+            raise ConfigError(f"{where}.nice: must be -20..19, got {spec.nice}")
         if spec.stop_timeout_s is not None and not spec.stop_timeout_s >= 0:
             raise ConfigError(f"{where}.stop_timeout_s: must be >= 0 s, got {spec.stop_timeout_s}")
         if spec.max_restarts < 0 or spec.window_s <= 0 or spec.backoff_s < 0:
@@ -108,15 +110,13 @@ def validate(cfg: SupervisorConfig, known_commands: dict[str, object] | None = N
 
 # ----------------------------------------------------------------------------- processes
 
-def _child_setup(parent_pid: int, nice: int = 0, sched: str = "normal") -> None:
-    """preexec_fn: lower the child's priority by ``nice`` and put it in scheduling class ``sched`` (Linux); SIGTERM
-    it when the supervisor dies (Linux prctl PR_SET_PDEATHSIG)."""
-    if nice > 0:
-        os.nice(nice)
-    policy = {"batch": getattr(os, "SCHED_BATCH", None), "idle": getattr(os, "SCHED_IDLE", None)}.get(sched)
-    if policy is not None:
-        os.sched_setscheduler(0, policy, os.sched_param(0))
+def _child_setup(parent_pid: int, nice: int = 0, sched: str = "normal", own_group: bool = False) -> None:
+    """preexec_fn: give the child the nice ``nice`` (resolved by the supervisor:
+    :func:`services.app.scheduling.resolve_nice`) and scheduling class ``sched``, and with ``own_group`` (it is in a
+    session of its own) its scheduling group the same nice (Linux); SIGTERM it when the supervisor dies (Linux prctl
+    PR_SET_PDEATHSIG)."""
     if sys.platform.startswith("linux"):
+        apply_in_child(nice, sched, own_group)
         import ctypes
 
         libc = ctypes.CDLL(None, use_errno=True)
@@ -154,8 +154,9 @@ class Supervisor:
         self.children: list[Child] = []
         self.router: Child | None = None
         if cfg.start_router:
+            # the router carries every message, the path to a pose's among them: it ranks with the frontend
             self.router = Child(with_defaults(ServiceSpec(name="router", argv=("router",), restart="always",
-                                                          max_restarts=5, window_s=60.0, backoff_s=0.2)),
+                                                          max_restarts=5, window_s=60.0, backoff_s=0.2, nice=-10)),
                                 self._argv(["router"]))
         self.children = [Child(s, self._argv(s.argv)) for s in cfg.services if s.enabled]
 
@@ -178,13 +179,15 @@ class Supervisor:
         env = self._env()
         env[RESTARTS_ENV] = str(child.tracker.total_restarts)  # > 0: a restart (the back end reports 'reset')
         # a process group of its own (a terminal's Ctrl-C reaches only the supervisor, which stops the children in
-        # order; killpg stops a child's own children) in the supervisor's session: a new session would be a new
-        # scheduler autogroup (Linux), and each autogroup competes at full weight whatever its tasks' nice or
-        # SCHED_IDLE, so depth and mapping would take cores from the frontend (docs/benchmarks.md, stop 33)
-        child.proc = subprocess.Popen(child.argv, env=env, process_group=0,
-                                      preexec_fn=lambda: _child_setup(parent, child.spec.nice, child.spec.sched))
+        # order; killpg stops a child's own children); the path to a pose (asked for nice < 0) in a session of its
+        # own, so a scheduler autogroup of its own (Linux) with its nice, the others in the supervisor's group,
+        # ranked there by their nice (services/app/scheduling.py)
+        own = (child.spec.nice or 0) < 0
+        nice, why = resolve_nice(child.spec.nice or 0)
+        child.proc = subprocess.Popen(child.argv, env=env, start_new_session=own, process_group=None if own else 0,
+                                      preexec_fn=lambda: _child_setup(parent, nice, child.spec.sched, own))
         child.restart_at = None
-        self._status(child, f"started pid {child.proc.pid}")
+        self._status(child, f"started pid {child.proc.pid}, nice {nice}" + (f" ({why})" if why else ""))
 
     def _status(self, child: Child, text: str) -> None:
         line = f"[sigmaslam up] {child.spec.name}: {text}"

@@ -24,7 +24,7 @@ from shared import topics
 from shared.backlog import shed_backlog
 from shared.dataflow import Emit, Input, ProcessNode
 from shared.messages import EstimatorState, FeatureFrame, ImuSample, KeyframeFeatures, StreamEnd
-from shared.process_description import ProcessDescription, Start
+from shared.process_description import ProcessDescription, Scheduling, Start
 
 if TYPE_CHECKING:
     from services.backend.compose import BackendParts
@@ -173,5 +173,8 @@ def _warm_up(node: BackendNode) -> None:
 
 DESCRIPTION = ProcessDescription(
     name="backend", node=BackendNode, build=_build, warm_up=_warm_up, default_pipeline=True, in_process=True,
+    # ahead of other work as the frontend is; SCHED_BATCH: its wake-ups do not preempt the frontend (at nice 10 it
+    # skipped keyframes: docs/results/, stop 46; at nice -5 beside other programs' busy processes too, issue 60)
+    scheduling=Scheduling(nice=-10, sched="batch"),
     help="visual-inertial window estimator: keyframes of frontend/frame + sensors/imu -> estimator/window, "
          "keyframes, landmarks (loop closure, o2p factors)")

@@ -25,7 +25,7 @@ from shared import topics
 from shared.codec import Header
 from shared.dataflow import Emit, Input, ProcessNode
 from shared.messages import DepthFrame, EstimatorState, Keyframes, Landmarks, MultiCameraFrame
-from shared.process_description import ProcessDescription, ProcessStartError, Start
+from shared.process_description import ProcessDescription, ProcessStartError, Scheduling, Start
 
 if TYPE_CHECKING:
     from services.depth.pipeline import DepthPipeline, DepthResult
@@ -187,6 +187,7 @@ def _warm_up(node: DepthNode) -> None:
 
 DESCRIPTION = ProcessDescription(
     name="depth", node=DepthNode, build=_build, warm_up=_warm_up, in_process=True,
+    scheduling=Scheduling(nice=19),  # what the path to a pose and other work leave; runs at depth.rate_hz at most
     ready=lambda node, cfg: f"depth: running ({node.pipe.method}, {node.dc.rate_hz:g} Hz) on namespace "
                             f"{cfg.transport.namespace}",
     help="stereo + MVS depth with learned sigma, fused: sensors/frame -> depth/stereo, depth/fused")

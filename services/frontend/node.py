@@ -26,7 +26,7 @@ from shared import topics
 from shared.backlog import shed_backlog
 from shared.dataflow import Emit, Input, ProcessNode, RejectedMessage
 from shared.messages import EstimatorWindow, FeatureFrame, Header, ImuSample, MultiCameraFrame
-from shared.process_description import ProcessDescription, Start
+from shared.process_description import ProcessDescription, Scheduling, Start
 
 if TYPE_CHECKING:
     from services.frontend.fast_path import FastPath
@@ -174,5 +174,7 @@ def _build(cfg, start: Start) -> FrontendNode:
 
 DESCRIPTION = ProcessDescription(
     name="frontend", node=FrontendNode, build=_build, default_pipeline=True, in_process=True,
+    # the path to a pose: ahead of other work where a negative nice is allowed (services/app/scheduling.py)
+    scheduling=Scheduling(nice=-10),
     help="feature tracker and per-frame fast path: sensors/frame + sensors/imu + estimator/window -> "
          "estimator/state, frontend/frame")

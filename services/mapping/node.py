@@ -319,5 +319,6 @@ DESCRIPTION = ProcessDescription(
     ready=lambda node, cfg: f"mapping: {node.cfg.depth_topic} -> {topics.SUBMAP.key}",
     output=Output(in_run="", help="write mesh.ply, submaps/, map/dense.npz here at exit (overrides "
                                   "mapping.output_dir)"),
-    scheduling=Scheduling(stop_timeout_s=60.0),  # meshes and writes its map when stopped: give it time to finish
+    # what the path to a pose and other work leave; meshes and writes its map when stopped: give it time to finish
+    scheduling=Scheduling(nice=19, stop_timeout_s=60.0),
     help="occupancy submapping: depth + estimator poses -> map/submap meshes, map/field; the map at exit")

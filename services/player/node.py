@@ -7,7 +7,7 @@ import argparse
 
 from shared import topics
 from shared.dataflow import Input, ProcessNode
-from shared.process_description import ProcessDescription
+from shared.process_description import ProcessDescription, Scheduling
 
 
 class PlayerNode(ProcessNode):
@@ -37,4 +37,5 @@ def _play(cfg, args: argparse.Namespace) -> int:
 
 DESCRIPTION = ProcessDescription(
     name="player", node=PlayerNode, main=_play, arguments=_arguments, config_positional=False,
+    scheduling=Scheduling(nice=-10),  # the sensor input: the path to a pose starts here
     help="replay an EuRoC ASL folder or an MCAP recording onto the sensor topics (--lockstep, --realtime, --rate)")

@@ -7,7 +7,7 @@ import argparse
 
 from shared import topics
 from shared.dataflow import Input, ProcessNode
-from shared.process_description import Output, ProcessDescription
+from shared.process_description import Output, ProcessDescription, Scheduling
 
 
 class RecorderNode(ProcessNode):
@@ -30,6 +30,7 @@ def _record(cfg, args: argparse.Namespace) -> int:
 
 DESCRIPTION = ProcessDescription(
     name="recorder", command="record", node=RecorderNode, main=_record, arguments=_arguments,
+    scheduling=Scheduling(nice=10),  # after the pipeline; writes what it has queued when stopped
     output=Output(in_run="recording.mcap",
                   help="output file FILE.mcap (default: <recorder.output_dir>/sigmaslam-<UTC>-<pid>.mcap)"),
     help="record topics to MCAP (with Foxglove mirrors); --recover a cut file")

@@ -13,7 +13,7 @@ import time
 from shared import messages as m
 from shared import topics
 from shared.dataflow import Emit, Input, ProcessNode, RejectedMessage
-from shared.process_description import ProcessDescription, ProcessStartError, Start
+from shared.process_description import ProcessDescription, ProcessStartError, Scheduling, Start
 from shared.ratelimit import RateLimitedLog
 
 log = logging.getLogger("sigmaslam.viewer")
@@ -119,6 +119,7 @@ def _build(cfg, start: Start) -> ViewerNode:
 
 DESCRIPTION = ProcessDescription(
     name="viewer", node=ViewerNode, build=_build,
+    scheduling=Scheduling(sched="idle"),  # CPU time nobody else wants
     ready=lambda node, cfg: f"viewer: http://{cfg.viewer.host}:{node.server.get_port()} (namespace "
                             f"{cfg.transport.namespace})",
     help="web viewer (viser): submap meshes, trajectories, live images, stats")
