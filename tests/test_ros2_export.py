@@ -48,19 +48,26 @@ def test_recording_to_ros2_bag_reads_back(tmp_path):
 
     poses, verts = _recording(tmp_path / "rec.mcap")
     counts = recording_to_ros2(tmp_path / "rec.mcap", tmp_path / "bag")
-    assert counts["odometry"] == 4 and counts["tf"] == 4  # the initialising state is left out
-    assert counts["depth"] == counts["sigma"] == counts["info"] == 5 and counts["tf_static"] == 1
-    assert counts["points"] == counts["mesh"] == counts["path"] == 1
+    # the initialising state is left out; the final trajectory sends one more map -> odom
+    assert counts["odom"] == 4 and counts["tf"] == 5
+    assert counts["depth"] == counts["sigma"] == counts["info"] == 5 and counts["depth_static"] == 1
+    assert counts["map_cloud"] == counts["map_mesh"] == counts["path"] == 1 and counts["tf_static"] >= 1
     with pytest.raises(FileExistsError):
         recording_to_ros2(tmp_path / "rec.mcap", tmp_path / "bag")
     got = {}
     with AnyReader([tmp_path / "bag"]) as r:
         types = {c.topic: c.msgtype for c in r.connections}
-        assert types[TOPICS["odometry"]] == "nav_msgs/msg/Odometry" and types["/tf"] == "tf2_msgs/msg/TFMessage"
+        assert types[TOPICS["odom"]] == "nav_msgs/msg/Odometry" and types["/tf"] == "tf2_msgs/msg/TFMessage"
+        assert TOPICS["odom"] == "/sigmaslam/odom" and TOPICS["tf_static"] == "/tf_static"
         for conn, t, raw in r.messages():
             got.setdefault(conn.topic, []).append((t, r.deserialize(raw, conn.msgtype)))
-    odo = got[TOPICS["odometry"]][1][1]
-    assert (odo.header.frame_id, odo.child_frame_id) == ("world", "body")
+    # every message is logged at its header stamp (sensor time), not at the recording's clock
+    for topic, items in got.items():
+        for t, msg in items:
+            h = msg.transforms[0].header if topic.startswith("/tf") else msg.header
+            assert t == h.stamp.sec * 10**9 + h.stamp.nanosec, topic
+    odo = got[TOPICS["odom"]][1][1]
+    assert (odo.header.frame_id, odo.child_frame_id) == ("odom", "base_link")
     assert odo.header.stamp.sec == 1 and odo.header.stamp.nanosec == 100_000_000
     q = odo.pose.pose.orientation  # yaw 0.2 rad about z, written x, y, z, w
     assert np.allclose([q.x, q.y, q.z, q.w], [0, 0, np.sin(0.1), np.cos(0.1)])
@@ -69,18 +76,19 @@ def test_recording_to_ros2_bag_reads_back(tmp_path):
     assert cov[0, 0] == pytest.approx(4e-4) and cov[3, 3] == pytest.approx(1e-4)  # position block first
     v = odo.twist.twist.linear  # body frame: world x velocity seen from a body yawed by 0.2 rad
     assert [v.x, v.y] == pytest.approx([np.cos(0.2), -np.sin(0.2)])
-    tf = got["/tf"][0][1].transforms[0]
-    assert (tf.header.frame_id, tf.child_frame_id) == ("world", "body")
-    static = got["/tf_static"][0][1].transforms[0]
+    tf = got["/tf"][0][1].transforms
+    assert [(x.header.frame_id, x.child_frame_id) for x in tf] == [("map", "odom"), ("odom", "base_link")]
+    static = next(x for _, s in got["/tf_static"] for x in s.transforms if x.child_frame_id == "depth_camera")
     assert static.child_frame_id == "depth_camera" and static.transform.translation.y == pytest.approx(0.1)
-    cloud = got[TOPICS["points"]][0][1]
+    cloud = got[TOPICS["map_cloud"]][0][1]
+    assert cloud.header.frame_id == "map"
     pts = np.frombuffer(bytes(cloud.data), np.float32).reshape(-1, 3)
     expect = verts.astype(np.float64) @ poses[2][:3, :3].T + poses[2][:3, 3]
     assert cloud.width == 6 and np.allclose(pts, expect, atol=1e-6)
-    marker = got[TOPICS["mesh"]][0][1].markers[0]
+    marker = got[TOPICS["map_mesh"]][0][1]
     assert marker.type == 11 and marker.id == 3 and len(marker.points) == 6  # TRIANGLE_LIST, 2 triangles
     path = got[TOPICS["path"]][0][1]
-    assert len(path.poses) == 3 and path.poses[2].header.stamp.sec == 3
+    assert len(path.poses) == 3 and path.poses[2].header.stamp.sec == 3 and path.header.frame_id == "map"
     img = got[TOPICS["depth"]][0][1]
     depth = np.frombuffer(bytes(img.data), "<f4").reshape(img.height, img.width)
     assert img.encoding == "32FC1" and np.isnan(depth[0, 0]) and depth[1, 1] == 2.0
@@ -101,6 +109,6 @@ def test_the_bag_decodes_with_its_own_schemas(tmp_path):
     with open(files[0], "rb") as f:
         for schema, channel, message, decoded in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages():
             seen[channel.topic] = (schema.name, decoded)
-    assert seen[TOPICS["odometry"]][0] == "nav_msgs/msg/Odometry"
-    assert seen[TOPICS["mesh"]][0] == "visualization_msgs/msg/MarkerArray"
+    assert seen[TOPICS["odom"]][0] == "nav_msgs/msg/Odometry"
+    assert seen[TOPICS["map_mesh"]][0] == "visualization_msgs/msg/Marker"
     assert seen[TOPICS["path"]][1].poses[0].header.stamp.sec == 1

@@ -93,10 +93,13 @@ def _node(**rcfg):
     from services.ros2.node import Ros2Node
 
     sent: list[tuple[str, bytes]] = []
+    stamps: list[int] = []
     cam = CameraCalib("cam0", CameraModel(width=64, height=48, fx=50, fy=50, cx=32, cy=24),
                       make_T(so3_exp(np.array([0.0, 0.1, 0.0])), np.array([0.02, -0.06, 0.01])))
     clock = [0.0]
-    node = Ros2Node(Ros2Config(**rcfg), [cam], lambda k, b: sent.append((k, b)), clock=lambda: clock[0])
+    node = Ros2Node(Ros2Config(**rcfg), [cam], lambda k, b, ns: (sent.append((k, b)), stamps.append(ns)),
+                    clock=lambda: clock[0])
+    node.stamps = stamps
     return node, sent, cam, clock
 
 

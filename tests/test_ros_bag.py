@@ -198,7 +198,7 @@ def test_sigmaslam_run_on_a_ros2_bag(tmp_path, micro):
 
     with AnyReader([tmp_path / "results"]) as r:
         n = {c.topic: c.msgcount for c in r.connections}
-    assert n["/sigmaslam/odometry"] == ate["poses"] and n["/tf"] == ate["poses"] and n["/sigmaslam/path"] == 1, n
+    assert n["/sigmaslam/odom"] == ate["poses"] and n["/tf"] >= ate["poses"] and n["/sigmaslam/path"] >= 1, n
     bad = subprocess.run([sys.executable, "-m", "services.app.cli", "run", str(bag), "--out", str(tmp_path / "x")],
                          cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "no calibration" in bad.stdout + bad.stderr

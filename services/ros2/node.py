@@ -47,7 +47,7 @@ class Ros2Node(ProcessNode):
               Input(topics.MAP_GRID, "on_grid", note="map_grid"))
     outputs = ()
 
-    def __init__(self, rcfg, cameras, sink: Callable[[str, bytes], None], clock=time.monotonic,
+    def __init__(self, rcfg, cameras, sink: Callable[[str, bytes, int], None], clock=time.monotonic,
                  on_close: Callable[[], None] | None = None) -> None:
         from shared.ros2_msgs import Frames, RosMessages
         from shared.ros2_wire import type_store
@@ -65,8 +65,8 @@ class Ros2Node(ProcessNode):
         self.sent = {k: 0 for k in OUTPUT_TYPES}
         self.last_stamp_ns = 0
 
-    def _send(self, output: str, msg) -> None:
-        self.sink(output, self.ros.cdr(msg, OUTPUT_TYPES[output]))
+    def _send(self, output: str, msg, stamp_ns: int) -> None:
+        self.sink(output, self.ros.cdr(msg, OUTPUT_TYPES[output]), int(stamp_ns))
         self.sent[output] += 1
 
     def counters(self) -> dict:
@@ -89,9 +89,9 @@ class Ros2Node(ProcessNode):
             self.causal.popitem(last=False)
         with self.timer("odom_tf"):
             f = self.frames
-            self._send("odom", self.ros.odometry(msg))
+            self._send("odom", self.ros.odometry(msg), ns)
             self._send("tf", self.ros.tf([self.ros.transform(ns, f.map, f.odom, self.T_map_odom),
-                                          self.ros.transform(ns, f.odom, f.base_link, self.ros.base_pose(T_WS))]))
+                                          self.ros.transform(ns, f.odom, f.base_link, self.ros.base_pose(T_WS))]), ns)
 
     def _correct(self, stamps_ns, T_WS) -> None:
         """map -> odom from the newest frame that has both a loop-closed pose (``T_WS``) and a causal one."""
@@ -105,28 +105,28 @@ class Ros2Node(ProcessNode):
         if not len(msg.stamps_ns):
             return
         self._correct(msg.stamps_ns, msg.T_WS)
-        self._send("path", self.ros.path(msg.stamps_ns, msg.T_WS, self.frames.map))
+        self._send("path", self.ros.path(msg.stamps_ns, msg.T_WS, self.frames.map), int(msg.stamps_ns[-1]))
 
     def on_final(self, msg: m.FinalTrajectory) -> None:
         if not len(msg.stamps_ns):
             return
         self._correct(msg.stamps_ns, msg.T_WS)
-        self._send("path", self.ros.path(msg.stamps_ns, msg.T_WS, self.frames.map))
         f = self.frames
         ns = int(msg.stamps_ns[-1])
-        self._send("tf", self.ros.tf([self.ros.transform(ns, f.map, f.odom, self.T_map_odom)]))
+        self._send("path", self.ros.path(msg.stamps_ns, msg.T_WS, self.frames.map), ns)
+        self._send("tf", self.ros.tf([self.ros.transform(ns, f.map, f.odom, self.T_map_odom)]), ns)
 
     def on_landmarks(self, msg: m.Landmarks) -> None:
         p = np.asarray(msg.p_W, np.float64).reshape(-1, 3)
-        self._send("landmarks", self.ros.cloud(int(msg.header.stamp_ns), p[np.all(np.isfinite(p), axis=1)],
-                                               self.frames.odom))
+        ns = int(msg.header.stamp_ns)
+        self._send("landmarks", self.ros.cloud(ns, p[np.all(np.isfinite(p), axis=1)], self.frames.odom), ns)
 
     def on_grid(self, msg: m.OccupancyGrid2D) -> None:
         cells = np.asarray(msg.cells)
         if cells.ndim != 2 or not msg.resolution_m > 0:
             raise RejectedMessage(f"a grid of shape {cells.shape}, resolution {msg.resolution_m}")
         with self.timer("map_grid"):
-            self._send("map_grid", self.ros.occupancy_grid(msg, self.frames.map))
+            self._send("map_grid", self.ros.occupancy_grid(msg, self.frames.map), msg.header.stamp_ns)
 
     def on_submap(self, msg: m.SubmapMesh) -> None:
         self.submaps[int(msg.submap_id)] = msg
@@ -137,7 +137,7 @@ class Ros2Node(ProcessNode):
 
     def tick(self) -> list:
         now = self.clock()
-        if now >= self.next_static:
+        if now >= self.next_static and self.last_stamp_ns > 0:  # stamped by the sensor clock: after a first state
             self.next_static = now + self.rcfg.static_period_s
             self.send_static()
         if self.cloud_dirty and now >= self.next_cloud:
@@ -149,8 +149,9 @@ class Ros2Node(ProcessNode):
             with self.timer("map_mesh"):
                 for sid in sorted(self.changed):
                     s = self.submaps[sid]
-                    self._send("map_mesh", self.ros.mesh_marker(int(s.header.stamp_ns), sid, s.T_WM, s.vertices_M,
-                                                                s.faces, self.frames.map))
+                    ns = int(s.header.stamp_ns)
+                    self._send("map_mesh", self.ros.mesh_marker(ns, sid, s.T_WM, s.vertices_M, s.faces,
+                                                                self.frames.map), ns)
                 self.changed.clear()
         return []
 
@@ -159,7 +160,7 @@ class Ros2Node(ProcessNode):
         f, ns = self.frames, self.last_stamp_ns
         out = [self.ros.transform(ns, f.base_link, f.imu, self.ros.T_BS)]
         out += [self.ros.transform(ns, f.base_link, c.name, self.ros.T_BS @ np.asarray(c.T_SC)) for c in self.cameras]
-        self._send("tf_static", self.ros.tf(out))
+        self._send("tf_static", self.ros.tf(out), ns)
 
     def send_cloud(self) -> None:
         parts = [transform_points(np.asarray(s.T_WM), np.asarray(s.vertices_M, np.float64))
@@ -168,7 +169,7 @@ class Ros2Node(ProcessNode):
         if len(p) > self.rcfg.max_cloud_points:
             p = p[::int(np.ceil(len(p) / self.rcfg.max_cloud_points))]
         ns = max(int(s.header.stamp_ns) for s in self.submaps.values()) if self.submaps else 0
-        self._send("map_cloud", self.ros.cloud(ns, p, self.frames.map))
+        self._send("map_cloud", self.ros.cloud(ns, p, self.frames.map), ns)
 
     def close(self) -> list:
         self.tick()
@@ -208,7 +209,7 @@ def _build(cfg, start: Start) -> Ros2Node:
 
     pubs = {k: ros.publisher(getattr(rcfg.topics, k), t, Qos(transient_local=True, depth=1) if k == "tf_static" else Qos())
             for k, t in OUTPUT_TYPES.items()}
-    node = Ros2Node(rcfg, cameras, lambda k, b: pubs[k].put(b), on_close=ros.close)
+    node = Ros2Node(rcfg, cameras, lambda k, b, ns: pubs[k].put(b), on_close=ros.close)
     node.publishers = pubs
     return node
 
