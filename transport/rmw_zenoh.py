@@ -29,6 +29,16 @@ from shared import ros2_wire as wire
 log = logging.getLogger(__name__)
 
 
+def participant_config(transport_cfg, connect=()) -> zenoh.Config:
+    """The Zenoh config of a ROS 2 side: ``connect`` (``ros2.connect``), else the transport's endpoints (and its
+    JSON5 file); no shared memory (an rmw_zenoh peer need not have it on)."""
+    from transport.session import zenoh_config
+
+    return zenoh_config(dataclasses.replace(transport_cfg, connect=tuple(connect) or transport_cfg.connect,
+                                            shared_memory=False,
+                                            zenoh_json5=transport_cfg.zenoh_json5 if not connect else ""))
+
+
 @dataclasses.dataclass(frozen=True)
 class RosSample:
     """One sample as received: its key's parts, the CDR payload, the attachment bytes (empty when none)."""

@@ -28,12 +28,14 @@ from services.mapping.node import DESCRIPTION as MAPPING
 from services.player.node import DESCRIPTION as PLAYER
 from services.recorder.node import DESCRIPTION as RECORDER
 from services.ros2.node import DESCRIPTION as ROS2
+from services.ros2_input.node import DESCRIPTION as ROS2_INPUT
 from services.viewer.node import DESCRIPTION as VIEWER
 from shared.process_description import ProcessDescription, Start
 
 # one line per process; the in-process pipeline runs its nodes in this order (the frontend's fast path before the
 # back end: a keyframe's state comes from the previous window, as in a live run)
-PROCESSES: tuple[ProcessDescription, ...] = (PLAYER, FRONTEND, BACKEND, DEPTH, MAPPING, VIEWER, RECORDER, ROS2)
+PROCESSES: tuple[ProcessDescription, ...] = (PLAYER, FRONTEND, BACKEND, DEPTH, MAPPING, VIEWER, RECORDER, ROS2,
+                                              ROS2_INPUT)
 
 
 def by_command(command: str) -> ProcessDescription | None:

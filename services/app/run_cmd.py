@@ -61,6 +61,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--record", action="store_true", help="also record every topic to DIR/recording.mcap")
     p.add_argument("--ros2-bag", metavar="BAG", default=None, help="also write the results as a ROS 2 bag (MCAP "
                    "storage, standard messages: services/app/datasets/ros2_export.py) to the new folder BAG; implies --record")
+    p.add_argument("--ros2-input", action="store_true", help="feed the pipeline through ROS 2: the player plays the "
+                   "dataset as a ROS 2 robot (--as-ros2) and sigmaslam ros2_input reads its topics (ros2.input; "
+                   "= --set ros2.input.enabled=true)")
     p.add_argument("--player-arg", action="append", default=[], metavar="ARG",
                    help="extra argument for the player (repeatable), e.g. --player-arg=--max-frames=200")
     p.add_argument("--settle-s", type=float, default=5.0, help="after the player ended, stop when no state came "
@@ -141,6 +144,8 @@ def main(args: argparse.Namespace) -> int:
         return 2
     if getattr(args, "ros2_bag", None):
         args.record = True
+    if getattr(args, "ros2_input", False):
+        args.set = [*args.set, "ros2.input.enabled=true"]
     rate = args.rate if getattr(args, "rate", 0.0) > 0 else (1.0 if args.realtime else 0.0)
     res = run_pipeline(dataset, out, args.config, args.set, rate=rate, record=args.record,
                        saved_map=str(Path(saved).resolve()) if saved else None,

@@ -95,6 +95,8 @@ def pipeline_services(cfg, dataset: str, out: Path, rate: float, record: bool,
     if record and not any(s.argv and s.argv[0] == "record" for s in services):  # asked for, but not configured
         services.append(ServiceSpec(name="recorder", argv=("record", "--out", str(out / "recording.mcap")),
                                     restart="never"))
+    if cfg.ros2.input.enabled:  # the sensors come over ROS 2: the player is the stand-in robot
+        player_args = ["--as-ros2", *player_args]
     mode = ["--rate", f"{rate:g}"] if rate > 0 else ["--lockstep"]
     # the player waits for each service's heartbeat, which carries its node's name
     wait = ["--wait-for", ",".join(processes.heartbeat_name(s.argv[0]) for s in services)] if services else []

@@ -23,11 +23,13 @@ from shared.config import override, to_yaml
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("config", nargs="?", help="YAML system config (e.g. configs/default.yaml; default: built-in defaults)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config field")
+    p.add_argument("--ros2-input", action="store_true", help="read the robot's camera and IMU topics over ROS 2 "
+                   "(sigmaslam ros2_input, topics in ros2.input; = --set ros2.input.enabled=true)")
     p.add_argument("--run-dir", metavar="DIR", help="folder of this run (default: <supervisor.run_dir>/<UTC>-<pid>)")
 
 
 def main(args: argparse.Namespace) -> int:
-    cfg = load_system_config(args.config, args.set)
+    cfg = load_system_config(args.config, [*args.set, *(["ros2.input.enabled=true"] if args.ros2_input else [])])
     extra = processes.switched_on(cfg, cfg.supervisor.services)  # e.g. ros2.enabled: the ROS 2 face
     if extra:
         cfg = override(cfg, {"supervisor.services": [*cfg.supervisor.services, *extra]})

@@ -53,6 +53,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--paused", action="store_true", help="start paused; a 'resume' on the control topic starts playing")
     p.add_argument("--wait-for", default="", help="comma-separated services whose heartbeat must be seen first")
     p.add_argument("--wait-timeout-s", type=float, default=60.0, help="longest wait for --wait-for [s]")
+    p.add_argument("--as-ros2", action="store_true", help="a stand-in ROS 2 robot: the frames and IMU samples as "
+                   "ROS 2 sensor messages over rmw_zenoh on the topics of ros2.input (services/player/ros2_out.py), "
+                   "not on sensors/*; sensors/end still marks the end")
+    p.add_argument("--ros2-encoding", default="mono8", choices=("mono8", "bgr8", "rgb8", "jpeg"),
+                   help="--as-ros2: raw image encoding, or jpeg for the compressed topics (default PNG)")
 
 
 def _wait_for_services(node: Node, names: list[str], timeout_s: float) -> bool:
@@ -94,8 +99,8 @@ def play(cfg, args: argparse.Namespace) -> int:
     timeout_s = pc.lockstep_timeout_s if args.lockstep_timeout_s is None else args.lockstep_timeout_s
     max_frames = pc.max_frames if args.max_frames is None else args.max_frames
     with Node("player", cfg.transport, declared=PlayerNode) as node:
-        imu_pub = node.publisher(topics.IMU)
-        frame_pub = node.publisher(topics.FRAME)
+        robot = _ros2_robot(cfg, args) if getattr(args, "as_ros2", False) else None  # a stand-in ROS 2 robot
+        imu_pub, frame_pub = (robot.imu, robot.frame) if robot else (node.publisher(topics.IMU), node.publisher(topics.FRAME))
         end_pub = node.publisher(topics.STREAM_END)
         states = node.subscriber(topics.STATE, policy="latest", depth=64) if lockstep else None
         control = PlayerControl(node, paused=args.paused or pc.start_paused)
@@ -150,7 +155,22 @@ def play(cfg, args: argparse.Namespace) -> int:
         print(f"player: {frames} frames sent ({timeouts} lockstep timeouts)"
               + (f"; dataset: {skipped}" if skipped else ""), flush=True)
         node.wait(pc.end_linger_s)
+        if robot is not None:
+            robot.close()
     return 0
+
+
+def _ros2_robot(cfg, args):
+    """The stand-in robot's publishers (services/player/ros2_out.py), CameraInfo from the dataset's calibration."""
+    from services.player.ros2_out import RosRobot
+    from shared.camera import CalibrationError, load_rig
+
+    try:
+        cameras = load_rig(args.dataset)
+    except (CalibrationError, FileNotFoundError, OSError) as exc:
+        log.warning("player --as-ros2: no calibration in %s (%s): no CameraInfo", args.dataset, exc)
+        cameras = []
+    return RosRobot(cfg, cameras, args.ros2_encoding)
 
 
 class PlayerControl:

@@ -180,19 +180,8 @@ class Ros2Node(ProcessNode):
         return []
 
 
-def participant_config(cfg):
-    """The Zenoh config of the ROS 2 side: ``ros2.connect``, else the transport's endpoints (no shared memory)."""
-    import dataclasses
-
-    from transport.session import zenoh_config
-
-    rcfg, tcfg = cfg.ros2, cfg.transport
-    return zenoh_config(dataclasses.replace(tcfg, connect=tuple(rcfg.connect) or tcfg.connect, shared_memory=False,
-                                            zenoh_json5=tcfg.zenoh_json5 if not rcfg.connect else ""))
-
-
 def _build(cfg, start: Start) -> Ros2Node:
-    from transport.rmw_zenoh import RosParticipant
+    from transport.rmw_zenoh import RosParticipant, participant_config
 
     rcfg = cfg.ros2
     try:
@@ -201,7 +190,7 @@ def _build(cfg, start: Start) -> Ros2Node:
         log.warning("no rig for tf_static's cameras (%s): the IMU only", exc)
         cameras = []
     try:
-        ros = RosParticipant(participant_config(cfg), rcfg.domain_id, rcfg.namespace, rcfg.node_name,
+        ros = RosParticipant(participant_config(cfg.transport, rcfg.connect), rcfg.domain_id, rcfg.namespace, rcfg.node_name,
                              rcfg.attachment).open()
     except Exception as exc:  # zenoh raises its own error type for an unreachable or malformed endpoint
         raise ProcessStartError(f"cannot join the ROS 2 network {rcfg.connect or cfg.transport.connect}: {exc}") from exc

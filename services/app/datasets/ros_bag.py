@@ -17,18 +17,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
 
-import cv2
 import numpy as np
 
+from shared import ros2_sensors
 from shared.euroc_reader import DatasetError
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 IMU_TYPE = "sensor_msgs/msg/Imu"
-# ROS Bayer names -> OpenCV codes (OpenCV names the pattern by the second row's first two pixels)
-BAYER = {"bayer_rggb8": cv2.COLOR_BayerBG2GRAY, "bayer_bggr8": cv2.COLOR_BayerRG2GRAY,
-         "bayer_gbrg8": cv2.COLOR_BayerGR2GRAY, "bayer_grbg8": cv2.COLOR_BayerGB2GRAY}
-COLOUR = {"bgr8": (3, cv2.COLOR_BGR2GRAY), "rgb8": (3, cv2.COLOR_RGB2GRAY), "bgra8": (4, cv2.COLOR_BGRA2GRAY),
-          "rgba8": (4, cv2.COLOR_RGBA2GRAY)}
 
 
 class BagError(DatasetError):
@@ -102,35 +97,15 @@ def choose_topics(topics: dict[str, tuple[str, int]], cams: list[str] | None = N
 
 
 def image_to_grey(msg, msgtype: str) -> np.ndarray:
-    """8-bit grey image of an Image or CompressedImage message; BagError for an encoding it does not know."""
-    if msgtype.endswith("CompressedImage"):
-        img = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            raise BagError(f"CompressedImage ({msg.format!r}) could not be decoded")
-        if img.dtype == np.uint16:
-            img = (img >> 8).astype(np.uint8)
-        return img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
-    enc, h, w, step = msg.encoding.lower(), int(msg.height), int(msg.width), int(msg.step)
-    data = np.frombuffer(bytes(msg.data), np.uint8)
-    if data.size < h * step:
-        raise BagError(f"Image {w}x{h} ({enc}): {data.size} bytes, step {step} needs {h * step}")
-    rows = data[: h * step].reshape(h, step)
-    if enc in ("mono8", "8uc1"):
-        return rows[:, :w].copy()
-    if enc in ("mono16", "16uc1"):
-        px = rows[:, : 2 * w].copy().view(">u2" if msg.is_bigendian else "<u2")
-        return (px >> 8).astype(np.uint8)  # the top byte, as cv_bridge's mono16 -> mono8
-    if enc in BAYER:
-        return cv2.cvtColor(rows[:, :w].copy(), BAYER[enc])
-    if enc in COLOUR:
-        ch, code = COLOUR[enc]
-        return cv2.cvtColor(rows[:, : ch * w].reshape(h, w, ch).copy(), code)
-    raise BagError(f"image encoding {msg.encoding!r} not supported (mono8, mono16, bgr8, rgb8, bgra8, rgba8, "
-                   f"bayer_rggb8/bggr8/gbrg8/grbg8, or CompressedImage)")
+    """8-bit grey image of an Image or CompressedImage message (shared/ros2_sensors.py); BagError for an encoding
+    it does not know."""
+    try:
+        return ros2_sensors.image_to_grey(msg, msgtype)
+    except ros2_sensors.UnreadableImage as exc:
+        raise BagError(str(exc)) from None
 
 
-def _stamp_ns(msg) -> int:
-    return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+_stamp_ns = ros2_sensors.stamp_ns
 
 
 def match_stereo(stamps: list[np.ndarray], tolerance_ns: int) -> tuple[np.ndarray, list[int]]:
