@@ -246,6 +246,10 @@ def format_report(res: dict) -> str:
         lines.append(f"| {k} | {p['cpu_mean_pct']:.0f} | {p['cpu_p90_pct']:.0f} | {p['machine_share']:.2f} | "
                      f"{_f(p.get('main_thread_run_pct'), '.0f')} / {_f(p.get('main_thread_wait_pct'), '.0f')} | "
                      f"{p['rss_median_mb']:.0f} | {p['rss_peak_mb']:.0f} |")
+    face = res["processes"].get("ros2")
+    if face is not None:  # --set ros2.enabled=true: what the ROS 2 face adds (docs/ros2.md; target <= 10 % of a core)
+        lines += ["", f"ROS 2 face (sigmaslam ros2): CPU mean {face['cpu_mean_pct']:.1f} % of a core, p90 "
+                      f"{face['cpu_p90_pct']:.1f} % (target <= 10 %) at {_f(res['sensor_rate_hz'])} Hz of frames"]
     drops = {k: v["dropped"] for k, v in res["drops"]["queues"].items() if v.get("dropped")}
     lines += ["", f"queue drops: {drops or 'none'}; estimator frames dropped: {res['drops']['estimator_frames']}; "
               f"states: {res['states']}"]
