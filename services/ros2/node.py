@@ -150,8 +150,9 @@ class Ros2Node(ProcessNode):
                 for sid in sorted(self.changed):
                     s = self.submaps[sid]
                     ns = int(s.header.stamp_ns)
-                    self._send("map_mesh", self.ros.mesh_marker(ns, sid, s.T_WM, s.vertices_M, s.faces,
-                                                                self.frames.map), ns)
+                    self.sink("map_mesh", self.ros.mesh_marker_cdr(ns, sid, s.T_WM, s.vertices_M, s.faces,
+                                                                   self.frames.map), ns)
+                    self.sent["map_mesh"] += 1
                 self.changed.clear()
         return []
 
