@@ -16,7 +16,7 @@ import queue
 
 from shared import topics
 from shared.dataflow import ProcessNode
-from shared.process_description import ProcessDescription
+from shared.process_description import ProcessDescription, Scheduling
 
 log = logging.getLogger("sigmaslam.ros2_input")
 MAX_QUEUED = 512  # samples waiting for the main thread beyond which new ones are dropped (counted)
@@ -89,4 +89,5 @@ def _run(cfg, args: argparse.Namespace) -> int:
 
 DESCRIPTION = ProcessDescription(
     name="ros2_input", node=Ros2InputNode, main=_run, switch="ros2.input.enabled",
+    scheduling=Scheduling(nice=-10),  # the sensor input, as the player: the path to a pose starts here
     help="live ROS 2 input: a robot's camera and IMU topics (rmw_zenoh on Zenoh) as sensors/frame and sensors/imu")
