@@ -25,7 +25,6 @@ import argparse
 import json
 import os
 import sys
-import threading
 import uuid
 from pathlib import Path
 
@@ -33,6 +32,7 @@ import numpy as np
 
 from tools.bench_budgets import check_budgets, format_table, load_budgets
 from tools.bench_load import BusyLoad, parse_cpus, pinned
+from tools.bench_probe import Probe
 from services.app.metrics.stages import stage_items
 from services.app.run_pipeline import frames_within
 from services.app.metrics.latency import ArrivalLog, first_arrivals, map_latencies, matched_latencies, summary
@@ -70,27 +70,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 # ----------------------------------------------------------------------------- one run
 
-def _probe(log: ArrivalLog, transport_cfg, stop: threading.Event, ready: threading.Event) -> None:
-    from shared import topics
-    from transport.node import Node
-
-    with Node("bench", transport_cfg, handle_signals=False) as node:
-        node.subscriber(topics.FRAME, handler=log.handler("frame"))
-        node.subscriber(topics.STATE, policy="all", handler=log.handler("state"))
-        node.subscriber(topics.FEATURES, policy="all", handler=log.handler("features"))
-        node.subscriber(topics.DEPTH_FUSED, handler=log.handler("depth"))
-        node.subscriber(topics.SUBMAP, handler=log.handler("map"))
-        ready.set()
-        stop.wait()
-
-
 def run_once(dataset: Path, out: Path, rate: float, seconds: float, services: str, config: str | None,
              sets: list[str], timeout_s: float, load: int = 0, cpus: list[int] | None = None) -> dict:
     """One measured pipeline run into ``out`` (``rate`` <= 0: lockstep) beside ``load`` busy processes on ``cpus``
     (this process is already pinned there, see :func:`main`); returns the raw measurements (see :func:`summarise`)."""
     from services.app.run_outputs import find_ground_truth
     from services.app.run_pipeline import run_pipeline, services_overrides
-    from services.app.system_config import load_system_config
 
     out.mkdir(parents=True, exist_ok=True)
     port = free_local_port()
@@ -98,23 +83,16 @@ def run_once(dataset: Path, out: Path, rate: float, seconds: float, services: st
                  f"transport.connect=[tcp/127.0.0.1:{port}]", f"transport.router_listen=[tcp/127.0.0.1:{port}]",
                  "loop.final_ba=false",  # the bench measures the real-time part; --set loop.final_ba=true to add it
                  *services_overrides(services), *sets]
-    transport_cfg = load_system_config(config, overrides).transport
     frames = frames_within(dataset, seconds)
-    log, stop, ready = ArrivalLog(), threading.Event(), threading.Event()
-    probe = threading.Thread(target=_probe, args=(log, transport_cfg, stop, ready), name="bench-probe", daemon=True)
-    probe.start()
-    ready.wait(30.0)
     load_before = os.getloadavg()
-    try:
+    with Probe(config, overrides, out / "arrivals.npz") as probe:
         with BusyLoad(load, cpus) as busy:
             if load:
                 print(f"[bench pipeline] {load} busy process(es) at normal priority: pids {busy.pids}", flush=True)
             res = run_pipeline(dataset, out / "run", config, overrides, rate=max(rate, 0.0), max_frames=frames,
                                timeout_s=timeout_s, final_timeout_s=120.0, stage_log=out / "stage_log",
                                sample_processes=True, gt=find_ground_truth(dataset))
-    finally:
-        stop.set()
-        probe.join(timeout=10)
+    log = probe.log
     machine = {"cpus": cpus, "load": load, "loadavg_before": list(load_before), "loadavg_after": list(os.getloadavg())}
     return {"rc": res.rc, "wall_s": res.wall_s, "rate": rate, "frames_requested": frames, "dataset": str(dataset),
             "log": log, "sampler": res.sampler, "stage_dir": res.stage_dir, "run_stats": res.stats,

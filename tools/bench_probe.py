@@ -1,0 +1,100 @@
+"""The pipeline bench's subscriber, a process of its own: when each frame, state, set of tracks, depth frame and submap
+arrived (wall time, per header stamp), for the latencies of tools/bench_pipeline.py.
+
+It runs where a consumer of poses would: a program of its own, at the priority of the path to a pose
+(services/app/scheduling.py: nice -10 in a scheduling group of its own where allowed). In the bench's process it shared
+the group of depth and mapping, and on one busy core it saw frames seconds late: latencies below zero.
+
+``python -m tools.bench_probe --config C --set K=V ... --out arrivals.npz`` prints ``ready`` once subscribed and
+writes ``arrivals.npz`` (``<name>_stamp_ns``, ``<name>_arrival_ns`` per topic name) when it gets SIGTERM.
+:class:`Probe` starts and reads it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from services.app.metrics.latency import ArrivalLog
+
+NAMES = ("frame", "state", "features", "depth", "map")
+
+
+class Probe:
+    """``with Probe(config, sets, out_npz) as probe:`` the subscriber process runs; ``probe.log`` holds its arrivals
+    once the block has ended."""
+
+    def __init__(self, config: str | None, sets: list[str], out_npz: Path, ready_timeout_s: float = 60.0) -> None:
+        self.argv = [sys.executable, "-m", "tools.bench_probe", "--out", str(out_npz),
+                     *(["--config", config] if config else []), *(a for s in sets for a in ("--set", s))]
+        self.out_npz, self.ready_timeout_s = Path(out_npz), ready_timeout_s
+        self.log = ArrivalLog()
+        self.proc: subprocess.Popen | None = None
+
+    def __enter__(self) -> "Probe":
+        from services.app.scheduling import apply_in_child, resolve_nice
+
+        nice, why = resolve_nice(-10)
+        if why:
+            print(f"[bench pipeline] probe: {why}", flush=True)
+        self.out_npz.unlink(missing_ok=True)
+        self.proc = subprocess.Popen(self.argv, stdout=subprocess.PIPE, text=True, start_new_session=True,
+                                     preexec_fn=lambda: apply_in_child(nice, "normal", True))
+        ready = threading.Event()
+        threading.Thread(target=lambda: self.proc.stdout.readline().strip() == "ready" and ready.set(),
+                         daemon=True).start()
+        if not ready.wait(self.ready_timeout_s):
+            self.proc.kill()
+            raise RuntimeError(f"bench probe not subscribed within {self.ready_timeout_s:g} s")
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.proc.send_signal(signal.SIGTERM)
+        try:
+            self.proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        if self.out_npz.is_file():
+            with np.load(self.out_npz) as z:
+                for name in NAMES:
+                    for s, t in zip(z[f"{name}_stamp_ns"].tolist(), z[f"{name}_arrival_ns"].tolist()):
+                        self.log.add(name, s, t)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m tools.bench_probe", description=__doc__.splitlines()[0])
+    p.add_argument("--config")
+    p.add_argument("--set", action="append", default=[])
+    p.add_argument("--out", required=True)
+    args = p.parse_args(argv)
+    from services.app.system_config import load_system_config
+    from shared import topics
+    from transport.node import Node
+
+    log, stop = ArrivalLog(), threading.Event()
+    signal.signal(signal.SIGTERM, lambda *a: stop.set())
+    with Node("bench", load_system_config(args.config, args.set).transport, handle_signals=False) as node:
+        node.subscriber(topics.FRAME, handler=log.handler("frame"))
+        node.subscriber(topics.STATE, policy="all", handler=log.handler("state"))
+        node.subscriber(topics.FEATURES, policy="all", handler=log.handler("features"))
+        node.subscriber(topics.DEPTH_FUSED, handler=log.handler("depth"))
+        node.subscriber(topics.SUBMAP, handler=log.handler("map"))
+        print("ready", flush=True)
+        while not stop.wait(0.5):
+            pass
+    arrays = {}
+    for name in NAMES:
+        arrays[f"{name}_stamp_ns"], arrays[f"{name}_arrival_ns"] = log.get(name)
+    np.savez(args.out, **arrays)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
