@@ -81,3 +81,39 @@ def test_run_health_counts_what_the_machine_cost():
     assert "0 of 501 frames without a state" in line and "p50 20.0 / p99 48.5 ms" in line and "(3.2 Hz)" in line
     assert "causal ATE 0.0123 m" in line
     assert "causal ATE -" in format_health({**res, "health": run_health(res, run_stats, None)})
+
+
+@pytest.mark.service
+def test_bench_probe_logs_arrivals_from_a_process_of_its_own(zenoh_router, monkeypatch, tmp_path):
+    """The bench's subscriber (tools/bench_probe.py) is a child process at the path to a pose's priority: the states
+    published while it runs come back as arrivals per stamp, in a session and scheduling group of its own."""
+    import numpy as np
+
+    from helpers_zenoh import REPO, child_env, wait_for
+    from services.app.scheduling import lowest_nice
+    from shared import messages as m
+    from shared import topics
+    from tools.bench_probe import Probe
+    from transport.node import Node
+
+    monkeypatch.chdir(REPO)
+    monkeypatch.setenv("PYTHONPATH", child_env()["PYTHONPATH"])
+    cfg = zenoh_router
+    sets = [f"transport.namespace={cfg.namespace}", f"transport.connect=[{cfg.connect[0]}]"]
+    stamps = [1_000_000_000 + k * 50_000_000 for k in range(5)]
+    t0 = time.time_ns()
+    with Node("talker", cfg, handle_signals=False) as node, Probe(None, sets, tmp_path / "arrivals.npz") as probe:
+        assert os.getsid(probe.proc.pid) == probe.proc.pid
+        assert psutil.Process(probe.proc.pid).nice() == max(-10, lowest_nice())
+        pub = node.publisher(topics.STATE)
+        assert pub.wait_for_subscribers(10.0)
+        for s in stamps:
+            pub.publish(m.EstimatorState(header=m.Header(stamp_ns=s), T_WS=np.eye(4), v_W=np.zeros(3),
+                                     gyro_bias=np.zeros(3), acc_bias=np.zeros(3), covariance=np.eye(15)))
+            time.sleep(0.02)
+        time.sleep(0.5)
+    got, arrivals = probe.log.get("state")
+    assert got.tolist() == stamps and np.all(arrivals >= t0) and np.all(np.diff(arrivals) >= 0)
+    assert probe.log.get("frame")[0].size == 0 and probe.proc.returncode == 0
+    assert wait_for(lambda: not psutil.pid_exists(probe.proc.pid) or
+                    psutil.Process(probe.proc.pid).status() == psutil.STATUS_ZOMBIE, 5.0)

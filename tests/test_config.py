@@ -123,6 +123,18 @@ def test_the_real_camera_config_is_the_demo_with_the_real_image_stereo_weights()
     assert dataclasses.replace(real, depth=demo.depth) == demo
 
 
+def test_the_small_computer_config_is_the_demo_cheaper_and_without_the_viewer():
+    demo, small = load_system_config("configs/demo.yaml"), load_system_config("configs/small.yaml")
+    assert [s.argv[0] for s in small.supervisor.services] == ["frontend", "backend", "depth", "mapping"]
+    assert not small.loop.enabled and not small.frontend.orb_descriptors  # the descriptors serve loop closure only
+    assert small.depth.rate_hz < demo.depth.rate_hz and small.mapping.mesh_period_s > demo.mapping.mesh_period_s
+    assert small.frontend.max_features_per_camera < demo.frontend.max_features_per_camera
+    assert small.backend.window_keyframes < demo.backend.window_keyframes
+    # everything else is the demo's: the depth network, the map, the rig
+    assert small.depth.stereo_weights == demo.depth.stereo_weights and small.mapping.sensor == demo.mapping.sensor
+    assert small.rig == demo.rig and small.o2p == demo.o2p
+
+
 def test_overrides():
     assert parse_override("a.b=3") == {"a": {"b": 3}}
     cfg = load_system_config(None, ["transport.namespace=sigmaslam/r2", "transport.shared_memory=false"])
