@@ -176,6 +176,7 @@ class Ros2Node(ProcessNode):
         self.tick()
         if self.cloud_dirty:
             self.send_cloud()
+        log.info("ros2: sent %s", ", ".join(f"{k} {v}" for k, v in self.sent.items()))
         if self.on_close is not None:
             self.on_close()
         return []
