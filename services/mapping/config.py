@@ -62,12 +62,29 @@ class QueryConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class GridConfig:
+    """The 2D occupancy grid of the combined map over a height band of W (services/mapping/grid.py): published on
+    map/grid, written by ``sigmaslam run --out`` and ``sigmaslam map grid``."""
+
+    period_s: float = param(1.0, "the live grid goes out on map/grid this often (<= 0: never)", "s")
+    resolution_m: float = param(0.05, "cell edge length (at least the voxel size)", "m")
+    band_min_m: float = param(0.1, "lower end of the height band, above the floor", "m")
+    band_max_m: float = param(1.5, "upper end of the height band, above the floor", "m")
+    floor: Literal["map", "fixed"] = param("map", "'map': the floor is the fullest horizontal layer of occupied "
+                                           "voxels in the lower half of the map; 'fixed': floor_z_m")
+    floor_z_m: float = param(0.0, "height of the floor in W with floor: fixed", "m")
+    min_free_fraction: float = param(0.95, "a cell with no occupied or uncertain voxel in the band is free when at "
+                                     "least this fraction of its band is observed free (else unknown)")
+
+
+@dataclasses.dataclass(frozen=True)
 class MappingConfig:
     """The ``sigmaslam mapping`` service: inputs, poses, outputs."""
 
     sensor: SensorModelConfig = param(SensorModelConfig(), "inverse sensor model and voxel size")
     submaps: SubmapConfig = param(SubmapConfig(), "submap switching and meshing")
     query: QueryConfig = param(QueryConfig(), "occupancy queries of the combined map (map/query, grid, exports)")
+    grid: GridConfig = param(GridConfig(), "the 2D occupancy grid over a height band (map/grid, occupancy_grid.pgm)")
     depth_topic: Literal["depth/stereo", "depth/fused"] = param("depth/stereo", "depth input topic (why stereo: "
                                                                 "docs/mapping.md)")
     pose_source: Literal["estimator", "frame"] = param("estimator", "'estimator': T_WS(stamp) from estimator/state; 'frame': the DepthFrame's T_WC (ground-truth-pose runs; falls back to the estimator when T_WC is identity)")
