@@ -22,7 +22,8 @@ APP_COMMANDS: dict[str, tuple[str, str]] = {
     "health": ("services.app.health_cmd", "exit 0 when a service's heartbeat (or the router) is seen on the bus"),
     "eval": ("services.app.eval.cmd", "evaluations against ground truth: ate, mesh, hilti, ablation (Table IV), suite (the "
              "paper's tables), relocalise"),
-    "map": ("services.app.map_cmd", "saved maps: info DIR (what a map holds), merge A B OUT (one map of two)"),
+    "map": ("services.app.map_cmd", "saved maps: info DIR (what a map holds), merge A B OUT (one map of two), grid DIR "
+                                    "(2D occupancy grid), export DIR (occupancy voxels)"),
     "synth": ("services.app.synth.synth_cmd", "render a synthetic EuRoC replica (images, GT depth, mesh, IMU) of a real sequence"),
     "convert": ("services.app.datasets.convert_cmd", "convert a dataset: EuRoC ASL folder <-> sigmaslam MCAP recording; ROS "
                 "bag -> EuRoC folder"),

@@ -1,4 +1,5 @@
-"""``sigmaslam map info DIR`` and ``sigmaslam map merge A B OUT``: saved maps (docs/maps.md).
+"""``sigmaslam map info DIR``, ``sigmaslam map merge A B OUT``, ``sigmaslam map grid DIR`` and ``sigmaslam map
+export DIR``: saved maps (docs/maps.md; grid and export: services/app/map_occupancy_cmd.py, docs/occupancy.md).
 
 A saved map is the folder ``DIR/map/`` every ``sigmaslam run --out DIR`` writes (shared/map_folder.py): the back
 end's ``sparse.npz`` (keyframes, features, landmarks, pose graph: services/backend/loop/saved_map.py) and the
@@ -35,6 +36,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     q.add_argument("out", help="output folder: the merged map goes to OUT/map/")
     q.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a loop.* config field of the matching (e.g. loop.relocalise_confirmations=3)")
+    from services.app.map_occupancy_cmd import add_parsers
+
+    add_parsers(sub)
 
 
 def _dense_summary(path: Path) -> dict | None:
@@ -124,6 +128,10 @@ def main(args: argparse.Namespace) -> int:
     from services.backend.loop.saved_map import SparseMapError
     from services.mapping.io import MapFileError
 
+    if args.map_command in ("grid", "export"):
+        from services.app.map_occupancy_cmd import main as occupancy_main
+
+        return occupancy_main(args)
     if args.map_command == "info":
         try:
             info = map_info(args.dir)

@@ -181,3 +181,27 @@ def write_ate(out: Path, traj: PoseSeries, final_traj: PoseSeries | None, gt: Pa
         (out / "ate.json").write_text(json.dumps(ate, indent=2))
         print(ate_line("non-causal", ate["non_causal"]), flush=True)
     return ate
+
+
+def write_occupancy_voxels(out: Path, query_cfg=None) -> dict | None:
+    """DIR/occupancy_voxels.npz and DIR/occupied_voxels.ply of the run's saved map (DIR/map/dense.npz), written after
+    the pipeline (services/mapping/voxel_export.py); None when the run saved no dense map."""
+    import time
+
+    from services.mapping.combined import CombinedMap
+    from services.mapping.io import MapFileError, load_map
+    from services.mapping.voxel_export import write_voxels
+    from shared.map_folder import dense_path
+
+    path = dense_path(out)
+    if not path.is_file():
+        return None
+    t0 = time.monotonic()
+    try:
+        npz, ply, n = write_voxels(CombinedMap.of(load_map(path), query_cfg), out)
+    except MapFileError as exc:
+        print(f"[sigmaslam run] no occupancy voxels: {exc}", flush=True)
+        return None
+    print(f"[sigmaslam run] wrote {npz.name} ({n['occupied']} occupied, {n['free']} free voxels) and {ply.name} "
+          f"({time.monotonic() - t0:.1f} s)", flush=True)
+    return n

@@ -26,7 +26,7 @@ from services.app.cli import command_names
 from services.app.config import ServiceSpec
 from services.app.run_collector import Collection, RunCollectorNode, collect, subscribe, wait_final
 from services.app.run_outputs import (causal_trajectory, frame_comment, loop_summary, stats_summary, write_ate,
-                                      write_final, write_refined_extrinsics)
+                                      write_final, write_occupancy_voxels, write_refined_extrinsics)
 from services.app.supervisor import Supervisor, validate
 from services.app.system_config import load_system_config
 from shared.config import override, to_yaml
@@ -238,6 +238,7 @@ def _write(out: Path, cfg, col: Collection, why: str, final, wall: float, saved:
     if final is not None:
         print(f"[sigmaslam run] final trajectory: {summary['loops']}", flush=True)
     (out / "stats.json").write_text(json.dumps(summary, indent=2))
+    write_occupancy_voxels(out, cfg.mapping.query)
     _closing_lines(summary, traj, why, wall)
     rc, ate = (0 if why == "done" else 1), None
     if len(traj.stamps_ns) < 3:

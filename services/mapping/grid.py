@@ -180,6 +180,16 @@ def _raster(sm, band, res, q: QueryConfig):
     return int(cx0), int(cy0), occ, unsure, n_free
 
 
+def warm_up() -> None:
+    """Load the compiled rasteriser (numba's on-disk cache) on one empty block, so that the first live grid does not
+    pay for it."""
+    b = 8
+    occ = np.zeros((1, 1), bool)
+    _rasterise(np.zeros((1, 3), np.int64), np.zeros(1, np.float32), np.zeros(1, np.uint16), np.full(1, -1, np.int32),
+               np.zeros((1, b, b, b), np.float32), np.zeros((1, b, b, b), np.uint16), np.eye(3), np.zeros(3), 0.025, b,
+               0.0, 1.0, 0.0, 0.0, 0.05, 0.0, -2.5, occ, np.zeros_like(occ), np.zeros((1, 1), np.int32))
+
+
 @nb.njit(cache=True)
 def _rasterise(ijk, cL, cw, vslot, Lv, wv, R, t, vs, b, z0, z1, ox, oy, res, occ_above, free_below, occ, unsure,
                n_free):

@@ -97,8 +97,10 @@ def append_submaps(dst: SubmapMapper, src: SubmapMapper, T: np.ndarray) -> int:
     return len(src.submaps)
 
 
-def write_ply(path: str | Path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None) -> Path:
-    """Binary little-endian PLY of a triangle mesh (optional uint8 RGB per vertex), written atomically."""
+def write_ply(path: str | Path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None,
+              scalars: dict[str, np.ndarray] | None = None) -> Path:
+    """Binary little-endian PLY of a triangle mesh (optional uint8 RGB and float32 named values per vertex; no faces:
+    a point cloud), written atomically."""
     path = Path(path)
     v = np.asarray(vertices, np.float32).reshape(-1, 3)
     f = np.asarray(faces, np.int32).reshape(-1, 3)
@@ -108,12 +110,17 @@ def write_ply(path: str | Path, vertices: np.ndarray, faces: np.ndarray, colors:
     if colors is not None and len(colors):
         header += ["property uchar red", "property uchar green", "property uchar blue"]
         vdt += [("r", "u1"), ("g", "u1"), ("b", "u1")]
+    for name in scalars or {}:
+        header.append(f"property float {name}")
+        vdt.append((name, "<f4"))
     header += [f"element face {len(f)}", "property list uchar int vertex_indices", "end_header"]
     vert = np.empty(len(v), vdt)
     vert["x"], vert["y"], vert["z"] = v.T
-    if len(vdt) > 3:
+    if colors is not None and len(colors):
         c = np.asarray(colors, np.uint8).reshape(-1, 3)
         vert["r"], vert["g"], vert["b"] = c.T
+    for name, values in (scalars or {}).items():
+        vert[name] = np.asarray(values, np.float32).reshape(-1)
     face = np.empty(len(f), [("n", "u1"), ("i", "<i4", (3,))])
     face["n"], face["i"] = 3, f
 

@@ -18,6 +18,11 @@ at the final trajectory keeps the finished map on disk even when the process is 
 output folder, ``map/dense.npz`` is also checkpointed every ``checkpoint_period_s`` (a snapshot written by a thread of
 its own, atomic rename); a process restarted by the supervisor resumes from that checkpoint
 (services/mapping/store.py, docs/reliability.md).
+
+Occupancy for planners (docs/occupancy.md): the node answers ``map/query`` (points, segments, boxes of the combined
+map, each submap at its current pose; :meth:`MappingNode.on_query`, on the query thread), publishes the 2D grid over a
+height band on ``map/grid`` every ``grid.period_s``, and with an output folder writes ``occupancy_grid.pgm``/``.yaml``
+(ROS map_server) beside ``mesh.ply``.
 """
 
 from __future__ import annotations
@@ -65,7 +70,7 @@ class MappingNode(ProcessNode):
     output_notes = {topics.SUBMAP.key: "changed submaps, at most every mapping.mesh_period_s",
                     topics.MAP_FIELD.key: "a closed submap's field; the current one every mapping.field_period_s",
                     topics.MAP_O2P_POINTS.key: "per closed submap (mapping.o2p_points > 0)",
-                    topics.MAP_GRID.key: "the combined map's 2D grid over mapping.grid's height band"}
+                    topics.MAP_GRID.key: "the combined map's 2D grid over a height band, every mapping.grid.period_s"}
 
     def __init__(self, cfg: MappingConfig, store: MapStore, clock: Callable[[], float] = time.monotonic) -> None:
         self.cfg, self.store, self.clock = cfg, store, clock
@@ -93,6 +98,8 @@ class MappingNode(ProcessNode):
         self.last_mesh = self.last_field = self.last_checkpoint = now
         self.final_pending = False
         self.newest_stamp_ns = 0  # of the newest depth frame integrated
+        self.last_grid = now
+        self.grids = None  # services.mapping.grid.GridBuilder, made at the first grid
 
     def on_query(self, msg: messages.OccupancyQuery) -> messages.OccupancyAnswer:
         """``map/query`` (on the query thread): a snapshot of the submaps at their current poses answers it
@@ -230,6 +237,22 @@ class MappingNode(ProcessNode):
         self.points_to_publish.clear()
         return out
 
+    def grid(self):
+        """The 2D grid of the map now (services/mapping/grid.py), None while nothing is mapped."""
+        if self.grids is None:
+            from services.mapping.grid import GridBuilder
+
+            self.grids = GridBuilder(self.cfg.grid, self.cfg.query)
+        return self.grids.build(self.mapper)
+
+    def grid_messages(self) -> list[Emit]:
+        with self.timer("grid"):
+            g = self.grid()
+        if g is None:
+            return []
+        self.counts["grids"] += 1
+        return [Emit(topics.MAP_GRID, g.message(self.newest_stamp_ns, seq=self.counts["grids"] - 1))]
+
     def tick(self) -> list[Emit]:
         cfg, now = self.cfg, self.clock()
         self.integrate_waiting()
@@ -247,6 +270,9 @@ class MappingNode(ProcessNode):
             self.fields_to_publish.add(self.mapper.current.id)
         out += self.field_messages()
         out += self.points_messages()  # after the field: the back end pairs them by submap id
+        if cfg.grid.period_s > 0 and now - self.last_grid >= cfg.grid.period_s:
+            self.last_grid = now
+            out += self.grid_messages()
         if self.store.out_dir and cfg.checkpoint_period_s > 0 and now - self.last_checkpoint >= cfg.checkpoint_period_s:
             self.last_checkpoint = now
             self.checkpoint()
@@ -271,12 +297,24 @@ class MappingNode(ProcessNode):
         out = self.submap_messages()
         self.fields_to_publish.update(sm.id for sm in self.mapper.submaps)
         out += self.field_messages()
+        out += self.grid_messages()
         if self.store.out_dir:
             self.store.write(self.mapper, self.counts, self.integrate_ms)
+            self.write_occupancy()
             print(f"mapping: wrote {self.store.out_dir}/mesh.ply ({len(self.mapper.submaps)} submaps, "
                   f"{time.monotonic() - t0:.1f} s)", flush=True)
         self.unflushed = False
         return out
+
+    def write_occupancy(self) -> None:
+        """The 2D grid of the map (occupancy_grid.pgm/.yaml) into the output folder (the 3D voxels take seconds: the
+        run writes them from the saved map after the pipeline, services/app/run_outputs.py)."""
+        from services.mapping.grid_files import write_grid
+
+        with self.timer("grid_write"):
+            g = self.grid()
+            if g is not None:
+                write_grid(g, self.store.out_dir)
 
     def close(self) -> list[Emit]:
         """Everything received is integrated and meshed before exit (the runner has handed over what arrived)."""
@@ -310,15 +348,19 @@ def _warm_up(node: MappingNode) -> None:
     from services.mapping.combined import warm_up as warm_up_queries
     from services.mapping.integrate import warm_up
 
+    from services.mapping.grid import warm_up as warm_up_grid
+
     warm_up(node.cfg.sensor)
     warm_up_queries(node.cfg.sensor.voxel_size_m)
+    warm_up_grid()
 
 
 DESCRIPTION = ProcessDescription(
     name="mapping", node=MappingNode, build=_build, warm_up=_warm_up, in_process=True,
     ready=lambda node, cfg: f"mapping: {node.cfg.depth_topic} -> {topics.SUBMAP.key}",
-    output=Output(in_run="", help="write mesh.ply, submaps/, map/dense.npz here at exit (overrides "
-                                  "mapping.output_dir)"),
+    output=Output(in_run="", help="write mesh.ply, submaps/, map/dense.npz and occupancy_grid.pgm/.yaml here at exit "
+                                  "(overrides mapping.output_dir)"),
     # what the path to a pose and other work leave; meshes and writes its map when stopped: give it time to finish
     scheduling=Scheduling(nice=19, stop_timeout_s=60.0),
-    help="occupancy submapping: depth + estimator poses -> map/submap meshes, map/field; the map at exit")
+    help="occupancy submapping: depth + estimator poses -> map/submap meshes, map/field, map/grid; answers map/query; "
+         "the map at exit")
