@@ -1,6 +1,6 @@
 """Developer commands, run from a checkout (tools/ is not installed with the product):
 
-    python -m tools bench pipeline|transport|netns|mapping|mapping-ablation ...   # benchmarks (tools/bench_cmd.py)
+    python -m tools bench pipeline|transport|netns|mapping|mapping-ablation|query ...   # benchmarks (tools/bench_cmd.py)
     python -m tools eval depth|stereo ...                                          # depth network evaluations
 
 Each other developer script runs as its own module (``python -m tools.depth.train``, ``python -m tools.vio.offline``,
@@ -17,7 +17,7 @@ from services.app.cli import add_module_commands, run_module_command
 
 # name -> (module, one-line help); each module provides add_arguments(parser) and main(args) -> int
 COMMANDS: dict[str, tuple[str, str]] = {
-    "bench": ("tools.bench_cmd", "benchmarks: transport, netns, mapping, mapping-ablation, pipeline (live budgets)"),
+    "bench": ("tools.bench_cmd", "benchmarks: transport, netns, mapping, mapping-ablation, query, pipeline (live budgets)"),
     "eval": ("tools.eval_cmd", "developer evaluations: depth (networks against GT), stereo (real photographs)"),
 }
 

@@ -15,6 +15,8 @@ BENCHES: dict[str, tuple[str, str]] = {
     "netns": ("tools.bench_netns", "estimator/state and depth/fused latency across network namespaces (via a router) vs one host"),
     "mapping": ("tools.bench_mapping", "occupancy integration ms per 512x384 depth frame, memory, mesh accuracy on a replica"),
     "mapping-ablation": ("tools.mapping_ablation", "map accuracy/completeness from GT, stereo (heuristic/learned sigma) and fused depth at GT poses"),
+    "query": ("tools.bench_query", "100 000 occupancy point queries over map/query while the pipeline runs live: round trip and "
+              "mapping-side median/p99 (--saved DIR: in-process on a saved map)"),
     "pipeline": ("tools.bench_pipeline", "whole pipeline at sensor rate: per-stage compute, latency to state/depth/map, CPU/RSS, budgets; --max-rate"),
 }
 

@@ -6,7 +6,8 @@
    player waits for each frame's state), frontend, per-frame fast path, back end (with loop closure and final
    bundle adjustment), depth, mapping and the web viewer, each its own process over Zenoh.
 3. Evaluates what came out against the ground truth and prints one summary: causal and non-causal ATE,
-   mesh accuracy and completeness, frames without a state, pose latency, queue drops, per-frame estimator
+   mesh accuracy and completeness, the occupancy map's false free and free recall (voxels and 2D grid) and a planned
+   path on the grid checked against the scene (``sigmaslam eval occupancy``, services/app/planner.py), frames without a state, pose latency, queue drops, per-frame estimator
    time, the viewer's address, and the wall time of each
    phase (set-up when ``make demo`` passes ``--setup-s``, replica, run, evaluation; also ``DIR/phases.json``).
 
@@ -84,13 +85,52 @@ def _mesh_figures(out: Path, dataset: Path) -> dict | None:
     return res.summary() | {"map_placed_by": "final" if final else "causal"}
 
 
+def _occupancy_figures(out: Path, dataset: Path) -> dict | None:
+    """The occupancy map's safety figures (``sigmaslam eval occupancy``) and the planner on the run's grid
+    (services/app/planner.py), each None when it cannot be computed."""
+    from services.app.eval.occupancy_cmd import evaluate_run
+    from services.app.planner import plan_run
+
+    figures: dict = {"eval": None, "plan": None}
+    try:
+        figures["eval"] = evaluate_run(out, dataset)
+        (out / "occupancy_eval.json").write_text(json.dumps(figures["eval"], indent=1))
+    except (OSError, ValueError) as exc:
+        _say(f"no occupancy evaluation: {exc}")
+    try:
+        figures["plan"] = plan_run(out, dataset)
+    except (OSError, ValueError) as exc:
+        _say(f"no planner run: {exc}")
+    return figures
+
+
+def occupancy_lines(figures: dict | None) -> list[str]:
+    from services.app.eval.occupancy_cmd import summary_lines as eval_lines
+
+    if not figures:
+        return []
+    lines = eval_lines(figures["eval"]) if figures.get("eval") else []
+    p = figures.get("plan")
+    if p is not None:
+        if p["found"]:
+            check = ("" if p["clearance_m"] is None else
+                     f", clearance to the scene {p['clearance_m']:.3f} m: "
+                     + ("collision-free" if p["collision_free"] else "COLLIDES"))
+            lines.append(f"planner (A*, radius {p['radius_m']} m)          path {p['length_m']:.2f} m between two "
+                         f"trajectory poses {p['straight_m']:.2f} m apart{check}")
+        else:
+            lines.append(f"planner (A*, radius {p['radius_m']} m)          no path: {p['reason']}")
+    return lines
+
+
 def phase_line(phases: dict[str, float]) -> str:
     """One line of the demo's phases and their wall times, e.g. ``set-up 52 s, replica 0 s (cached), ...``."""
     parts = [f"{name} {sec:.0f} s" for name, sec in phases.items()]
     return ", ".join(parts) + f"; total {sum(phases.values()) / 60:.1f} min"
 
 
-def summary_lines(out: Path, mesh: dict | None, viewer_url: str, phases: dict[str, float] | None = None) -> list[str]:
+def summary_lines(out: Path, mesh: dict | None, viewer_url: str, phases: dict[str, float] | None = None,
+                  occupancy: dict | None = None) -> list[str]:
     """The closing summary of a demo run folder (ate.json, stats.json) and its mesh evaluation."""
     lines = ["", "sigmaslam demo: results", "-----------------------"]
     ate_path, stats_path = out / "ate.json", out / "stats.json"
@@ -108,6 +148,7 @@ def summary_lines(out: Path, mesh: dict | None, viewer_url: str, phases: dict[st
         lines.append(f"mesh accuracy (mean dist. to GT)    {mesh['accuracy_m']:.4f} m{placed.get(mesh.get('map_placed_by'), '')}")
         lines.append(f"mesh completeness (GT within 0.2 m) {100 * mesh['completeness']:.1f} %  "
                      f"(within 5 cm: {100 * mesh['completeness_5cm']:.1f} %)")
+    lines += occupancy_lines(occupancy)
     if stats.get("frames_sent") is not None:
         lines.append(f"frames without a state              {stats.get('frames_without_state')} of {stats['frames_sent']}")
     lat = stats.get("state_latency_ms") or {}
@@ -160,6 +201,8 @@ def main(args: argparse.Namespace) -> int:
     t = time.monotonic()
     _say("evaluating the mesh against the scene (paper sec. V: 1 cm grid, point-to-plane ICP)")
     mesh = _mesh_figures(out, dataset)
+    _say("evaluating the occupancy map against the scene (false free, free recall) and planning on its grid")
+    occupancy = _occupancy_figures(out, dataset)
     phases["evaluation"] = time.monotonic() - t
     if mesh is not None:
         (out / "mesh_eval.json").write_text(json.dumps(mesh, indent=1))
@@ -172,6 +215,6 @@ def main(args: argparse.Namespace) -> int:
     else:
         url += " (live during the run; `sigmaslam demo --serve-s 600` keeps it up with the final map)"
     (out / "phases.json").write_text(json.dumps({k: round(v, 2) for k, v in phases.items()}, indent=1))
-    for line in summary_lines(out, mesh, url, phases):
+    for line in summary_lines(out, mesh, url, phases, occupancy):
         print(line, flush=True)
     return rc

@@ -114,6 +114,13 @@ class CombinedMap:
             _combine(p, self._R, self._t, self._lo, self._hi, self.voxel_size_m, self.block_size, *self._lists, L, n)
         return L, n
 
+    def log_odds_many(self, p_W: np.ndarray, chunk: int = 500_000) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`log_odds` of any number of points, ``chunk`` at a time (for the map's own users: exports,
+        evaluation; a request over the wire stays within ``max_points``)."""
+        p = np.asarray(p_W, np.float64).reshape(-1, 3)
+        parts = [self.log_odds(p[i:i + chunk]) for i in range(0, len(p), chunk)] or [self.log_odds(p)]
+        return np.concatenate([a for a, _ in parts]), np.concatenate([b for _, b in parts])
+
     def classify(self, L: np.ndarray) -> np.ndarray:
         """UNKNOWN / FREE / OCCUPIED (int8) of combined log-odds (NaN: unknown)."""
         L = np.asarray(L)

@@ -53,8 +53,9 @@ class QueryConfig:
     finely segments and boxes are sampled, and how large one request may be."""
 
     occupied_above: float = param(0.0, "a voxel is occupied when its log-odds L exceeds this (the surface is L = 0)")
-    free_below: float = param(-2.5, "a voxel is free when L is below this; between the two it is reported unknown "
-                              "(why not 0: a voxel just in front of a surface has a slightly negative L, docs/occupancy.md)")
+    free_below: float = param(-4.0, "a voxel is free when L is below this (0.8 l_min: its centre lies more than about "
+                              "2.4 sigma_d in front of the surface, so that no point in it is within a voxel of one); "
+                              "between the two it is reported unknown (docs/occupancy.md)")
     sample_step_voxels: float = param(0.5, "segments and boxes are tested at points of a lattice this many voxels "
                                       "apart (0.5: every voxel wholly inside the shape holds one)")
     max_points: int = param(1_000_000, "most points one point query may hold (more: an error reply)")

@@ -54,7 +54,7 @@ def combined_voxels(cm: CombinedMap) -> dict[str, np.ndarray]:
         plane = np.column_stack([ii.ravel(), jj.ravel()])
         for k in range(lo[2], hi[2] + 1):
             ijk = np.column_stack([plane, np.full(len(plane), k)])
-            L, _ = _log_odds_chunked(cm, (ijk + 0.5) * vs)
+            L, _ = cm.log_odds_many((ijk + 0.5) * vs)
             st = cm.classify(L)
             for name, want in (("occupied", OCCUPIED), ("free", FREE)):
                 keep = st == want
@@ -66,11 +66,6 @@ def combined_voxels(cm: CombinedMap) -> dict[str, np.ndarray]:
     arrays.update(voxel_size_m=np.float64(vs), occupied_above=np.float64(cm.cfg.occupied_above),
                   free_below=np.float64(cm.cfg.free_below), frame=np.array("W"))
     return arrays
-
-
-def _log_odds_chunked(cm: CombinedMap, p: np.ndarray, chunk: int = 500_000) -> tuple[np.ndarray, np.ndarray]:
-    parts = [cm.log_odds(p[i:i + chunk]) for i in range(0, len(p), chunk)] or [cm.log_odds(np.zeros((0, 3)))]
-    return np.concatenate([a for a, _ in parts]), np.concatenate([b for _, b in parts])
 
 
 def write_voxels(cm: CombinedMap, folder: str | Path) -> tuple[Path, Path, dict[str, int]]:

@@ -13,6 +13,8 @@ EVALS: dict[str, tuple[str, str]] = {
     "ate": ("services.app.eval.ate_cmd", "ATE RMSE after SE(3)/Sim(3)/position+yaw alignment: --gt GT --est EST (TUM or EuRoC CSV)"),
     "mesh": ("services.app.eval.mesh_cmd", "mesh accuracy (mean est->GT distance) and completeness (GT within 0.2 m), paper sec. V"),
     "hilti": ("services.app.eval.hilti_cmd", "Hilti 2022 score from sparse control points (--control CSV, or sampled from --dataset GT)"),
+    "occupancy": ("services.app.eval.occupancy_cmd", "false free and free recall of a run's occupancy map and 2D grid "
+                  "against its replica's scene mesh: RUN_DIR --replica R"),
     "ablation": ("services.app.eval.ablation", "the paper's Table IV (o2p factors, depth sigma, fusion) + mono-inertial rows on replicas, in one process: markdown table"),
     "relocalise": ("services.app.eval.relocalise", "map one replica, localise another in its saved map: share localised, time to "
                    "relocalise, ATE in the map's frame"),
