@@ -31,7 +31,7 @@ def short_replica() -> Path:
 
 
 def test_examples_are_numbered_narrated_and_parse_help(capsys):
-    assert [p.name[:3] for p in EXAMPLES] == ["01_", "02_", "03_", "04_", "05_"], EXAMPLES
+    assert [p.name[:3] for p in EXAMPLES] == ["01_", "02_", "03_", "04_", "05_", "06_"], EXAMPLES
     for path in EXAMPLES:
         mod = load(path.stem)
         assert mod.__doc__ and mod.__doc__.startswith(path.name[:2] + ":"), path.name  # the story comes first
@@ -102,6 +102,23 @@ def test_05_query_occupancy(tmp_path, capsys):
     assert facts["segment_hit"] and not facts["segment_free"] and abs(facts["hit_distance_m"] - 3.5) < 0.03, out
     assert facts["points"]["free"] > 0.3 and facts["points"]["occupied"] > 0.005 and "is refused" in out
     assert facts["box_any_occupied"] is False  # a 1 m box around (4.75, 1.5, 1.4): free space and unknown
+
+
+def test_06_plan_on_grid(tmp_path, capsys):
+    """The room's grid written as a run writes it, and a trajectory from in front of the box to beyond it."""
+    from occupancy_room import mapped_room
+    from services.mapping.grid import GridBuilder
+    from services.mapping.grid_files import write_grid
+    from shared.euroc import PoseSeries, write_tum
+
+    run = tmp_path / "run"
+    write_grid(GridBuilder().build(mapped_room()[0]), run)
+    p = np.array([[3.3, 2.9, 1.0], [4.0, 2.0, 1.0], [5.4, 2.9, 1.0]])
+    write_tum(run / "trajectory.txt", PoseSeries(np.arange(3) * 10**9, p, np.tile([1.0, 0, 0, 0], (3, 1))))
+    facts = load("06_plan_on_grid").main([str(run), "--radius", "0.2"])
+    out = capsys.readouterr().out
+    assert facts["found"] and facts["straight_m"] < facts["length_m"] < 2 * facts["straight_m"], out
+    assert "path of" in out and facts["clearance_m"] is None  # no replica given: no check against a mesh
 
 
 def test_03_subscribe_to_poses(tmp_path, capsys):

@@ -125,8 +125,9 @@ def plan_run(run, replica=None, radius_m: float = 0.2) -> dict:
 
     run = Path(run)
     grid = read_grid(run / "occupancy_grid.yaml")
-    placed = "final" if (run / "trajectory_final.txt").is_file() else "causal"
-    xy = read_trajectory(run / f"trajectory_{placed}.txt").p_WS[:, :2]
+    traj = next((run / n for n in ("trajectory_final.txt", "trajectory_causal.txt", "trajectory.txt")
+                 if (run / n).is_file()), run / "trajectory.txt")
+    xy = read_trajectory(traj).p_WS[:, :2]
     start, goal = xy[0], xy[int(np.argmax(np.linalg.norm(xy - xy[0], axis=1)))]
     p = plan(grid, start, goal, radius_m)
     out = {"found": p.found, "reason": p.reason, "start_xy": start.tolist(), "goal_xy": goal.tolist(),
@@ -138,7 +139,7 @@ def plan_run(run, replica=None, radius_m: float = 0.2) -> dict:
         from shared.metrics.ate import run_alignment
 
         replica = Path(replica)
-        T_gt_W = run_alignment(run / f"trajectory_{placed}.txt",
+        T_gt_W = run_alignment(traj,
                                replica / "mav0" / "state_groundtruth_estimate0" / "data.csv")
         v, f = read_ply(replica / "mav0" / "scene" / "mesh.ply")
         truth = SceneTruth.in_band(v, f, np.linalg.inv(T_gt_W), grid.z_band_m, grid.resolution_m)
