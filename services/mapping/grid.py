@@ -14,8 +14,10 @@ the rule of the point queries (services/mapping/combined.py): a cell is
   submap has observed at least ``min_free_fraction`` of the cell's band free,
 - else free (0).
 
-A submap's raster is kept while the submap, its pose and the band stay the same, so the live grid costs the
-re-rasterising of the growing submap and of those a keyframe update moved.
+A submap's raster is kept while the submap and the band stay the same and its pose moves no corner of its blocks' box
+by more than a quarter cell, so the live grid costs the re-rasterising of the growing submap and of those a keyframe
+update moved that far. A coarse block (free space carved as a whole: one value) is rasterised at every other voxel
+centre along each axis, each standing for 8.
 """
 
 from __future__ import annotations
@@ -67,12 +69,8 @@ class GridBuilder:
 
     def __init__(self, cfg: GridConfig | None = None, query: QueryConfig | None = None) -> None:
         self.cfg, self.query = cfg or GridConfig(), query or QueryConfig()
-        self._z: dict[int, tuple[tuple, np.ndarray]] = {}
-        self._rasters: dict[int, tuple[tuple, tuple]] = {}
-
-    @staticmethod
-    def _state(sm) -> tuple:
-        return (np.asarray(sm.T_WM).tobytes(), sm.store.n_blocks, sm.store.n_refined, sm.n_frames)
+        self._z: dict[int, tuple] = {}
+        self._rasters: dict[int, tuple] = {}
 
     def floor_z(self, mapper) -> float | None:
         """The floor's height in W (None: no occupied voxel yet, with floor: map)."""
@@ -80,10 +78,10 @@ class GridBuilder:
             return float(self.cfg.floor_z_m)
         zs = []
         for sm in list(mapper.submaps):
-            key = self._state(sm)
+            key = (sm.store.n_blocks, sm.store.n_refined, sm.n_frames)
             got = self._z.get(sm.id)
-            if got is None or got[0] != key:
-                got = (key, _occupied_heights(sm, self.query.occupied_above))
+            if got is None or got[0] != key or _moved(got[2], sm, mapper.sensor.voxel_size_m / 2):
+                got = (key, _occupied_heights(sm, self.query.occupied_above), np.array(sm.T_WM))
                 self._z[sm.id] = got
             zs.append(got[1])
         z = np.concatenate(zs) if zs else np.zeros(0)
@@ -107,16 +105,30 @@ class GridBuilder:
         band = (floor + self.cfg.band_min_m, floor + self.cfg.band_max_m)
         rasters = []
         for sm in list(mapper.submaps):
-            key = (self._state(sm), band, res)
+            key = (sm.store.n_blocks, sm.store.n_refined, sm.n_frames, band, res)
             got = self._rasters.get(sm.id)
-            if got is None or got[0] != key:
-                got = (key, _raster(sm, band, res, self.query))
+            if got is None or got[0] != key or _moved(got[2], sm, res / 4):
+                got = (key, _raster(sm, band, res, self.query), np.array(sm.T_WM))
                 self._rasters[sm.id] = got
             if got[1] is not None:
                 rasters.append(got[1])
         if not rasters:
             return None
         return _combine_rasters(rasters, band, res, vs, floor, self.cfg.min_free_fraction)
+
+
+def _moved(T_old: np.ndarray, sm, tol_m: float) -> bool:
+    """Whether the submap's pose moved any corner of its blocks' box by more than ``tol_m`` since ``T_old``."""
+    ijk = sm.store.keys[: sm.store.n_blocks]
+    if len(ijk) == 0:
+        return False
+    from shared.occupancy.blocks import unpack_keys
+
+    c = unpack_keys(ijk)
+    bm = sm.store.block_size * sm.store.voxel_size
+    lo, hi = c.min(0) * bm, (c.max(0) + 1) * bm
+    box = np.array([[x, y, z, 1.0] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    return bool(np.abs(box @ (np.asarray(sm.T_WM) - T_old).T).max() > tol_m)
 
 
 def _combine_rasters(rasters, band, res, vs, floor, min_free) -> Grid2D:
