@@ -113,7 +113,10 @@ def test_map_query_live_then_offline(tmp_path):
 
                 n = _feed(session, tcfg.namespace, tcfg, integrated)
                 with LiveOccupancy(tcfg, timeout_s=10.0, session=session) as occ:
-                    _check_against_truth(occ, np.random.default_rng(5))
+                    try:
+                        _check_against_truth(occ, np.random.default_rng(5))
+                    except QueryError as exc:
+                        raise AssertionError("".join(lines)) from exc
                     _bad_questions(session, occ)
                     p = np.random.default_rng(6).uniform([0, 0, 0], [6, 5, 3], (MAX_POINTS, 3))
                     live = occ.points(p)

@@ -3,7 +3,7 @@ runs live, answered by the mapping process over Zenoh: the round trip the asker 
 and lookup in the mapping process, the answer back, decode) and the mapping's own time per query (its ``query``
 stage in stats/mapping), median and p99.
 
-It starts ``sigmaslam run REPLICA --out OUT`` at sensor rate, waits for the first grid on ``map/grid`` (the map's
+It starts ``sigmaslam run REPLICA configs/demo.yaml --out OUT`` at sensor rate (the demo's services), waits for the first grid on ``map/grid`` (the map's
 extent and height band), then asks every ``--period`` seconds for the state of ``--points`` points drawn uniformly in
 the grid's extent between 0.5 m below and 2.5 m above the floor, until the run ends or ``--queries`` were answered.
 Writes OUT/bench_query.json. ``--saved DIR`` instead times the same questions in-process on a saved map (compute
@@ -30,6 +30,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--queries", type=int, default=60, help="queries to time (default 60)")
     p.add_argument("--period", type=float, default=0.5, help="seconds between queries (default 0.5)")
     p.add_argument("--saved", metavar="DIR", help="time in-process queries of a saved map instead (no pipeline)")
+    p.add_argument("--config", default="configs/demo.yaml", help="system config of the run (default configs/demo.yaml: "
+                   "the demo's services, depth and mapping among them)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override of the run")
 
 
@@ -77,7 +79,7 @@ def _live(args) -> dict:
     out = Path(args.out).resolve()
     replica = args.replica or str(ensure_default_replica(progress=True))
     (out / "config.yaml").unlink(missing_ok=True)
-    cmd = [sys.executable, "-m", "services.app.cli", "run", replica, "--out", str(out), "--realtime",
+    cmd = [sys.executable, "-m", "services.app.cli", "run", replica, args.config, "--out", str(out), "--realtime",
            *[x for s in args.set for x in ("--set", s)]]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=os.environ.copy())
     rtt, server, answered, failed = [], [], 0, 0

@@ -115,8 +115,9 @@ def path_clearance(path_xy: np.ndarray, z_band_m: np.ndarray, distance_fn, step_
 
 
 def plan_run(run, replica=None, radius_m: float = 0.2) -> dict:
-    """Plan on a run's grid (``RUN/occupancy_grid.yaml``) from its trajectory's first pose to the pose farthest from
-    it, and with ``replica`` check the path's clearance against the scene mesh (brought into the run's W by the
+    """Plan on a run's grid (``RUN/occupancy_grid.yaml``) between two poses of its trajectory: the first that lies
+    above a cell the robot fits on and the one of those farthest from it (a flying camera's poses are often above
+    unknown or occupied cells), and with ``replica`` check the path's clearance against the scene mesh (brought into the run's W by the
     trajectory's alignment, only what reaches into the height band). Returns what was found, as a dict."""
     from pathlib import Path
 
@@ -128,7 +129,15 @@ def plan_run(run, replica=None, radius_m: float = 0.2) -> dict:
     traj = next((run / n for n in ("trajectory_final.txt", "trajectory_causal.txt", "trajectory.txt")
                  if (run / n).is_file()), run / "trajectory.txt")
     xy = read_trajectory(traj).p_WS[:, :2]
-    start, goal = xy[0], xy[int(np.argmax(np.linalg.norm(xy - xy[0], axis=1)))]
+    ok = traversable(grid, radius_m)
+    rc = grid.cell_of(xy)
+    inside = (rc[:, 0] >= 0) & (rc[:, 0] < ok.shape[0]) & (rc[:, 1] >= 0) & (rc[:, 1] < ok.shape[1])
+    usable = np.flatnonzero(inside)[ok[rc[inside, 0], rc[inside, 1]]]  # poses above cells the robot fits on
+    if len(usable) >= 2:
+        start = xy[usable[0]]
+        goal = xy[usable[int(np.argmax(np.linalg.norm(xy[usable] - start, axis=1)))]]
+    else:
+        start, goal = xy[0], xy[int(np.argmax(np.linalg.norm(xy - xy[0], axis=1)))]
     p = plan(grid, start, goal, radius_m)
     out = {"found": p.found, "reason": p.reason, "start_xy": start.tolist(), "goal_xy": goal.tolist(),
            "straight_m": float(np.linalg.norm(goal - start)), "length_m": p.length_m, "radius_m": radius_m,

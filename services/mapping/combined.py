@@ -27,7 +27,6 @@ import dataclasses
 
 import numba as nb
 import numpy as np
-from numba.typed import List
 
 from services.mapping.config import QueryConfig
 from shared.occupancy.blocks import unpack_keys
@@ -93,7 +92,7 @@ class CombinedMap:
         self._lo = np.array([v.lo_ijk for v in self.views], np.int64).reshape(n, 3)
         self._hi = np.array([v.hi_ijk for v in self.views], np.int64).reshape(n, 3)
         self._lists = None if n == 0 else tuple(
-            List([np.ascontiguousarray(getattr(v.field, name)) for v in self.views])
+            [np.ascontiguousarray(getattr(v.field, name)) for v in self.views]
             for name in ("keys_sorted", "slot_of_sorted", "coarse_L", "coarse_w", "vox_slot", "Lv", "wv"))
         self.block_size = self.views[0].field.block_size if self.views else 8
 
@@ -111,7 +110,7 @@ class CombinedMap:
         p = _points(p_W, "points", self.cfg.max_points)
         L, n = np.full(len(p), np.nan, np.float32), np.zeros(len(p), np.int16)
         if self._lists is not None and len(p):
-            _combine(p, self._R, self._t, self._lo, self._hi, self.voxel_size_m, self.block_size, *self._lists, L, n)
+            _combine(p, self._R, self._t, self._lo, self._hi, self.voxel_size_m, self.block_size, self._lists, L, n)
         return L, n
 
     def log_odds_many(self, p_W: np.ndarray, chunk: int = 500_000) -> tuple[np.ndarray, np.ndarray]:
@@ -198,7 +197,7 @@ class CombinedMap:
         L, n = np.full(len(flat), np.nan, np.float32), np.zeros(len(flat), np.int16)
         if self._lists is not None:
             _combine(np.ascontiguousarray(flat), self._R, self._t, self._lo, self._hi, self.voxel_size_m,
-                     self.block_size, *self._lists, L, n)
+                     self.block_size, self._lists, L, n)
         st = self.classify(L)
         return np.split(st, np.cumsum([s.size // 3 for s in samples])[:-1])
 
@@ -247,27 +246,28 @@ def _capsule_lattice(a: np.ndarray, b: np.ndarray, r: float, step: float
     return t, ab[:, :1] * e1 + ab[:, 1:] * e2, u
 
 
-@nb.njit(cache=True)
-def _combine(p, R, t, lo, hi, vs, b, keys, slots, cL, cw, vslot, Lv, wv, L, n_obs):
-    """Per point: the largest L over the submaps that observed its voxel, and how many did (module docstring).
-    Submap after submap, so that each submap's arrays are taken from the lists once."""
+def _combine(p, R, t, lo, hi, vs, b, lists, L, n_obs) -> None:
+    """Per point: the largest L over the submaps that observed its voxel, and how many did (module docstring);
+    one compiled pass per submap (plain arrays: the compiled code is cached on disk)."""
     best = np.full(p.shape[0], -np.inf, np.float32)
-    memo = np.full(2, -1, np.int64)
     for s in range(R.shape[0]):
-        ks, ss, cLs, cws, vss, Lvs, wvs = keys[s], slots[s], cL[s], cw[s], vslot[s], Lv[s], wv[s]
-        memo[0] = memo[1] = -1
-        for r in range(p.shape[0]):
-            x = R[s, 0, 0] * p[r, 0] + R[s, 0, 1] * p[r, 1] + R[s, 0, 2] * p[r, 2] + t[s, 0]
-            y = R[s, 1, 0] * p[r, 0] + R[s, 1, 1] * p[r, 1] + R[s, 1, 2] * p[r, 2] + t[s, 1]
-            z = R[s, 2, 0] * p[r, 0] + R[s, 2, 1] * p[r, 1] + R[s, 2, 2] * p[r, 2] + t[s, 2]
-            i, j, k = np.int64(np.floor(x / vs)), np.int64(np.floor(y / vs)), np.int64(np.floor(z / vs))
-            if i < lo[s, 0] or i > hi[s, 0] or j < lo[s, 1] or j > hi[s, 1] or k < lo[s, 2] or k > hi[s, 2]:
-                continue
-            Lq, wq = _voxel(i, j, k, b, ks, ss, cLs, cws, vss, Lvs, wvs, memo)
-            if wq > 0:
-                n_obs[r] += 1
-                if Lq > best[r]:
-                    best[r] = Lq
+        _combine_one(p, R[s], t[s], lo[s], hi[s], vs, b, *(a[s] for a in lists), best, n_obs)
+    seen = n_obs > 0
+    L[seen] = best[seen]
+
+
+@nb.njit(cache=True)
+def _combine_one(p, R, t, lo, hi, vs, b, keys, slots, cL, cw, vslot, Lv, wv, best, n_obs):
+    memo = np.full(2, -1, np.int64)
     for r in range(p.shape[0]):
-        if n_obs[r] > 0:
-            L[r] = best[r]
+        x = R[0, 0] * p[r, 0] + R[0, 1] * p[r, 1] + R[0, 2] * p[r, 2] + t[0]
+        y = R[1, 0] * p[r, 0] + R[1, 1] * p[r, 1] + R[1, 2] * p[r, 2] + t[1]
+        z = R[2, 0] * p[r, 0] + R[2, 1] * p[r, 1] + R[2, 2] * p[r, 2] + t[2]
+        i, j, k = np.int64(np.floor(x / vs)), np.int64(np.floor(y / vs)), np.int64(np.floor(z / vs))
+        if i < lo[0] or i > hi[0] or j < lo[1] or j > hi[1] or k < lo[2] or k > hi[2]:
+            continue
+        Lq, wq = _voxel(i, j, k, b, keys, slots, cL, cw, vslot, Lv, wv, memo)
+        if wq > 0:
+            n_obs[r] += 1
+            if Lq > best[r]:
+                best[r] = Lq

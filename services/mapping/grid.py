@@ -10,8 +10,11 @@ at the lowest y (as nav_msgs/OccupancyGrid). Each submap is rasterised on its ow
 the rule of the point queries (services/mapping/combined.py): a cell is
 
 - occupied (100) when any submap has an occupied voxel (L > occupied_above) in its band,
-- else unknown (255) when any submap has an uncertain voxel there (free_below <= L <= occupied_above), or when no
-  submap has observed at least ``min_free_fraction`` of the cell's band free,
+- else unknown (255) when any submap has an uncertain voxel there (free_below <= L <= occupied_above), or when less
+  than ``min_free_fraction`` of the band's levels (one voxel high, at most 64 of them) hold a voxel observed free
+  in the cell by some submap, or a submap's free voxel centres in the cell are fewer than 0.9 of those a cell
+  holds on average (counts alone vary with a submap's rotation against the cells, levels alone miss a cell that is
+  partly unobserved),
 - else free (0).
 
 A submap's raster is kept while the submap and the band stay the same and its pose moves no corner of its blocks' box
@@ -138,17 +141,28 @@ def _combine_rasters(rasters, band, res, vs, floor, min_free) -> Grid2D:
     y1 = max(r[1] + r[4].shape[0] for r in rasters)
     occ = np.zeros((y1 - y0, x1 - x0), bool)
     unsure = np.zeros_like(occ)
-    cover = np.zeros(occ.shape)
-    expected = (res / vs) ** 2 * (band[1] - band[0]) / vs
-    for cx, cy, o, u, n_free in rasters:
+    seen = np.zeros(occ.shape, np.uint64)
+    count = np.zeros(occ.shape)
+    for cx, cy, o, u, levels, n_free in rasters:
         sl = np.s_[cy - y0: cy - y0 + o.shape[0], cx - x0: cx - x0 + o.shape[1]]
         occ[sl] |= o
         unsure[sl] |= u
-        cover[sl] = np.maximum(cover[sl], n_free / expected)
+        seen[sl] |= levels
+        count[sl] = np.maximum(count[sl], n_free)
+    cover = np.unpackbits(seen[..., None].view(np.uint8), axis=-1).sum(axis=-1) / _levels(band, vs)[1]
+    # and free voxel centres against those a cell holds on average: a cell whose band is partly unobserved (an
+    # object's unseen side) has too few, however its levels are covered
+    dense = count >= 0.9 * (res / vs) ** 2 * (band[1] - band[0]) / vs
     cells = np.full(occ.shape, UNKNOWN_CELL, np.uint8)
-    cells[(cover >= min_free) & ~unsure] = FREE_CELL
+    cells[(cover >= min_free) & dense & ~unsure] = FREE_CELL
     cells[occ] = OCCUPIED_CELL
     return Grid2D(cells, res, np.array([x0 * res, y0 * res]), np.array(band, float), floor)
+
+
+def _levels(band, vs: float) -> tuple[float, int]:
+    """Height of one level of the band and how many there are (at most 64: one bit each)."""
+    h = max(vs, (band[1] - band[0]) / 64)
+    return h, max(int(np.ceil((band[1] - band[0]) / h - 1e-9)), 1)
 
 
 def _block_arrays(sm):
@@ -185,11 +199,12 @@ def _raster(sm, band, res, q: QueryConfig):
     cx0, cy0 = np.floor(box_W[:, :2].min(0) / res).astype(np.int64)
     cx1, cy1 = np.floor(box_W[:, :2].max(0) / res).astype(np.int64) + 1
     occ = np.zeros((cy1 - cy0, cx1 - cx0), bool)
-    unsure, n_free = np.zeros_like(occ), np.zeros(occ.shape, np.int32)
+    unsure, levels, n_free = np.zeros_like(occ), np.zeros(occ.shape, np.uint64), np.zeros(occ.shape, np.int32)
     _rasterise(np.ascontiguousarray(ijk), cL, cw, vslot, Lv, wv, np.ascontiguousarray(sm.T_WM[:3, :3]),
                np.ascontiguousarray(sm.T_WM[:3, 3]), st.voxel_size, st.block_size, band[0], band[1],
-               cx0 * res, cy0 * res, res, q.occupied_above, q.free_below, occ, unsure, n_free)
-    return int(cx0), int(cy0), occ, unsure, n_free
+               cx0 * res, cy0 * res, res, q.occupied_above, q.free_below, _levels(band, st.voxel_size)[0], occ,
+               unsure, levels, n_free)
+    return int(cx0), int(cy0), occ, unsure, levels, n_free
 
 
 def warm_up() -> None:
@@ -199,12 +214,13 @@ def warm_up() -> None:
     occ = np.zeros((1, 1), bool)
     _rasterise(np.zeros((1, 3), np.int64), np.zeros(1, np.float32), np.zeros(1, np.uint16), np.full(1, -1, np.int32),
                np.zeros((1, b, b, b), np.float32), np.zeros((1, b, b, b), np.uint16), np.eye(3), np.zeros(3), 0.025, b,
-               0.0, 1.0, 0.0, 0.0, 0.05, 0.0, -2.5, occ, np.zeros_like(occ), np.zeros((1, 1), np.int32))
+               0.0, 1.0, 0.0, 0.0, 0.05, 0.0, -2.5, 0.025, occ, np.zeros_like(occ), np.zeros((1, 1), np.uint64),
+               np.zeros((1, 1), np.int32))
 
 
 @nb.njit(cache=True)
-def _rasterise(ijk, cL, cw, vslot, Lv, wv, R, t, vs, b, z0, z1, ox, oy, res, occ_above, free_below, occ, unsure,
-               n_free):
+def _rasterise(ijk, cL, cw, vslot, Lv, wv, R, t, vs, b, z0, z1, ox, oy, res, occ_above, free_below, level_m, occ,
+               unsure, levels, n_free):
     half = 0.5 * np.sqrt(3.0) * b * vs
     ny, nx = occ.shape
     for s in range(ijk.shape[0]):
@@ -240,4 +256,5 @@ def _rasterise(ijk, cL, cw, vslot, Lv, wv, R, t, vs, b, z0, z1, ox, oy, res, occ
                     elif L >= free_below:
                         unsure[r, c] = True
                     else:
+                        levels[r, c] |= np.uint64(1) << np.uint64(min(int((z - z0) / level_m), 63))
                         n_free[r, c] += 1
