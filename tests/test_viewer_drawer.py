@@ -74,3 +74,22 @@ def test_export_trajectory_chunks_images_and_controls(drawer, tmp_path):
     assert len(mesh.vertices) == 2 * 642 + 2 * 8
     drawer._control("Pause")
     assert drawer.sent == ["pause"]
+
+
+def test_the_occupancy_grid_is_drawn_once_per_new_grid(drawer):
+    """map/grid: free and occupied cells as two square-point layers at the band's bottom; unknown ones not drawn."""
+    from shared.codec import Header
+
+    model = drawer.model
+    cells = np.full((4, 5), 255, np.uint8)
+    cells[0, :3], cells[2, 4] = 0, 100
+    model.apply(m.OccupancyGrid2D(header=Header(stamp_ns=1, frame_id="W"), resolution_m=0.1,
+                                  origin_xy_m=np.array([1.0, 2.0]), z_band_m=np.array([0.1, 1.5]), cells=cells))
+    up = model.take_update()
+    free, occupied, cell_m = up.grid_cells_W
+    assert len(free) == 3 and len(occupied) == 1 and cell_m == 0.1
+    np.testing.assert_allclose(occupied[0], [1.45, 2.25, 0.1], atol=1e-6)  # row 2, column 4: lowest y first
+    drawer.draw(up)
+    assert drawer.drawn_grids == 1
+    drawer.draw(model.take_update())  # no new grid: nothing re-sent
+    assert drawer.drawn_grids == 1

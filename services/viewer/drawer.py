@@ -24,6 +24,7 @@ CAUSAL_RGB = (20, 20, 20)
 KEYFRAME_RGB = (230, 60, 30)
 GT_RGB = (40, 170, 60)
 LANDMARK_RGB = (70, 110, 200)
+GRID_FREE_RGB, GRID_OCCUPIED_RGB = (170, 220, 170), (150, 30, 30)  # the 2D occupancy grid's layer
 PLACEHOLDER = np.zeros((48, 64, 3), np.uint8)
 SRGB_TO_LINEAR = np.round(255.0 * (np.arange(256) / 255.0) ** 2.2).astype(np.uint8)  # approximate sRGB decoding
 REFRAME_GROWTH = 1.3  # re-frame (untouched views) when the map diagonal grew by this factor
@@ -64,6 +65,7 @@ class SceneDrawer:
         self._set_eye: dict[int, np.ndarray] = {}  # client -> camera position the viewer last set
         self._body_p: np.ndarray | None = None
         self.drawn_meshes = 0  # meshes sent to the browser (re-sends included)
+        self.drawn_grids = 0  # 2D grids sent
         self.moved_meshes = 0
         server.scene.set_up_direction("+z")
         self._layers = {name: server.scene.add_frame(path, show_axes=False) for name, path in LAYERS.items()}
@@ -143,6 +145,7 @@ class SceneDrawer:
                 self._bbox[sid] = _world_bounds(T_WM, self._bounds_M[sid])
                 self.moved_meshes += 1
         self._draw_tracks(up)
+        self._draw_grid(up)
         self._draw_body_and_images(up)
         if up.stats_md is not None:
             self.stats.content = up.stats_md
@@ -172,6 +175,17 @@ class SceneDrawer:
         if up.landmarks_W is not None and len(up.landmarks_W):
             scene.add_point_cloud("/landmarks/points", up.landmarks_W.astype(np.float32), LANDMARK_RGB,
                                   point_size=0.02, point_shape="circle")
+
+    def _draw_grid(self, up: SceneUpdate) -> None:
+        """The newest 2D occupancy grid (map/grid) as square points at the bottom of its height band: free cells pale
+        green, occupied ones dark red, unknown ones not drawn."""
+        if up.grid_cells_W is None:
+            return
+        free, occupied, cell_m = up.grid_cells_W
+        for name, pts, rgb in (("free", free, GRID_FREE_RGB), ("occupied", occupied, GRID_OCCUPIED_RGB)):
+            self.server.scene.add_point_cloud(f"/grid/{name}", pts if len(pts) else np.zeros((1, 3), np.float32), rgb,
+                                              point_size=cell_m, point_shape="square", visible=bool(len(pts)))
+        self.drawn_grids += 1
 
     def _draw_body_and_images(self, up: SceneUpdate) -> None:
         if up.T_WS is not None:

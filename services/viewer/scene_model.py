@@ -63,6 +63,16 @@ class SceneUpdate:
     ground_truth_W: np.ndarray | None = None  # (N,3)
     stats_md: str | None = None
     status_md: str | None = None
+    grid_cells_W: tuple[np.ndarray, np.ndarray, float] | None = None  # (free (F,3), occupied (O,3) cell centres, cell m)
+
+
+def grid_cells(g: m.OccupancyGrid2D) -> tuple[np.ndarray, np.ndarray, float]:
+    """Centres in W of a 2D grid's free and occupied cells, drawn at the bottom of its height band."""
+    rows, cols = np.nonzero(g.cells != 255)
+    xy = np.asarray(g.origin_xy_m) + (np.column_stack([cols, rows]) + 0.5) * g.resolution_m
+    p = np.column_stack([xy, np.full(len(xy), float(g.z_band_m[0]))]).astype(np.float32)
+    occupied = g.cells[rows, cols] >= 50
+    return p[~occupied], p[occupied], float(g.resolution_m)
 
 
 class ViewerModel:
@@ -191,6 +201,9 @@ class ViewerModel:
             up.trajectory_chunks, up.trajectory_removed = self.trajectory.take_changes()
             up.keyframes_W = self.keyframes.take()
             up.landmarks_W = self.landmarks.take()
+            if self._grid_new and self.grid is not None:
+                self._grid_new = False
+                up.grid_cells_W = grid_cells(self.grid)
             if self._body_changed and self.T_WS is not None:
                 up.T_WS = self.T_WS.copy()
                 up.frusta = tuple(self._frusta(self.T_WS))
