@@ -84,7 +84,7 @@ def _live(args) -> dict:
     cmd = [sys.executable, "-m", "services.app.cli", "run", replica, args.config, "--out", str(out),
            *([] if args.lockstep else ["--realtime"]), *[x for s in args.set for x in ("--set", s)]]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=os.environ.copy())
-    rtt, server, answered, failed = [], [], 0, 0
+    rtt, server, answered, failed, reasons = [], [], 0, 0, {}
     try:
         while not (out / "config.yaml").is_file() and proc.poll() is None:
             time.sleep(0.2)
@@ -111,11 +111,12 @@ def _live(args) -> dict:
                         occ.points(p)
                         rtt.append(1e3 * (time.perf_counter() - t0))
                         answered += 1
-                    except QueryError:
+                    except QueryError as exc:
                         failed += 1
+                        reasons[str(exc)[:120]] = reasons.get(str(exc)[:120], 0) + 1
                     for s in stats.drain():
                         names = list(s.stage_names)
-                        if "query" in names:
+                        if "query" in names and np.isfinite(s.stage_p50_ms[names.index("query")]):
                             server.append(float(s.stage_p50_ms[names.index("query")]))
                     time.sleep(args.period)
             grids.close()
@@ -128,7 +129,7 @@ def _live(args) -> dict:
             proc.kill()
     return {"mode": "sigmaslam run in lockstep" if args.lockstep else "live, sigmaslam run at sensor rate",
             "replica": replica, "points": args.points,
-            "answered": answered, "failed": failed, "round_trip": _summary(rtt),
+            "answered": answered, "failed": failed, "failures": reasons, "round_trip": _summary(rtt),
             "mapping_query_stage_p50_ms_per_stats_window": _summary(server)}
 
 
