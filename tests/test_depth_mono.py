@@ -67,7 +67,9 @@ def test_mono_pipeline_mvs_depth_after_posed_keyframes():
     depth, sigma = res.fused
     assert depth.shape == sigma.shape == (384, 512)
     ok = np.isfinite(depth)
-    assert ok.mean() > 0.9 and np.isfinite(sigma[ok]).all() and (sigma[ok] > 0).all()
+    # depth everywhere but on the flying pixels at the scene's silhouettes (dropped, counted)
+    assert 0 < pipe.flying_px < 0.1 * ok.size and ok.mean() + pipe.flying_px / ok.size > 0.9
+    assert np.isfinite(sigma[ok]).all() and (sigma[ok] > 0).all()
     np.testing.assert_allclose(res.T_WC, T_WS[3] @ cam0.T_SC)
     _, gt = render_pinhole(scene, T_WC[3], pipe.K, (512, 384), supersample=1)
     both = ok & np.isfinite(gt) & (gt > 0)

@@ -1,5 +1,6 @@
 """The network path of the depth pipeline (no transport): weights from a JSON+pt pair, keyframes announced
-after their frames become MVS sources, fusion of stereo and MVS never has a larger sigma than either."""
+after their frames become MVS sources, fusion of stereo and MVS never has a larger sigma than either, and no source
+keeps depth on the stereo depth's flying pixels."""
 import numpy as np
 
 from tests.depth_nets import random_network_pipeline
@@ -30,8 +31,23 @@ def test_network_pipeline_with_keyframes(tmp_path):
     assert (sf[both] <= np.minimum(ss[both], sm[both]) * (1 + 1e-5)).all()
     lo, hi = np.minimum(ds, dm)[both], np.maximum(ds, dm)[both]
     assert ((df[both] >= lo * (1 - 1e-5)) & (df[both] <= hi * (1 + 1e-5))).all()  # a convex combination
-    only_mvs = ~np.isfinite(ds) & np.isfinite(dm)
-    np.testing.assert_allclose(df[only_mvs], dm[only_mvs], rtol=1e-6)
+    assert not (~np.isfinite(ds) & np.isfinite(dm)).any()  # stereo and MVS share the valid region
+    # a silhouette in the stereo depth: its flying pixels have no depth from any source (MVS alone there would bring
+    # the curtain back into the fused map), counted; the object and the background on either side keep theirs
+    near, far, f_b = 1.5, 3.0, pipe.f_px * pipe.baseline_m
+    disp = np.full(512, f_b / far)
+    disp[:256] = f_b / near
+    disp[256:262] = np.linspace(f_b / near, f_b / far, 8)[1:-1]  # the network's ramp over 6 px
+    step = np.tile((f_b / disp).astype(np.float32), (384, 1))
+    pipe.stereo = lambda left, right: (step, np.full_like(step, 0.02))
+    before = pipe.flying_px
+    (ds, _), (dm, _), (df, _) = (pipe.process(4, raw[0], raw[1], T_WS[3]).__getattribute__(n) for n in ("stereo", "mvs", "fused"))
+    rows = np.isfinite(step[:, 0]) & pipe.valid[:, 250] & pipe.valid[:, 270]
+    ramp = np.zeros_like(pipe.valid)
+    ramp[np.ix_(rows, np.arange(257, 261))] = True
+    assert pipe.flying_px - before >= ramp.sum() and ramp.any()
+    assert np.isnan(ds[ramp]).all() and np.isnan(dm[ramp]).all() and np.isnan(df[ramp]).all()
+    assert np.isfinite(df[rows, 240]).all() and np.isfinite(df[rows, 280]).all() and np.isfinite(dm[rows, 240]).all()
     np.testing.assert_allclose(res.T_WC, T_WS[3] @ pipe.T_SC)
 
 

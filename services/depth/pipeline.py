@@ -216,16 +216,20 @@ class DepthPipeline:
             with self._inference():
                 self.mvs_net.encoder(torch.from_numpy(blank).float()[None, None].to(self.device))
 
-    def _mask(self, ds: tuple[np.ndarray, np.ndarray], count: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    def _mask(self, ds: tuple[np.ndarray, np.ndarray], count: bool = False,
+              flying: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Depth and sigma with NaN outside ``self.valid`` and on flying pixels (services/depth/flying.py; ``count``
-        adds them to ``self.flying_px``)."""
+        adds them to ``self.flying_px``), or on ``flying`` when given (another source's)."""
         d, s = (np.where(self.valid, a, np.float32(np.nan)).astype(np.float32, copy=False) for a in ds)
-        cfg = self.cfg
-        fly = flying_pixels(d, self.f_px * (self.baseline_m or FLYING_MONO_BASELINE_M), cfg.flying_radius_px,
-                            cfg.flying_rel_jump, cfg.flying_min_gradient, cfg.flying_margin)
+        fly = self._flying(d) if flying is None else flying
         if count:
             self.flying_px += int(np.count_nonzero(fly))
         return np.where(fly, np.float32(np.nan), d), np.where(fly, np.float32(np.nan), s)
+
+    def _flying(self, depth: np.ndarray) -> np.ndarray:
+        cfg = self.cfg
+        return flying_pixels(depth, self.f_px * (self.baseline_m or FLYING_MONO_BASELINE_M), cfg.flying_radius_px,
+                             cfg.flying_rel_jump, cfg.flying_min_gradient, cfg.flying_margin)
 
     def _confident(self, ds: tuple[np.ndarray, np.ndarray] | None, count: bool = False
                    ) -> tuple[np.ndarray, np.ndarray] | None:
@@ -274,7 +278,7 @@ class DepthPipeline:
             ld, sl = self.mvs_net.forward_features(f_ref, ctx, f_src.to(self.device), K.to(self.device),
                                                    T_src_ref.to(self.device), prior, left.shape)
         d, s = logdepth_to_depth(ld[0].cpu().numpy(), sl[0].cpu().numpy() * self.mvs_gain)
-        return self._mask((d, s)), len(idx)
+        return self._mask((d, s), count=self.cfg.mono), len(idx)
 
     def process(self, stamp_ns: int, raw_left: np.ndarray, raw_right: np.ndarray | None,
                 T_WS: np.ndarray | None = None) -> DepthResult:
@@ -283,8 +287,12 @@ class DepthPipeline:
         if raw_left.shape != self.raw_shapes[0] or raw_right.shape != self.raw_shapes[1]:
             raise ValueError(f"images of shape {raw_left.shape}/{raw_right.shape}, calibration says {self.raw_shapes}")
         left, right = self.rect.rectify(raw_left, raw_right)
-        stereo = self._mask(self.stereo(left, right), count=True)
+        raw = self.stereo(left, right)
+        fly = self._flying(np.where(self.valid, raw[0], np.float32(np.nan)))
+        stereo = self._mask(raw, count=True, flying=fly)
         T_WC, mvs, n_src, n_prior = self._posed_mvs(stamp_ns, left, T_WS)
+        if mvs is not None:  # a silhouette the stereo pair sees is one: MVS alone there would bring the curtain back
+            mvs = self._mask(mvs, flying=fly)
         fused = stereo if mvs is None else fuse(*stereo, *mvs, self.cfg.fusion_correlation)
         return DepthResult(self._confident(stereo), self._confident(mvs), self._confident(fused, count=True), T_WC,
                            self.method, n_src, n_prior)
