@@ -7,7 +7,7 @@ import os
 
 import pytest
 
-from services.app.scheduling import has_cap_sys_nice, lowest_nice, resolve_nice, set_autogroup_nice
+from services.app.scheduling import autogroup_nice, has_cap_sys_nice, lowest_nice, resolve_nice, set_autogroup_nice
 
 
 def test_resolve_nice_adds_clamps_and_says_why_when_not_allowed():
@@ -43,7 +43,17 @@ def test_autogroup_nice_where_there_is_none(tmp_path):
     assert set_autogroup_nice(7, path=str(f)) and f.read_text() == "7"
 
 
-@pytest.mark.skipif(not os.path.exists("/proc/self/autogroup"), reason="no autogroups on this system")
+def test_autogroup_nice_reads_the_kernels_line_and_nothing_else(tmp_path):
+    f = tmp_path / "autogroup"
+    f.write_text("/autogroup-42 nice -5\n")
+    assert autogroup_nice(str(f)) == -5
+    for text in ("", "garbage", "/autogroup-1 nice x"):  # empty: a process in a cgroup of its own (a container, CI)
+        f.write_text(text)
+        assert autogroup_nice(str(f)) is None
+    assert autogroup_nice(str(tmp_path / "missing")) is None
+
+
+@pytest.mark.skipif(autogroup_nice() is None, reason="this process has no autogroup (autogroups off, or in a cgroup)")
 def test_autogroup_reads_back_as_a_nice():
     text = open("/proc/self/autogroup").read()
     assert text.startswith("/autogroup-") and "nice" in text

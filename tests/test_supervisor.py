@@ -210,14 +210,15 @@ def test_children_get_a_session_nice_class_and_group_nice_of_their_own(tmp_path)
     others stay in the supervisor's session and group."""
     import os
 
-    from services.app.scheduling import lowest_nice
+    from services.app.scheduling import autogroup_nice, lowest_nice
 
     probe = ("import os, sys\n"
-             "g = open('/proc/self/autogroup').read().split()[-1] if os.path.exists('/proc/self/autogroup') else 'none'\n"
+             "from services.app.scheduling import autogroup_nice\n"
+             "g = autogroup_nice()\n"
              "open(sys.argv[1], 'w').write(f'{os.getsid(0) == os.getpid()} {os.getpriority(os.PRIO_PROCESS, 0)} '\n"
-             "                             f'{os.sched_getscheduler(0)} {g}')\n")
+             "                             f'{os.sched_getscheduler(0)} {\"none\" if g is None else g}')\n")
     base, low = os.getpriority(os.PRIO_PROCESS, 0), lowest_nice()
-    mine = int(open("/proc/self/autogroup").read().split()[-1]) if os.path.exists("/proc/self/autogroup") else None
+    mine = autogroup_nice()
     sup = Supervisor(SupervisorConfig(start_router=False), tmp_path / "c.yaml", tmp_path)
     for sched, nice, policy in (("idle", 0, os.SCHED_IDLE), ("batch", 3, os.SCHED_BATCH), ("normal", 19, os.SCHED_OTHER),
                                 ("normal", -10, os.SCHED_OTHER)):

@@ -65,6 +65,22 @@ def resolve_nice(added: int, base: int | None = None, lowest: int | None = None)
                     f"processes, not ahead of them; allow it with CAP_SYS_NICE or `ulimit -e {20 - wanted}`")
 
 
+def autogroup_nice(path: str = AUTOGROUP) -> int | None:
+    """The nice of this process's autogroup, or None where it has none: no such file, autogroups off, or a process
+    inside a cgroup of its own (a container, a CI runner), where the kernel prints nothing for it."""
+    try:
+        with open(path) as f:
+            fields = f.read().split()
+    except OSError:
+        return None
+    if len(fields) == 3 and fields[0].startswith("/autogroup-") and fields[1] == "nice":
+        try:
+            return int(fields[2])
+        except ValueError:
+            return None
+    return None
+
+
 def set_autogroup_nice(nice: int, path: str = AUTOGROUP, tries: int = 40) -> bool:
     """Give this process's autogroup (its session's scheduling group) ``nice``; False where there is none or it is not
     allowed. The kernel takes at most ten such changes a second from processes without CAP_SYS_ADMIN (EAGAIN): retried."""
