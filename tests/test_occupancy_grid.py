@@ -11,7 +11,7 @@ from PIL import Image
 
 from occupancy_room import BALL, BOX, ROOM, mapped_room, views
 from services.mapping.config import GridConfig
-from services.mapping.grid import FREE_CELL, OCCUPIED_CELL, UNKNOWN_CELL, GridBuilder
+from services.mapping.grid import FREE_CELL, OCCUPIED_CELL, UNKNOWN_CELL, GridBuilder, _combine_rasters
 from services.mapping.grid_files import read_grid, write_grid
 
 
@@ -54,6 +54,34 @@ def test_no_free_cell_over_an_object_or_outside_the_room(room_grid):
     # a cell may touch the ball's outline by less than a voxel (the map's resolution); the ball's unseen far side
     # is unknown, which keeps the cells over it from being free (grid.min_free_fraction)
     assert (np.linalg.norm(nearest - BALL[0][:2], axis=1) >= BALL[1] - 0.025).all()
+
+
+def test_a_few_uncertain_voxels_leave_a_column_free_many_make_it_unknown():
+    """Two submaps over a 1 x 3 strip of 5 cm cells, 2.5 cm voxels, a 1.4 m band (56 levels, 224 voxel centres a
+    cell): every level observed free in every cell; submap 1 also holds uncertain voxels, 5 in cell 0 (2 %), 40 in
+    cell 1 (18 %), and an occupied voxel in cell 2."""
+    band, res, vs = (0.1, 1.5), 0.05, 0.025
+    full = int(round((res / vs) ** 2 * (band[1] - band[0]) / vs))
+    levels = np.full((1, 3), np.uint64(2**56 - 1))
+    n_free = np.full((1, 3), full, np.int32)
+    occ0, occ1 = np.zeros((1, 3), bool), np.array([[False, False, True]])
+    unsure0, unsure1 = np.zeros((1, 3), np.int32), np.array([[5, 40, 0]], np.int32)
+    rasters = [(0, 0, occ0, unsure0, levels, n_free), (0, 0, occ1, unsure1, levels, n_free - unsure1)]
+    tolerant = _combine_rasters(rasters, band, res, vs, 0.0, 0.95, 0.1).cells[0]
+    assert list(tolerant) == [FREE_CELL, UNKNOWN_CELL, OCCUPIED_CELL]
+    strict = _combine_rasters(rasters, band, res, vs, 0.0, 0.95, 0.0).cells[0]
+    assert list(strict) == [UNKNOWN_CELL, UNKNOWN_CELL, OCCUPIED_CELL]
+
+
+def test_tolerating_uncertain_voxels_frees_more_of_the_room_and_nothing_over_an_object():
+    mapper, _ = mapped_room()
+    strict = GridBuilder(GridConfig(max_uncertain_fraction=0.0)).build(mapper)
+    tolerant = GridBuilder(GridConfig(max_uncertain_fraction=0.1)).build(mapper)
+    assert (tolerant.cells == FREE_CELL).sum() > (strict.cells == FREE_CELL).sum()
+    assert ((strict.cells == FREE_CELL) <= (tolerant.cells == FREE_CELL)).all()  # what was free stays free
+    lo, hi = _cell_boxes(tolerant, tolerant.cells == FREE_CELL)
+    over_box = (hi[:, 0] > BOX[0][0]) & (lo[:, 0] < BOX[1][0]) & (hi[:, 1] > BOX[0][1]) & (lo[:, 1] < BOX[1][1])
+    assert not over_box.any()
 
 
 def test_rasters_follow_a_moved_submap():

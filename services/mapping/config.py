@@ -74,8 +74,11 @@ class GridConfig:
     floor: Literal["map", "fixed"] = param("map", "'map': the floor is the fullest horizontal layer of occupied "
                                            "voxels in the lower half of the map; 'fixed': floor_z_m")
     floor_z_m: float = param(0.0, "height of the floor in W with floor: fixed", "m")
-    min_free_fraction: float = param(0.95, "a cell with no occupied or uncertain voxel in the band is free when at "
-                                     "least this fraction of its band is observed free (else unknown)")
+    min_free_fraction: float = param(0.95, "a cell with no occupied voxel in the band (and few uncertain ones) is "
+                                     "free when at least this fraction of its band is observed free (else unknown)")
+    max_uncertain_fraction: float = param(0.0, "a cell whose uncertain voxels (summed over the submaps) are more than "
+                                          "this fraction of the voxels its band holds is unknown (0: a single one "
+                                          "does; more frees more cells and is less safe: docs/occupancy.md)")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -10,9 +10,10 @@ at the lowest y (as nav_msgs/OccupancyGrid). Each submap is rasterised on its ow
 the rule of the point queries (services/mapping/combined.py): a cell is
 
 - occupied (100) when any submap has an occupied voxel (L > occupied_above) in its band,
-- else unknown (255) when any submap has an uncertain voxel there (free_below <= L <= occupied_above), or when less
-  than ``min_free_fraction`` of the band's levels (one voxel high, at most 64 of them) hold a voxel observed free
-  in the cell by some submap, or a submap's free voxel centres in the cell are fewer than 0.9 of those a cell
+- else unknown (255) when the submaps' uncertain voxels there (free_below <= L <= occupied_above), summed over the
+  submaps, are more than ``max_uncertain_fraction`` of the voxel centres a cell's band holds on average, or when
+  less than ``min_free_fraction`` of the band's levels (one voxel high, at most 64 of them) hold a voxel observed
+  free in the cell by some submap, or a submap's free voxel centres in the cell are fewer than 0.9 of those a cell
   holds on average (counts alone vary with a submap's rotation against the cells, levels alone miss a cell that is
   partly unobserved),
 - else free (0).
@@ -117,7 +118,8 @@ class GridBuilder:
                 rasters.append(got[1])
         if not rasters:
             return None
-        return _combine_rasters(rasters, band, res, vs, floor, self.cfg.min_free_fraction)
+        return _combine_rasters(rasters, band, res, vs, floor, self.cfg.min_free_fraction,
+                                self.cfg.max_uncertain_fraction)
 
 
 def _moved(T_old: np.ndarray, sm, tol_m: float) -> bool:
@@ -134,27 +136,31 @@ def _moved(T_old: np.ndarray, sm, tol_m: float) -> bool:
     return bool(np.abs(box @ (np.asarray(sm.T_WM) - T_old).T).max() > tol_m)
 
 
-def _combine_rasters(rasters, band, res, vs, floor, min_free) -> Grid2D:
+def _combine_rasters(rasters, band, res, vs, floor, min_free, max_uncertain) -> Grid2D:
     x0 = min(r[0] for r in rasters)
     y0 = min(r[1] for r in rasters)
     x1 = max(r[0] + r[4].shape[1] for r in rasters)
     y1 = max(r[1] + r[4].shape[0] for r in rasters)
     occ = np.zeros((y1 - y0, x1 - x0), bool)
-    unsure = np.zeros_like(occ)
+    unsure = np.zeros(occ.shape)
     seen = np.zeros(occ.shape, np.uint64)
     count = np.zeros(occ.shape)
     for cx, cy, o, u, levels, n_free in rasters:
         sl = np.s_[cy - y0: cy - y0 + o.shape[0], cx - x0: cx - x0 + o.shape[1]]
         occ[sl] |= o
-        unsure[sl] |= u
+        unsure[sl] += u
         seen[sl] |= levels
         count[sl] = np.maximum(count[sl], n_free)
     cover = np.unpackbits(seen[..., None].view(np.uint8), axis=-1).sum(axis=-1) / _levels(band, vs)[1]
     # and free voxel centres against those a cell holds on average: a cell whose band is partly unobserved (an
     # object's unseen side) has too few, however its levels are covered
-    dense = count >= 0.9 * (res / vs) ** 2 * (band[1] - band[0]) / vs
+    full = (res / vs) ** 2 * (band[1] - band[0]) / vs
+    dense = count >= 0.9 * full
+    # a few uncertain voxels in a column (seen once, far, at a grazing angle) do not make it unknown; a surface's
+    # ramp (eq. 3) in front of an object in the cell comes with its occupied voxels, which make the cell occupied
+    sure = unsure <= max_uncertain * full
     cells = np.full(occ.shape, UNKNOWN_CELL, np.uint8)
-    cells[(cover >= min_free) & dense & ~unsure] = FREE_CELL
+    cells[(cover >= min_free) & dense & sure] = FREE_CELL
     cells[occ] = OCCUPIED_CELL
     return Grid2D(cells, res, np.array([x0 * res, y0 * res]), np.array(band, float), floor)
 
@@ -186,7 +192,8 @@ def _occupied_heights(sm, occupied_above: float) -> np.ndarray:
 
 
 def _raster(sm, band, res, q: QueryConfig):
-    """(cell x0, cell y0, occupied, uncertain, free-voxel count) of one submap over its footprint, or None."""
+    """(cell x0, cell y0, occupied, uncertain-voxel count, free levels, free-voxel count) of one submap over its
+    footprint, or None."""
     ijk, cL, cw, vslot, Lv, wv = _block_arrays(sm)
     if len(ijk) == 0:
         return None
@@ -199,7 +206,7 @@ def _raster(sm, band, res, q: QueryConfig):
     cx0, cy0 = np.floor(box_W[:, :2].min(0) / res).astype(np.int64)
     cx1, cy1 = np.floor(box_W[:, :2].max(0) / res).astype(np.int64) + 1
     occ = np.zeros((cy1 - cy0, cx1 - cx0), bool)
-    unsure, levels, n_free = np.zeros_like(occ), np.zeros(occ.shape, np.uint64), np.zeros(occ.shape, np.int32)
+    unsure, levels, n_free = np.zeros(occ.shape, np.int32), np.zeros(occ.shape, np.uint64), np.zeros(occ.shape, np.int32)
     _rasterise(np.ascontiguousarray(ijk), cL, cw, vslot, Lv, wv, np.ascontiguousarray(sm.T_WM[:3, :3]),
                np.ascontiguousarray(sm.T_WM[:3, 3]), st.voxel_size, st.block_size, band[0], band[1],
                cx0 * res, cy0 * res, res, q.occupied_above, q.free_below, _levels(band, st.voxel_size)[0], occ,
@@ -214,7 +221,7 @@ def warm_up() -> None:
     occ = np.zeros((1, 1), bool)
     _rasterise(np.zeros((1, 3), np.int64), np.zeros(1, np.float32), np.zeros(1, np.uint16), np.full(1, -1, np.int32),
                np.zeros((1, b, b, b), np.float32), np.zeros((1, b, b, b), np.uint16), np.eye(3), np.zeros(3), 0.025, b,
-               0.0, 1.0, 0.0, 0.0, 0.05, 0.0, -2.5, 0.025, occ, np.zeros_like(occ), np.zeros((1, 1), np.uint64),
+               0.0, 1.0, 0.0, 0.0, 0.05, 0.0, -2.5, 0.025, occ, np.zeros((1, 1), np.int32), np.zeros((1, 1), np.uint64),
                np.zeros((1, 1), np.int32))
 
 
@@ -254,7 +261,7 @@ def _rasterise(ijk, cL, cw, vslot, Lv, wv, R, t, vs, b, z0, z1, ox, oy, res, occ
                     if L > occ_above:
                         occ[r, c] = True
                     elif L >= free_below:
-                        unsure[r, c] = True
+                        unsure[r, c] += 1
                     else:
                         levels[r, c] |= np.uint64(1) << np.uint64(min(int((z - z0) / level_m), 63))
                         n_free[r, c] += 1
