@@ -38,7 +38,9 @@ demo:
 	@t0=$$(date +%s%N); $(MAKE) --no-print-directory setup && \
 	$(BIN)/sigmaslam demo --setup-s $$(( ($$(date +%s%N) - t0) / 1000000000 ))
 
-# everything CI runs (.ci/run): lint, then every tier (unit, service, e2e in its reduced form; tests/README.md)
+# everything CI runs (.ci/run): lint, then every tier (unit, service, e2e in its reduced form; tests/README.md):
+# all but the live pipelines on both cores (pytest-xdist), then the live pipelines (marker processes) one at a time
 test: setup
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 -m "not processes"
+	$(BIN)/python -m pytest -q -m processes

@@ -108,6 +108,8 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             clashes.append(f"{item.nodeid}: {', '.join(marked)}")
         elif not marked:
             item.add_marker(pytest.mark.service if _is_service(item) else pytest.mark.unit)
+        elif marked == ["e2e"] and (item.get_closest_marker("processes") or _is_service(item)):
+            item.add_marker(pytest.mark.processes)  # a live pipeline: `make test` runs these one at a time
     if clashes:
         raise pytest.UsageError("each test is in exactly one tier (tests/README.md); these have more than one:\n  "
                                 + "\n  ".join(clashes))

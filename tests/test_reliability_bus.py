@@ -61,6 +61,7 @@ def _bad_content(newest_ns: int, frame: messages.MultiCameraFrame | None) -> lis
 
 
 @pytest.mark.e2e
+@pytest.mark.processes  # the pipeline's processes through tools.fault_inject, which the tier finder does not follow
 def test_garbage_and_bad_content_on_every_topic(tmp_path):
     rng = np.random.default_rng(12)
     sent: dict[str, int] = {}
