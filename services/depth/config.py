@@ -23,7 +23,7 @@ class DepthConfig:
     border_margin_px: int = param(8, "depth is dropped (NaN) on rectified pixels that no raw image covers (black "
                                   "rectification border) and within this distance of them: the networks make up "
                                   "depth there, MVS mostly far behind the true surface (docs/depth.md)", "px")
-    max_relative_sigma: float = param(0.1, "pixels whose sigma exceeds this fraction of their depth are dropped (NaN) "
+    max_relative_sigma: float = param(0.05, "pixels whose sigma exceeds this fraction of their depth are dropped (NaN) "
                                       "from every output and counted: too uncertain to place a surface, and the map "
                                       "would clip their sigma (mapping.sensor.sigma_max_m) and draw them as one "
                                       "(docs/depth.md, 'Uncertain pixels'); 0: keep all. Learned sigma only: "
