@@ -113,7 +113,8 @@ def _live(args) -> dict:
                         answered += 1
                     except QueryError as exc:
                         failed += 1
-                        reasons[str(exc)[:120]] = reasons.get(str(exc)[:120], 0) + 1
+                        why = str(exc)[:120]
+                        reasons[why] = reasons.get(why, 0) + 1
                     for s in stats.drain():
                         names = list(s.stage_names)
                         if "query" in names and np.isfinite(s.stage_p50_ms[names.index("query")]):

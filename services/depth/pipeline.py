@@ -216,20 +216,17 @@ class DepthPipeline:
             with self._inference():
                 self.mvs_net.encoder(torch.from_numpy(blank).float()[None, None].to(self.device))
 
-    def _mask(self, ds: tuple[np.ndarray, np.ndarray], count: bool = False,
-              flying: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def _mask(self, ds: tuple[np.ndarray, np.ndarray], count: bool = False
+              ) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray]:
         """Depth and sigma with NaN outside ``self.valid`` and on flying pixels (services/depth/flying.py; ``count``
-        adds them to ``self.flying_px``), or on ``flying`` when given (another source's)."""
+        adds them to ``self.flying_px``), and the flying pixels' mask."""
         d, s = (np.where(self.valid, a, np.float32(np.nan)).astype(np.float32, copy=False) for a in ds)
-        fly = self._flying(d) if flying is None else flying
+        cfg = self.cfg
+        fly = flying_pixels(d, self.f_px * (self.baseline_m or FLYING_MONO_BASELINE_M), cfg.flying_radius_px,
+                            cfg.flying_rel_jump, cfg.flying_min_gradient, cfg.flying_margin)
         if count:
             self.flying_px += int(np.count_nonzero(fly))
-        return np.where(fly, np.float32(np.nan), d), np.where(fly, np.float32(np.nan), s)
-
-    def _flying(self, depth: np.ndarray) -> np.ndarray:
-        cfg = self.cfg
-        return flying_pixels(depth, self.f_px * (self.baseline_m or FLYING_MONO_BASELINE_M), cfg.flying_radius_px,
-                             cfg.flying_rel_jump, cfg.flying_min_gradient, cfg.flying_margin)
+        return _nan_where((d, s), fly), fly
 
     def _confident(self, ds: tuple[np.ndarray, np.ndarray] | None, count: bool = False
                    ) -> tuple[np.ndarray, np.ndarray] | None:
@@ -246,7 +243,7 @@ class DepthPipeline:
             n_bad = int(np.count_nonzero(bad))
             self.uncertain_px += n_bad
             self.confident_px += int(np.count_nonzero(np.isfinite(d))) - n_bad
-        return np.where(bad, np.float32(np.nan), d), np.where(bad, np.float32(np.nan), s)
+        return _nan_where(ds, bad)
 
     def _features(self, view: _View):
         if view.features is None:
@@ -278,7 +275,7 @@ class DepthPipeline:
             ld, sl = self.mvs_net.forward_features(f_ref, ctx, f_src.to(self.device), K.to(self.device),
                                                    T_src_ref.to(self.device), prior, left.shape)
         d, s = logdepth_to_depth(ld[0].cpu().numpy(), sl[0].cpu().numpy() * self.mvs_gain)
-        return self._mask((d, s), count=self.cfg.mono), len(idx)
+        return self._mask((d, s), count=self.cfg.mono)[0], len(idx)
 
     def process(self, stamp_ns: int, raw_left: np.ndarray, raw_right: np.ndarray | None,
                 T_WS: np.ndarray | None = None) -> DepthResult:
@@ -287,12 +284,10 @@ class DepthPipeline:
         if raw_left.shape != self.raw_shapes[0] or raw_right.shape != self.raw_shapes[1]:
             raise ValueError(f"images of shape {raw_left.shape}/{raw_right.shape}, calibration says {self.raw_shapes}")
         left, right = self.rect.rectify(raw_left, raw_right)
-        raw = self.stereo(left, right)
-        fly = self._flying(np.where(self.valid, raw[0], np.float32(np.nan)))
-        stereo = self._mask(raw, count=True, flying=fly)
+        stereo, fly = self._mask(self.stereo(left, right), count=True)
         T_WC, mvs, n_src, n_prior = self._posed_mvs(stamp_ns, left, T_WS)
         if mvs is not None:  # a silhouette the stereo pair sees is one: MVS alone there would bring the curtain back
-            mvs = self._mask(mvs, flying=fly)
+            mvs = _nan_where(mvs, fly)
         fused = stereo if mvs is None else fuse(*stereo, *mvs, self.cfg.fusion_correlation)
         return DepthResult(self._confident(stereo), self._confident(mvs), self._confident(fused, count=True), T_WC,
                            self.method, n_src, n_prior)
@@ -316,6 +311,11 @@ class DepthPipeline:
         mvs, n_src = self.mvs(left, T_WC, prior)
         n_prior = 0 if prior is None or mvs is None else int(np.count_nonzero(prior))
         return T_WC, mvs, n_src, n_prior
+
+
+def _nan_where(ds: tuple[np.ndarray, np.ndarray], mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Depth and sigma with NaN where ``mask``."""
+    return tuple(np.where(mask, np.float32(np.nan), a) for a in ds)
 
 
 def pipeline_for_rig(cfg: DepthConfig, cameras) -> DepthPipeline:
