@@ -25,9 +25,9 @@ def test_summary_reports_lost_frames_latency_and_by_design_drops_apart(tmp_path)
     assert "frames lost by the estimator        none" in "\n".join(summary_lines(tmp_path, None, "x"))
 
 
-def test_summary_reports_the_share_of_depth_pixels_too_uncertain_to_map(tmp_path):
+def test_summary_reports_the_share_of_depth_pixels_only_freeing_space(tmp_path):
     (tmp_path / "stats.json").write_text(json.dumps({"depth_uncertain_fraction": 0.115, "drops": {}}))
     text = "\n".join(summary_lines(tmp_path, None, "x"))
-    assert "depth pixels too uncertain to map   11.5 %" in text
+    assert "depth pixels only freeing space     11.5 %" in text
     (tmp_path / "stats.json").write_text(json.dumps({"depth_uncertain_fraction": None}))
-    assert "too uncertain" not in "\n".join(summary_lines(tmp_path, None, "x"))
+    assert "only freeing space" not in "\n".join(summary_lines(tmp_path, None, "x"))

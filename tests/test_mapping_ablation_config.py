@@ -11,7 +11,7 @@ pytestmark = pytest.mark.unit
 def test_depth_overrides_are_applied_and_checked():
     cfg = depth_config(["depth.stereo_weights=w/stereo_refine.pt", "depth.max_relative_sigma=0.2"])
     assert cfg.stereo_weights == "w/stereo_refine.pt" and cfg.max_relative_sigma == 0.2
-    assert depth_config([]).max_relative_sigma == 0.05  # the service's default
+    assert depth_config([]).max_relative_sigma == 0.04  # the service's default
     with pytest.raises(ConfigError, match="only depth"):
         depth_config(["mapping.voxel_size_m=0.1"])
     with pytest.raises(ConfigError, match="max_relative_sigma"):

@@ -295,3 +295,43 @@ def test_warm_up_loads_the_query_kernels_a_fresh_process_needs():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True,
                          cwd=Path(__file__).resolve().parents[1])
     assert out.stdout.split("\n")[0] == "(0, 0) (1, 1)", out.stdout + out.stderr
+
+
+def test_pixels_too_uncertain_for_a_surface_only_free_the_space_in_front():
+    """A depth frame's pixels whose sigma exceeds k x depth (DepthFrame.surface_max_relative_sigma) place no surface:
+    they free the ray up to depth - 3 sigma, so a phantom surface that a bad frame put in front of them is carved,
+    and the voxels around their own depth stay as they were."""
+    from shared.occupancy.uncertain_pixels import carve_only_pixels
+
+    cfg = SensorModelConfig()
+    ijk = np.column_stack([np.zeros(160, int), np.zeros(160, int), np.arange(160)])  # the optical axis, 0-4 m
+    z = (ijk[:, 2] + 0.5) * cfg.voxel_size_m
+    far_d, far_s = wall(3.0, 0.2)  # relative sigma 0.067
+    carve = carve_only_pixels(far_d, far_s, 0.05)
+    assert carve.all() and carve_only_pixels(far_d, far_s, 0.0) is None and carve_only_pixels(far_d, far_s, 0.1).sum() == 0
+    nan_d = far_d.copy()
+    nan_d[:10] = np.nan
+    assert not carve_only_pixels(nan_d, far_s, 0.05)[:10].any()  # NaN depth: no pixel at all
+
+    phantom_d, phantom_s = wall(1.5, 0.03)
+    stores = {}
+    for name, mask in (("surface", None), ("carve", carve)):
+        store, _ = integrate_once(phantom_d, phantom_s, cfg=cfg)
+        L0, _ = BlockField.of(store).voxels(ijk)
+        assert L0[np.abs(z - 1.5) < 0.02].max() > 0  # the phantom is a surface
+        d, s, _ = prepare_depth(far_d, far_s, cfg)
+        for _ in range(5):
+            res = integrate(store, d, s, K, np.eye(4), cfg, mask)
+        assert res.n_carve_only == (res.n_pixels if mask is not None else 0)
+        stores[name] = BlockField.of(store).voxels(ijk)
+    L_s, w_s = stores["surface"]
+    L_c, w_c = stores["carve"]
+    phantom = np.abs(z - 1.5) < 0.02
+    assert (L_c[phantom] < 0).all() and (L_s[phantom] < 0).all()  # carved either way: 2.4 m < 3 m - 3 sigma
+    at_wall = np.abs(z - 3.0) < 0.05
+    assert (L_s[at_wall] > 0).any()  # as a surface, the uncertain wall is drawn
+    assert (w_c[at_wall] == 0).all()  # carve only: nothing there was touched
+    free_end = z < 3.0 - 3 * 0.2 - 0.05
+    assert (L_c[free_end & (z > 0.2) & (np.abs(z - 1.5) > 0.1)] < cfg.l_min * 0.9).all()  # free in front (not the phantom's band)
+    unsure = (z > 3.0 - 3 * 0.2 + 0.05) & (z < 3.0)
+    assert (w_c[unsure] == 0).all()  # the ramp within 3 sigma of the depth is not applied

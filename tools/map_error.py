@@ -116,7 +116,8 @@ def compute_frames(args: argparse.Namespace, out: Path) -> list[Path]:
         res = pipe.process(stamp, raw_l, raw_r, T_WS)
         T_WC = T_WS @ pipe.T_SC
         arrays = {"d_gt": gt.depth(T_WC), "T_WC": T_WC, "K": pipe.K, "T_SC": pipe.T_SC, "stamp": np.int64(stamp),
-                  "baseline_m": np.float64(pipe.baseline_m)}
+                  "baseline_m": np.float64(pipe.baseline_m),
+                  "surface_max_relative_sigma": np.float64(res.surface_max_relative_sigma)}
         for name, ds in (("stereo", res.stereo), ("fused", res.fused)):
             if ds is not None:
                 arrays[f"d_{name}"], arrays[f"s_{name}"] = ds
@@ -235,7 +236,7 @@ def run_variant(name: str, paths: list[Path], source: str, edge_px: int, replica
     for p in paths:
         f = load_frame(p, source)
         d, s = _variant_frame(name, f, edge_px, rng)
-        mapper.integrate(d, s, f["K"], f["T_WC"], f["T_SC"], int(f["stamp"]))
+        mapper.integrate(d, s, f["K"], f["T_WC"], f["T_SC"], int(f["stamp"]), float(f.get("surface_max_relative_sigma", 0.0)))
     mapper.remesh()
     v, tri = mapper.world_mesh()
     d_out = out / "variants" / name

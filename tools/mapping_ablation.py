@@ -93,7 +93,7 @@ def main(args: argparse.Namespace) -> int:
         T_WC = T_WS @ pipe.T_SC
         for name, (d, s) in (("stereo-heuristic", res.stereo), ("stereo-learned", res.stereo), ("fused", res.fused)):
             if name in mappers:
-                mappers[name].integrate(d, s, pipe.K, T_WC, pipe.T_SC, stamp)
+                mappers[name].integrate(d, s, pipe.K, T_WC, pipe.T_SC, stamp, res.surface_max_relative_sigma)
         if i % args.keyframe_every == 0:
             kf_stamps.append(stamp)
             kf_T.append(T_WS)

@@ -164,8 +164,8 @@ def summary_lines(out: Path, mesh: dict | None, viewer_url: str, phases: dict[st
             lines.append("other queue drops (by design)       " + ", ".join(f"{k} {v}" for k, v in other.items())
                          + "  (latest-only inputs, depth paced at depth.rate_hz, non-keyframes the back end skips)")
     if stats.get("depth_uncertain_fraction") is not None:
-        lines.append(f"depth pixels too uncertain to map   {100 * stats['depth_uncertain_fraction']:.1f} % "
-                     f"(sigma > depth.max_relative_sigma x depth)")
+        lines.append(f"depth pixels only freeing space     {100 * stats['depth_uncertain_fraction']:.1f} % "
+                     f"(sigma > depth.max_relative_sigma x depth: too uncertain for a surface)")
     fb = stats.get("frontend_backend_median_ms")
     if fb is not None:
         lines.append(f"frontend + fast path median / frame {fb:.1f} ms (budget 33 ms)")

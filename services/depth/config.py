@@ -23,12 +23,12 @@ class DepthConfig:
     border_margin_px: int = param(8, "depth is dropped (NaN) on rectified pixels that no raw image covers (black "
                                   "rectification border) and within this distance of them: the networks make up "
                                   "depth there, MVS mostly far behind the true surface (docs/depth.md)", "px")
-    max_relative_sigma: float = param(0.05, "pixels whose sigma exceeds this fraction of their depth are dropped (NaN) "
-                                      "from every output and counted: too uncertain to place a surface, and the map "
-                                      "would clip their sigma (mapping.sensor.sigma_max_m) and draw them as one "
-                                      "(docs/depth.md, 'Uncertain pixels'); 0: keep all. Learned sigma only: "
-                                      "SGBM's and the heuristic sigma grow with depth alone, and the cap would cut "
-                                      "far depth")
+    max_relative_sigma: float = param(0.04, "pixels whose sigma exceeds this fraction of their depth are too "
+                                      "uncertain to place a surface: every DepthFrame says so "
+                                      "(surface_max_relative_sigma), the map takes only the free space well in front "
+                                      "of them, and they are counted (docs/depth.md, 'Uncertain pixels'); 0: every "
+                                      "pixel places its surface. Learned sigma only: SGBM's and the heuristic sigma "
+                                      "grow with depth alone, and the rule would cut far depth")
     flying_radius_px: int = param(2, "pixels between the near and the far side of a depth edge within this distance "
                                   "are dropped (NaN) from every output and counted: the curtain a network draws "
                                   "across an object's silhouette (services/depth/flying.py); 0: keep them", "px")

@@ -49,7 +49,8 @@ def depth_message(res: DepthResult, which: str, pipe: DepthPipeline, stamp_ns: i
         source = "stereo" if which == "stereo" or res.mvs is None else "fused"
     return DepthFrame(header=Header(stamp_ns=stamp_ns, seq=seq, frame_id=frame_id),
                       depth=np.ascontiguousarray(depth, np.float32), sigma=np.ascontiguousarray(sigma, np.float32),
-                      K=pipe.K, T_WC=np.eye(4) if res.T_WC is None else res.T_WC, T_SC=pipe.T_SC, source=source)
+                      K=pipe.K, T_WC=np.eye(4) if res.T_WC is None else res.T_WC, T_SC=pipe.T_SC, source=source,
+                      surface_max_relative_sigma=res.surface_max_relative_sigma)
 
 
 class PoseBook:
@@ -107,7 +108,7 @@ class DepthNode(ProcessNode):
                "mvs_prior_points": lambda: self.prior["points"],  # landmark points given to it, and refused
                "mvs_prior_points_rejected": lambda: self.pipe.prior_rejected,
                "landmarks_refused": lambda: self.dropped_landmarks,
-               # pixels of the published maps: with depth, and dropped as too uncertain (depth.max_relative_sigma)
+               # pixels of the published maps: placing a surface, and too uncertain to (depth.max_relative_sigma: free space only)
                "confident_pixels": lambda: self.pipe.confident_px,
                "uncertain_pixels": lambda: self.pipe.uncertain_px, "flying_pixels": lambda: self.pipe.flying_px}
         if self.dc.mono:

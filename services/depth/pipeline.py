@@ -36,6 +36,7 @@ from services.depth.sgbm import SgbmParams, sgbm_depth, stereo_heuristic_sigma
 from services.depth.uncertainty import disparity_to_depth, fuse, logdepth_to_depth
 from services.depth.views import select_sources
 from shared.camera import CameraCalib, rectified_intrinsics, stereo_rectification
+from shared.occupancy.uncertain_pixels import carve_only_pixels
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +53,7 @@ class DepthResult:
     method: str
     n_sources: int
     n_prior: int = 0  # landmark pixels in the MVS prior
+    surface_max_relative_sigma: float = 0.0  # pixels with sigma > this x depth place no surface (0: all do)
 
 
 @dataclass
@@ -228,22 +230,24 @@ class DepthPipeline:
             self.flying_px += int(np.count_nonzero(fly))
         return _nan_where((d, s), fly), fly
 
-    def _confident(self, ds: tuple[np.ndarray, np.ndarray] | None, count: bool = False
-                   ) -> tuple[np.ndarray, np.ndarray] | None:
-        """Depth and sigma with NaN where sigma > ``depth.max_relative_sigma`` x depth (unchanged with 0, or with a
-        heuristic sigma, which only grows with depth); ``count`` adds the map's kept and dropped pixels to
+    @property
+    def surface_max_relative_sigma(self) -> float:
+        """``depth.max_relative_sigma`` where the sigma is learned, else 0 (SGBM's and the heuristic sigma grow with
+        depth alone: the rule would cut far depth)."""
+        return self.cfg.max_relative_sigma if self.learned_sigma else 0.0
+
+    def _count_uncertain(self, ds: tuple[np.ndarray, np.ndarray] | None) -> None:
+        """Add the published map's pixels that place a surface and those too uncertain to (sigma >
+        ``depth.max_relative_sigma`` x depth: they only free space, shared/occupancy/uncertain_pixels.py) to
         ``self.confident_px`` / ``self.uncertain_px``."""
-        k = self.cfg.max_relative_sigma
-        if ds is None or k <= 0 or not self.learned_sigma:
-            return ds
-        d, s = ds
-        with np.errstate(invalid="ignore"):
-            bad = s > k * d
-        if count:
-            n_bad = int(np.count_nonzero(bad))
-            self.uncertain_px += n_bad
-            self.confident_px += int(np.count_nonzero(np.isfinite(d))) - n_bad
-        return _nan_where(ds, bad)
+        if ds is None:
+            return
+        carve = carve_only_pixels(*ds, self.surface_max_relative_sigma)
+        if carve is None:
+            return
+        n_bad = int(np.count_nonzero(carve))
+        self.uncertain_px += n_bad
+        self.confident_px += int(np.count_nonzero(np.isfinite(ds[0]))) - n_bad
 
     def _features(self, view: _View):
         if view.features is None:
@@ -289,8 +293,8 @@ class DepthPipeline:
         if mvs is not None:  # a silhouette the stereo pair sees is one: MVS alone there would bring the curtain back
             mvs = _nan_where(mvs, fly)
         fused = stereo if mvs is None else fuse(*stereo, *mvs, self.cfg.fusion_correlation)
-        return DepthResult(self._confident(stereo), self._confident(mvs), self._confident(fused, count=True), T_WC,
-                           self.method, n_src, n_prior)
+        self._count_uncertain(fused)
+        return DepthResult(stereo, mvs, fused, T_WC, self.method, n_src, n_prior, self.surface_max_relative_sigma)
 
     def _process_mono(self, stamp_ns: int, raw_left: np.ndarray, T_WS: np.ndarray | None) -> DepthResult:
         """depth.mono: MVS depth of the undistorted left image, None before a pose and source views exist."""
@@ -298,8 +302,8 @@ class DepthPipeline:
             raise ValueError(f"image of shape {raw_left.shape}, calibration says {self.raw_shapes[0]}")
         left = cv2.remap(raw_left, *self._left_maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
         T_WC, mvs, n_src, n_prior = self._posed_mvs(stamp_ns, left, T_WS)
-        mvs = self._confident(mvs, count=True)
-        return DepthResult(None, mvs, mvs, T_WC, "mvs", n_src, n_prior)
+        self._count_uncertain(mvs)
+        return DepthResult(None, mvs, mvs, T_WC, "mvs", n_src, n_prior, self.surface_max_relative_sigma)
 
     def _posed_mvs(self, stamp_ns: int, left: np.ndarray, T_WS: np.ndarray | None):
         """(T_WC, MVS depth and sigma or None, source views, prior pixels) of the rectified left image; no MVS

@@ -38,6 +38,7 @@ class IntegrationResult:
     n_clear: int  # blocks carved as a whole
     n_voxel_blocks: int  # blocks updated voxel by voxel
     n_pixels: int  # usable depth pixels
+    n_carve_only: int = 0  # of those, pixels that only freed space (too uncertain for a surface)
 
 
 def _pyramids(depth: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -164,7 +165,7 @@ _FAST = {"contract", "arcp", "reassoc", "nsz", "afn"}
 
 
 @nb.njit(parallel=True, fastmath=_FAST, cache=True)
-def _update_voxels(bijk, rows, Lv, wv, R, t, fx, fy, cx, cy, depth, sigma, vs, l_min, w_max,
+def _update_voxels(bijk, rows, Lv, wv, R, t, fx, fy, cx, cy, depth, sigma, carve_only, vs, l_min, w_max,
                    tau_k, tau_sigma_k, tau_min, tau_max, near, changed):
     H, W = depth.shape
     B = Lv.shape[1]
@@ -195,6 +196,8 @@ def _update_voxels(bijk, rows, Lv, wv, R, t, fx, fy, cx, cy, depth, sigma, vs, l
                     tau = min(max(max(tau_k * D, tau_sigma_k * sigma[vi, ui]) * scale, tau_min), tau_max)
                     if d_r < -three_s:
                         l = l_min
+                    elif carve_only[vi, ui]:  # too unsure to place a surface: only the space well in front is free
+                        continue
                     elif d_r < 0.5 * tau:
                         l = -l_min * d_r / three_s
                     elif d_r < tau:
@@ -218,12 +221,16 @@ def _frustum_planes(K: np.ndarray, W: int, H: int) -> np.ndarray:
 
 
 def integrate(store: BlockStore, depth: np.ndarray, sigma: np.ndarray, K: np.ndarray, T_MC: np.ndarray,
-              cfg: SensorModelConfig) -> IntegrationResult:
+              cfg: SensorModelConfig, carve_only: np.ndarray | None = None) -> IntegrationResult:
     """Integrate depth/sigma (already through :func:`prepare_depth`: NaN = unusable) seen from
-    camera pose ``T_MC`` (camera in the field frame) with pinhole ``K``."""
+    camera pose ``T_MC`` (camera in the field frame) with pinhole ``K``. Pixels where ``carve_only`` (H, W) is
+    true only free the space more than 3 sigma in front of their depth
+    (shared/occupancy/uncertain_pixels.py)."""
     H, W = depth.shape
     n_pix = int(np.isfinite(depth).sum())
-    empty = IntegrationResult(np.empty(0, np.int64), 0, 0, n_pix)
+    carve = np.zeros((H, W), np.bool_) if carve_only is None else np.ascontiguousarray(carve_only, np.bool_)
+    n_carve = int(np.count_nonzero(carve & np.isfinite(depth))) if carve_only is not None else 0
+    empty = IntegrationResult(np.empty(0, np.int64), 0, 0, n_pix, n_carve)
     if n_pix == 0:
         return empty
     T_CM = np.linalg.inv(T_MC)
@@ -257,10 +264,10 @@ def integrate(store: BlockStore, depth: np.ndarray, sigma: np.ndarray, K: np.nda
     store.refine(sv)
     changed = np.zeros(len(sv), bool)
     _update_voxels(np.ascontiguousarray(ijk[fine]), store.vox_slot[sv].astype(np.int64), store.Lv, store.wv, R, t,
-                   fx, fy, cx, cy, depth, sigma, store.voxel_size, float(cfg.l_min), int(cfg.w_max), cfg.tau_k,
+                   fx, fy, cx, cy, depth, sigma, carve, store.voxel_size, float(cfg.l_min), int(cfg.w_max), cfg.tau_k,
                    cfg.tau_sigma_k, cfg.tau_min_m, cfg.tau_max_m, cfg.near_m, changed)
     store.unrefine(sv[~changed & was_unknown[fine]])  # refined for nothing: back to unknown coarse
-    return IntegrationResult(np.concatenate([sc, sv[changed]]), int(len(sc)), int(len(sv)), n_pix)
+    return IntegrationResult(np.concatenate([sc, sv[changed]]), int(len(sc)), int(len(sv)), n_pix, n_carve)
 
 
 def warm_up(cfg: SensorModelConfig | None = None) -> None:

@@ -179,7 +179,8 @@ class MappingNode(ProcessNode):
         t0 = time.perf_counter()
         try:
             with self.timer("integrate", self.cfg.integrate_budget_ms):
-                rep = self.mapper.integrate(msg.depth, msg.sigma, msg.K, T_WC, msg.T_SC, msg.header.stamp_ns)
+                rep = self.mapper.integrate(msg.depth, msg.sigma, msg.K, T_WC, msg.T_SC, msg.header.stamp_ns,
+                                            msg.surface_max_relative_sigma)
         except ValueError as exc:
             self.counts["dropped_bad_frame"] += 1
             log.warning("depth frame %d dropped: %s", msg.header.stamp_ns, exc)
@@ -188,9 +189,11 @@ class MappingNode(ProcessNode):
         self.newest_stamp_ns = max(self.newest_stamp_ns, int(msg.header.stamp_ns))
         self.unflushed = True
         self.counts["integrated"] += 1
+        self.counts["surface_pixels"] += rep.result.n_pixels - rep.result.n_carve_only
+        self.counts["carve_only_pixels"] += rep.result.n_carve_only
         if self.points is not None:
             T_WM = self.mapper.submaps[rep.submap_id].T_WM
-            self.points.add(rep.submap_id, msg.depth, msg.sigma, msg.K, np.linalg.inv(T_WM) @ T_WC)
+            self.points.add(rep.submap_id, msg.surface_depth(), msg.sigma, msg.K, np.linalg.inv(T_WM) @ T_WC)
         if rep.new_submap:
             self.counts["submaps"] += 1
             if rep.submap_id > 0:

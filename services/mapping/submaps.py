@@ -20,6 +20,7 @@ from services.mapping.integrate import IntegrationResult, integrate
 from services.mapping.mesh import ChunkMesher
 from shared.occupancy.query import UNKNOWN, BlockField, interpolate, state
 from services.mapping.sensor_model import prepare_depth
+from shared.occupancy.uncertain_pixels import carve_only_pixels
 from shared.geometry import inv_T
 
 
@@ -109,9 +110,11 @@ class SubmapMapper:
         return float(np.mean(seen))
 
     def integrate(self, depth: np.ndarray, sigma: np.ndarray | None, K: np.ndarray, T_WC: np.ndarray,
-                  T_SC: np.ndarray, stamp_ns: int) -> FrameReport:
+                  T_SC: np.ndarray, stamp_ns: int, surface_max_relative_sigma: float = 0.0) -> FrameReport:
         """Integrate one depth frame (raw depth/sigma: NaN invalid) seen from ``T_WC``; the body pose
-        ``T_WS = T_WC T_SC^-1`` anchors a new submap when one starts."""
+        ``T_WS = T_WC T_SC^-1`` anchors a new submap when one starts. Pixels whose sigma exceeds
+        ``surface_max_relative_sigma`` x depth (the DepthFrame's; 0: none) only free the space in front of them."""
+        carve = None if sigma is None else carve_only_pixels(depth, sigma, surface_max_relative_sigma)
         d, s, _ = prepare_depth(depth, sigma, self.sensor)
         K = np.asarray(K, float)
         _check_inputs(K, T_WC, T_SC)
@@ -132,7 +135,7 @@ class SubmapMapper:
             K4[:2] /= 4.0
             K4[:2, 2] = (K[:2, 2] - 1.0) / 4.0  # pixel 4 i + 1 of the full image is pixel i of the subsampled one
             cur.anchor_view = (d[1::4, 1::4].copy(), K4, T_MC)
-        res = integrate(cur.store, d, s, K, T_MC, self.sensor)
+        res = integrate(cur.store, d, s, K, T_MC, self.sensor, carve)
         cur.mesher.mark(cur.store, res.updated_slots)
         cur.n_frames += 1
         return FrameReport(cur.id, new, ov, res)

@@ -26,6 +26,7 @@ def dump(a) -> int:
 
     from services.depth.config import DepthConfig
     from services.depth.pipeline import DepthPipeline
+    from shared.occupancy.uncertain_pixels import surface_depth
     from shared.camera import load_rig
     from tools.bench_mapping import replica_frames
     from tools.mapping_ablation import _images
@@ -52,9 +53,11 @@ def dump(a) -> int:
         T_WC = T_WS @ pipe.T_SC
         nan = np.full_like(res.stereo[0], np.nan)
         mv = res.mvs if res.mvs is not None else (nan, nan)
+        k = res.surface_max_relative_sigma  # pixels too uncertain for a surface: NaN here, as the map takes none
+        st, mv, fu = ((surface_depth(d, s, k), s) for d, s in (res.stereo, mv, res.fused))
         for k, v in (("stamp", stamp), ("T_WC", T_WC), ("gt", renderer.render(pipe.K, cfg.width, cfg.height, T_WC)),
-                     ("st_d", res.stereo[0]), ("st_s", res.stereo[1]), ("mv_d", mv[0]), ("mv_s", mv[1]),
-                     ("fu_d", res.fused[0]), ("fu_s", res.fused[1]), ("n_src", res.n_sources)):
+                     ("st_d", st[0]), ("st_s", st[1]), ("mv_d", mv[0]), ("mv_s", mv[1]),
+                     ("fu_d", fu[0]), ("fu_s", fu[1]), ("n_src", res.n_sources)):
             rec[k].append(v)
         if i % a.keyframe_every == 0:
             kf_stamps.append(stamp)

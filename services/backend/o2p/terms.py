@@ -185,7 +185,7 @@ class OccupancyTerms:
         try:
             if isinstance(msg, DepthFrame):
                 T_WS = None if np.allclose(msg.T_WC, np.eye(4)) else msg.T_WC @ np.linalg.inv(msg.T_SC)
-                self.add_depth(msg.header.stamp_ns, msg.depth, msg.sigma, msg.K, msg.T_SC, T_WS, est.stamps, est.values)
+                self.add_depth(msg.header.stamp_ns, msg.surface_depth(), msg.sigma, msg.K, msg.T_SC, T_WS, est.stamps, est.values)
             elif isinstance(msg, OccupancyField):
                 self.add_field(msg)
             else:
