@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 import subprocess
 import sys
 import typing
@@ -113,14 +114,17 @@ def test_extends_merges_the_file_on_top_of_the_one_it_names(tmp_path):
         load_yaml(Outer, tmp_path / "c2.yaml")
 
 
-def test_the_real_camera_config_is_the_demo_with_the_real_image_stereo_weights():
-    from services.depth.weights import WEIGHTS_DIR, weights_path
+def test_every_shipped_config_gets_the_stereo_network_that_holds_on_real_photographs():
+    """No shipped config gives a user the network trained on rendered rooms only (stereo.pt): the default is the
+    SGBM-guided one, and the real-camera config is the demo's pipeline."""
+    from services.depth.weights import DEFAULT_STEREO, WEIGHTS_DIR, weights_path
 
+    assert DEFAULT_STEREO == "stereo_refine.pt" and (WEIGHTS_DIR / DEFAULT_STEREO).is_file()
     demo, real = load_system_config("configs/demo.yaml"), load_system_config("configs/real.yaml")
-    assert weights_path(real.depth.stereo_weights, "stereo.pt") == WEIGHTS_DIR / "stereo_refine.pt"
-    assert (WEIGHTS_DIR / "stereo_refine.pt").is_file()
-    assert weights_path(demo.depth.stereo_weights, "stereo.pt") == WEIGHTS_DIR / "stereo.pt"
-    assert dataclasses.replace(real, depth=demo.depth) == demo
+    for path in sorted(p for p in Path("configs").rglob("*.yaml") if p.name != "budgets.yaml"):  # budgets: bench limits
+        cfg = load_system_config(str(path))
+        assert weights_path(cfg.depth.stereo_weights, DEFAULT_STEREO) == WEIGHTS_DIR / "stereo_refine.pt", path
+    assert real == demo
 
 
 def test_the_small_computer_config_is_the_demo_cheaper_and_without_the_viewer():

@@ -39,8 +39,9 @@ class DepthConfig:
     flying_margin: float = param(0.15, "a flying pixel lies more than this fraction of the edge's span from both its "
                                  "near and its far side")
     stereo_weights: str = param("", "stereo network weights (.pt with .json beside); '' = services/depth/weights/"
-                                "stereo.pt; a bare name = that file there (stereo_refine.pt: real cameras, "
-                                "configs/real.yaml)")
+                                "stereo_refine.pt (the SGBM-guided network, real photographs and replicas alike); a "
+                                "bare name = that file there (stereo.pt: the older network trained on rendered rooms "
+                                "only, half the CPU, far worse on real images)")
     mvs_weights: str = param("", "MVS network weights; '' = services/depth/weights/mvs.pt, a bare name = that file there")
     mono: bool = param(False, "cam0 only (left_camera): MVS depth on posed keyframes alone, no stereo network and "
                        "no right image; the MVS depth goes out on depth/fused and depth/stereo (source 'mvs'), frames "

@@ -117,7 +117,7 @@ class DepthPipeline:
             self.mvs_net, meta = weights.load(weights.weights_path(self.cfg.mvs_weights, "mvs.pt"), self.device)
             self.mvs_gain = float(meta["gain"])
             return
-        stereo_path = weights.weights_path(self.cfg.stereo_weights, "stereo.pt")
+        stereo_path = weights.weights_path(self.cfg.stereo_weights, weights.DEFAULT_STEREO)
         try:
             self.stereo_net, meta = weights.load(stereo_path, self.device)
             self.stereo_gain = float(meta["gain"])

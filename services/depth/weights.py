@@ -15,6 +15,9 @@ import torch
 from shared.paths import REPO_ROOT
 
 WEIGHTS_DIR = REPO_ROOT / "services" / "depth" / "weights"
+# the stereo network a config gets unless it names one: the SGBM-guided network, which holds on real photographs
+# and since 2026-12-07 also gives the better map on two of three replicas (docs/depth.md)
+DEFAULT_STEREO = "stereo_refine.pt"
 
 
 class WeightsError(RuntimeError):

@@ -37,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--runs", type=int, default=50)
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--sources", type=int, default=4)
-    p.add_argument("--stereo-weights", default=str(weights.WEIGHTS_DIR / "stereo.pt"),
+    p.add_argument("--stereo-weights", default=str(weights.WEIGHTS_DIR / weights.DEFAULT_STEREO),
                    help="stereo weights to time (an SGBM-guided network's time includes its SGBM)")
     p.add_argument("--precision", choices=("float32", "bfloat16"), default="float32",
                    help="the stereo network's arithmetic (depth.stereo_precision; MVS stays float32)")

@@ -37,7 +37,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=int, default=1, help="torch threads (CPU times are process time: use 1)")
     p.add_argument("--precision", choices=("float32", "bfloat16"), default="float32",
                    help="the stereo network's arithmetic (depth.stereo_precision; MVS stays float32)")
-    p.add_argument("--stereo-weights", default="", help="default: services/depth/weights/stereo.pt")
+    p.add_argument("--stereo-weights", default="", help="default: services/depth/weights/stereo_refine.pt (weights.DEFAULT_STEREO)")
     p.add_argument("--mvs-weights", default="", help="default: services/depth/weights/mvs.pt")
     p.add_argument("--fusion-correlation", type=float, default=None,
                    help="rho of the fusion (default: depth.fusion_correlation of the depth config)")
@@ -182,7 +182,7 @@ def main(args: argparse.Namespace) -> int:
     rng = np.random.default_rng(0)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    st_net, st_meta = weights.load(weights.weights_path(args.stereo_weights or "", "stereo.pt"))
+    st_net, st_meta = weights.load(weights.weights_path(args.stereo_weights or "", weights.DEFAULT_STEREO))
     mv_net, mv_meta = weights.load(weights.weights_path(args.mvs_weights or "", "mvs.pt"))
     if args.replica:
         root = Path(args.replica) / "mav0" if (Path(args.replica) / "mav0").is_dir() else Path(args.replica)

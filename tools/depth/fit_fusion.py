@@ -30,7 +30,7 @@ def collect(root: Path, frames: int, sources: int, prior_points: int, stereo_w: 
     from tools.depth.make_dataset import BASELINE_M, K_RECT
 
     rng = np.random.default_rng(seed)
-    st_net, st_meta = weights.load(weights.weights_path(stereo_w or "", "stereo.pt"))
+    st_net, st_meta = weights.load(weights.weights_path(stereo_w or "", weights.DEFAULT_STEREO))
     mv_net, mv_meta = weights.load(weights.weights_path(mvs_w or "", "mvs.pt"))
     cols = []
     for left, right, gt, T_WC, srcs, _ in _split_frames(root, "val", frames, sources):

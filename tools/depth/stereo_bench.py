@@ -57,7 +57,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scenes", nargs="*", help="scene folders or folders of scenes (default: $SIGMASLAM_SHARED/data/real/"
                    f"{DEFAULT_SCENES})")
     p.add_argument("--weights", action="append", default=[],
-                   help="stereo weights (.pt with .json), repeatable; default services/depth/weights/stereo.pt")
+                   help="stereo weights (.pt with .json), repeatable; default the shipped default (stereo_refine.pt)")
     p.add_argument("--euroc", default=None, help=f"real EuRoC folder for the agreement check (default $SIGMASLAM_SHARED/"
                    f"data/real/{DEFAULT_EUROC} when present; 'none' to skip)")
     p.add_argument("--euroc-frames", type=int, default=12, help="EuRoC frames checked (evenly spread)")
@@ -268,7 +268,7 @@ def _default(arg, name: str) -> Path | None:
 def load_nets(paths: list[str]) -> list[tuple[str, object, float]]:
     from services.depth import weights
 
-    paths = paths or [str(weights.WEIGHTS_DIR / "stereo.pt")]
+    paths = paths or [str(weights.WEIGHTS_DIR / weights.DEFAULT_STEREO)]
     nets = []
     for p in paths:
         net, meta = weights.load(p)
@@ -283,7 +283,7 @@ def main(args: argparse.Namespace) -> int:
     import torch
 
     from services.depth.config import DepthConfig
-    from services.depth.weights import WeightsError
+    from services.depth.weights import DEFAULT_STEREO, WeightsError
     from tools.depth.stereo_scene import StereoSceneError
 
     torch.set_num_threads(max(1, args.threads))
@@ -301,7 +301,7 @@ def main(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     report: dict = {"scenes": {}, "scales": {}, "sgbm_sigma_px": sigma_sgbm, "precision": args.precision,
-                    "weights": [str(p) for p in args.weights] or ["services/depth/weights/stereo.pt"]}
+                    "weights": [str(p) for p in args.weights] or [f"services/depth/weights/{DEFAULT_STEREO}"]}
     for i, d in enumerate(dirs):
         try:
             scene = read_stereo_scene(d)
