@@ -64,3 +64,41 @@ def test_the_frontend_node_skips_detection_only_when_behind_and_asked_to(stereo_
     assert done[True] > 0 and done[False] > 0
     assert node.tracker.totals["detection_skipped"] == (done[True] if skip else 0)
     assert node.counters()["detections_skipped"]() == (done[True] if skip else 0)  # in stats/frontend
+
+
+def test_a_keyframe_state_goes_out_before_its_tracks_and_new_features(stereo_seq):
+    """frontend.keyframe_work_after_state: at a keyframe, on_frame publishes the state alone (the tracked features
+    give it) and after_publish the keyframe's descriptors and complete tracks, with the features it detected; without
+    the setting on_frame publishes all three at once."""
+    from services.frontend.node import make_node
+    from services.app.system_config import load_system_config
+    from shared import topics
+    from shared.messages import Header, MultiCameraFrame
+
+    room, cams, poses, images = stereo_seq
+    seen = {}
+    for after in (True, False):
+        cfg = load_system_config(None, ["frontend.kf_min_parallax_px=4.0",
+                                        f"frontend.keyframe_work_after_state={str(after).lower()}"])
+        node = make_node(cfg, cams)
+        keyframes = []
+        for k, ims in enumerate(images):
+            node.estimator_status = "tracking"  # the fast path here has no window: its states say 'initialising'
+            t = int(round(k * DT * 1e9))
+            first = node.on_frame(MultiCameraFrame(header=Header(stamp_ns=t, seq=k, frame_id="rig"),
+                                                   images=tuple(ims), camera_names=tuple(node.names),
+                                                   stamps_ns=np.full(len(ims), t, np.int64)))
+            then = node.after_publish()
+            kinds = [e.topic for e in first], [e.topic for e in then]
+            feats = [e.msg for e in first + then if e.topic is topics.FEATURES]
+            assert len(feats) == 1 and kinds[0][0] is topics.STATE
+            if feats[0].is_keyframe and k > 0:
+                keyframes.append((t, feats[0].landmark_ids.copy()))
+                if after:
+                    assert kinds == ([topics.STATE], [topics.KEYFRAME_FEATURES, topics.FEATURES]), kinds
+                else:
+                    assert kinds == ([topics.STATE, topics.KEYFRAME_FEATURES, topics.FEATURES], []), kinds
+        seen[after] = keyframes
+    assert len(seen[True]) >= 1 and [t for t, _ in seen[True]] == [t for t, _ in seen[False]]
+    for (_, a), (_, b) in zip(seen[True], seen[False]):
+        assert np.array_equal(a, b)  # the same tracks, new features included

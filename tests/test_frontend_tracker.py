@@ -308,6 +308,36 @@ def test_deferred_detection_leaves_keyframes_and_tracks_unchanged(stereo_seq):
     assert sum(o.counts.get("detected", 0) for o in now[1:] if not o.is_keyframe) > 0
 
 
+def test_a_keyframe_returned_before_its_work_completes_to_the_same_output(stereo_seq):
+    """With may_defer_keyframe, a keyframe comes out first with its tracked features only (is_keyframe set, for the
+    state); finish_keyframe then detects, matches, refines and describes it and returns exactly what the tracker
+    that works at once returns, with the same descriptors; every later frame is unchanged."""
+    room, cams, poses, images = stereo_seq
+    cfg = dataclasses.replace(FrontendConfig(), kf_min_parallax_px=4.0)
+    now_tr, now = run_sequence(cams, poses, images, cfg)
+    tr = MultiCameraTracker(cfg, cams)
+    early, late = [], []
+    for k, (T, ims) in enumerate(zip(poses, images)):
+        R = fs.relative_rotation(poses[k - 1], T) if k else None
+        out = tr.process(int(round(k * DT * 1e9)), ims, R, may_defer_keyframe=True)
+        early.append(out)
+        late.append(tr.finish_keyframe() if tr.keyframe_pending else out)
+        assert not tr.keyframe_pending
+    assert [o.is_keyframe for o in early] == [o.is_keyframe for o in now]
+    deferred = [k for k, o in enumerate(early) if o.counts.get("keyframe_deferred")]
+    assert len(deferred) >= 1 and all(now[k].is_keyframe for k in deferred)
+    for k in deferred:  # the early output: tracked features only, under the keyframe's id
+        assert set(early[k].landmark_ids.tolist()) < set(now[k].landmark_ids.tolist())
+        assert early[k].keyframe_id == now[k].keyframe_id
+    for a, b in zip(now, late):
+        assert a.is_keyframe == b.is_keyframe and a.keyframe_id == b.keyframe_id
+        assert np.array_equal(a.landmark_ids, b.landmark_ids) and np.array_equal(a.uv, b.uv)
+    assert len(tr.keyframe_descriptors) == len(now_tr.keyframe_descriptors) > 0
+    for a, b in zip(now_tr.keyframe_descriptors, tr.keyframe_descriptors):
+        assert a.stamp_ns == b.stamp_ns and np.array_equal(a.descriptors, b.descriptors)
+    assert tr.totals["observations"] == now_tr.totals["observations"]  # each frame counted once
+
+
 def test_skipped_deferred_detection_leaves_new_features_to_keyframes(stereo_seq):
     """skip_deferred (a live frontend behind its camera) leaves out a non-keyframe's new features: between two
     keyframes no track is born, each skip is counted, and keyframes still detect, so tracking goes on."""

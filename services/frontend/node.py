@@ -74,6 +74,7 @@ class FrontendNode(ProcessNode):
         self.last_stamp: int | None = None
         self.dropped = 0
         self.seq = 0
+        self._pending_seq = 0
 
     def shed(self, pending) -> tuple[list, int]:
         return shed_backlog(pending, self.cfg.max_backlog_frames, is_keyframe=lambda f: False)
@@ -99,26 +100,42 @@ class FrontendNode(ProcessNode):
         msg = self.track(frame)
         if msg is None:
             return []
-        tracks = []
-        if msg.is_keyframe:  # descriptors first: the back end's loop closer wants them with the frame
-            kff = keyframe_features_message(self.tracker, msg.header.stamp_ns, msg.header.seq)
-            if kff is not None:
-                tracks.append(Emit(topics.KEYFRAME_FEATURES, kff))
-        tracks.append(Emit(topics.FEATURES, msg))
+        # a keyframe whose new features wait (frontend.keyframe_work_after_state): its tracks go out after_publish
+        tracks = [] if self.tracker.keyframe_pending else self._tracks(msg)
         with self.timer("fast_path", self.fast_path.budget_ms):
             state = self.fast_path.state_of(msg)
         if state is None:
-            return tracks
+            return tracks + self.finish_keyframe()
         self.gyro_bias = np.asarray(state.gyro_bias, float)
         self.estimator_status = str(state.status)
         return [Emit(topics.STATE, state), *tracks]
+
+    def _tracks(self, msg: FeatureFrame) -> list[Emit]:
+        """A frame's tracks; at a keyframe its descriptors first (the back end's loop closer wants them with it)."""
+        out = []
+        if msg.is_keyframe:
+            kff = keyframe_features_message(self.tracker, msg.header.stamp_ns, msg.header.seq)
+            if kff is not None:
+                out.append(Emit(topics.KEYFRAME_FEATURES, kff))
+        return out + [Emit(topics.FEATURES, msg)]
+
+    def finish_keyframe(self) -> list[Emit]:
+        """The tracks of a keyframe whose work waited until its state was sent (none when nothing waited)."""
+        if not self.tracker.keyframe_pending:
+            return []
+        with self.timer("keyframe_after"):
+            out = self.tracker.finish_keyframe()
+        return self._tracks(feature_message(out, self._pending_seq))
 
     def counters(self) -> dict:
         return {"detections_skipped": lambda: self.tracker.totals["detection_skipped"]}
 
     def after_publish(self) -> list[Emit]:
-        """New features of a frame whose detection waited until its features were sent; none when the next frame was
-        waiting when this one was taken and ``skip_detection_when_behind``."""
+        """The tracks of a keyframe whose work waited until its state was sent; new features of a frame whose
+        detection waited until its features were sent (none when the next frame was waiting when this one was
+        taken and ``skip_detection_when_behind``)."""
+        if self.tracker.keyframe_pending:
+            return self.finish_keyframe()
         if self.backlog > 0 and self.cfg.skip_detection_when_behind:
             self.tracker.skip_deferred()
         if self.tracker.detection_pending:  # timed only when there is something to do (not after keyframes)
@@ -141,8 +158,9 @@ class FrontendNode(ProcessNode):
         try:
             images = self.images_in_rig_order(frame)
             R = None if self.last_stamp is None else self.gyro.rotation(self.last_stamp, stamp, self.gyro_bias)
-            defer = self.cfg.defer_detection and self.estimator_status == "tracking"
-            out = self.tracker.process(stamp, images, R, may_defer=defer)
+            tracking = self.estimator_status == "tracking"
+            out = self.tracker.process(stamp, images, R, may_defer=self.cfg.defer_detection and tracking,
+                                       may_defer_keyframe=self.cfg.keyframe_work_after_state and tracking)
         except FrontendInputError as exc:
             self.dropped += 1
             log.warning("frame %d dropped (%d so far): %s", stamp, self.dropped, exc)
@@ -151,6 +169,7 @@ class FrontendNode(ProcessNode):
             self.gyro.prune_before(self.last_stamp)
         self.last_stamp = stamp
         msg = feature_message(out, self.seq)
+        self._pending_seq = self.seq  # the seq of a keyframe whose complete tracks go out after its state
         self.seq += 1
         return msg
 

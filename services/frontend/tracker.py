@@ -71,6 +71,7 @@ class MultiCameraTracker:
         self._R_SC = [np.asarray(c.T_SC, float)[:3, :3] for c in cameras]
         self._next_id = int(first_landmark_id)
         self._deferred: list[np.ndarray] | None = None  # images of a frame whose detection waits (finish_frame)
+        self._deferred_kf: tuple[int, list[np.ndarray], dict] | None = None  # a keyframe's work waits (finish_keyframe)
         self._last_stamp: int | None = None
         self._kf_id = -1
         self._kf_stamp: int | None = None
@@ -125,15 +126,20 @@ class MultiCameraTracker:
 
     # ------------------------------------------------------------------ per frame
     def process(self, stamp_ns: int, images, R_S_prev_cur: np.ndarray | None = None,
-                may_defer: bool = False) -> TrackerOutput:
+                may_defer: bool = False, may_defer_keyframe: bool = False) -> TrackerOutput:
         """Track, reject, detect and match for one frame; ``R_S_prev_cur`` = R_S(prev)S(cur) from the gyro.
 
         With ``may_defer``, a frame that is not a keyframe is returned with its tracked features only: detecting and
         matching new ones waits for :meth:`finish_frame` (called after the output is sent, off the latency path;
         else at the start of the next frame). The tracker's state is the same either way; only that frame's output
         lacks the new features, which the next frames carry as tracked ones (a window that takes keyframes only
-        never sees the difference)."""
+        never sees the difference).
+
+        With ``may_defer_keyframe``, a keyframe is returned with its tracked features only as well (``is_keyframe``
+        set): its new features, affine refinement and descriptors wait for :meth:`finish_keyframe`, whose output is
+        the keyframe's complete one, to be sent after the state the tracked features give."""
         self.finish_frame()
+        self.finish_keyframe()
         images = self._check(stamp_ns, images)
         cfg = self.cfg
         dt_s = 0.0 if self._last_stamp is None else (int(stamp_ns) - self._last_stamp) * 1e-9
@@ -156,16 +162,43 @@ class MultiCameraTracker:
             self._deferred = images
             counts["detection_deferred"] += 1
             return self._output(stamp_ns, False, counts)
+        if may_defer_keyframe and decided and is_kf:
+            counts["keyframe_deferred"] += 1
+            out = self._output(stamp_ns, True, counts, keyframe_id=self._kf_id + 1)
+            self._deferred_kf = (int(stamp_ns), images, out.counts)
+            return out
         self._detect_and_match(images, counts)
         if not decided:
             is_kf = self._keyframe_decision(stamp_ns, counts)
         if is_kf:
-            if cfg.klt_affine and cfg.affine_keyframes_only:
-                for st, image in zip(self._cams, images):
-                    if len(st.ids):
-                        st.uv = self._refine_affine(st, image, st.uv, counts)
-            self._start_keyframe(stamp_ns, images)
+            self._keyframe_work(stamp_ns, images, counts)
         return self._output(stamp_ns, is_kf, counts)
+
+    def _keyframe_work(self, stamp_ns: int, images: list[np.ndarray], counts) -> None:
+        if self.cfg.klt_affine and self.cfg.affine_keyframes_only:
+            for st, image in zip(self._cams, images):
+                if len(st.ids):
+                    st.uv = self._refine_affine(st, image, st.uv, counts)
+        self._start_keyframe(stamp_ns, images)
+
+    @property
+    def keyframe_pending(self) -> bool:
+        """Whether :meth:`process` left the last keyframe's work for :meth:`finish_keyframe`."""
+        return self._deferred_kf is not None
+
+    def finish_keyframe(self) -> TrackerOutput | None:
+        """Detect and match new features in the keyframe :meth:`process` returned early, refine and describe its
+        features and start the keyframe; its complete output (None when nothing waited)."""
+        pending, self._deferred_kf = self._deferred_kf, None
+        if pending is None:
+            return None
+        stamp_ns, images, early = pending
+        counts: collections.Counter = collections.Counter()
+        self._detect_and_match(images, counts)
+        self._keyframe_work(stamp_ns, images, counts)
+        out = self._output(stamp_ns, True, counts, count=False)
+        self.totals.update(counts - collections.Counter({k: early[k] for k in ("observations", "landmarks")}))
+        return out
 
     @property
     def detection_pending(self) -> bool:
@@ -200,7 +233,8 @@ class MultiCameraTracker:
                 counts["detected"] += len(new_uv)
                 self._match_into_others(i, ids, new_uv, counts)
 
-    def _output(self, stamp_ns: int, is_kf: bool, counts) -> TrackerOutput:
+    def _output(self, stamp_ns: int, is_kf: bool, counts, keyframe_id: int | None = None,
+                count: bool = True) -> TrackerOutput:
         ids = np.concatenate([st.ids for st in self._cams])
         cam_idx = np.concatenate([np.full(len(st.ids), i, np.int16) for i, st in enumerate(self._cams)])
         uv = np.concatenate([st.uv for st in self._cams]).reshape(-1, 2).astype(np.float32)
@@ -208,8 +242,10 @@ class MultiCameraTracker:
             uv = (uv - self.time_offset_s * np.concatenate([st.vel for st in self._cams]).reshape(-1, 2)).astype(np.float32)
         counts["observations"] = len(ids)
         counts["landmarks"] = len(np.unique(ids))
-        self.totals.update(counts)
-        return TrackerOutput(int(stamp_ns), ids, cam_idx, uv, is_kf, self._kf_id if is_kf else -1, dict(counts))
+        if count:
+            self.totals.update(counts)
+        kf_id = (self._kf_id if keyframe_id is None else keyframe_id) if is_kf else -1
+        return TrackerOutput(int(stamp_ns), ids, cam_idx, uv, is_kf, kf_id, dict(counts))
 
     def _track_temporal(self, i: int, cam: CameraCalib, st: _CameraState, image, R_rel, counts, dt_s: float) -> None:
         cfg = self.cfg
