@@ -26,6 +26,7 @@ from services.frontend.config import FrontendConfig
 from services.frontend.detection import detect_spread
 from shared.lookup_camera import LookupCamera
 from services.frontend.epipolar import cross_camera_check, overlapping_pairs, ransac_inliers
+from services.frontend.keyframe_features import describe_keyframe
 from shared.camera import CameraCalib
 from shared.geometry import inv_T
 
@@ -133,11 +134,8 @@ class MultiCameraTracker:
         matching new ones waits for :meth:`finish_frame` (called after the output is sent, off the latency path;
         else at the start of the next frame). The tracker's state is the same either way; only that frame's output
         lacks the new features, which the next frames carry as tracked ones (a window that takes keyframes only
-        never sees the difference).
-
-        With ``may_defer_keyframe``, a keyframe is returned with its tracked features only as well (``is_keyframe``
-        set): its new features, affine refinement and descriptors wait for :meth:`finish_keyframe`, whose output is
-        the keyframe's complete one, to be sent after the state the tracked features give."""
+        never sees the difference). With ``may_defer_keyframe`` a keyframe too (``is_keyframe`` set): its complete
+        output comes from :meth:`finish_keyframe`, after the state its tracked features give is sent."""
         self.finish_frame()
         self.finish_keyframe()
         images = self._check(stamp_ns, images)
@@ -171,31 +169,22 @@ class MultiCameraTracker:
         if not decided:
             is_kf = self._keyframe_decision(stamp_ns, counts)
         if is_kf:
-            self._keyframe_work(stamp_ns, images, counts)
+            self._start_keyframe(stamp_ns, images, counts)
         return self._output(stamp_ns, is_kf, counts)
-
-    def _keyframe_work(self, stamp_ns: int, images: list[np.ndarray], counts) -> None:
-        if self.cfg.klt_affine and self.cfg.affine_keyframes_only:
-            for st, image in zip(self._cams, images):
-                if len(st.ids):
-                    st.uv = self._refine_affine(st, image, st.uv, counts)
-        self._start_keyframe(stamp_ns, images)
 
     @property
     def keyframe_pending(self) -> bool:
-        """Whether :meth:`process` left the last keyframe's work for :meth:`finish_keyframe`."""
-        return self._deferred_kf is not None
+        return self._deferred_kf is not None  # process() left the last keyframe's work for finish_keyframe()
 
     def finish_keyframe(self) -> TrackerOutput | None:
-        """Detect and match new features in the keyframe :meth:`process` returned early, refine and describe its
-        features and start the keyframe; its complete output (None when nothing waited)."""
+        """The work on a keyframe :meth:`process` returned early; its complete output (None: nothing waited)."""
         pending, self._deferred_kf = self._deferred_kf, None
         if pending is None:
             return None
         stamp_ns, images, early = pending
         counts: collections.Counter = collections.Counter()
         self._detect_and_match(images, counts)
-        self._keyframe_work(stamp_ns, images, counts)
+        self._start_keyframe(stamp_ns, images, counts)
         out = self._output(stamp_ns, True, counts, count=False)
         self.totals.update(counts - collections.Counter({k: early[k] for k in ("observations", "landmarks")}))
         return out
@@ -394,27 +383,16 @@ class MultiCameraTracker:
             return True
         return False
 
-    def _start_keyframe(self, stamp_ns: int, images: list[np.ndarray]) -> None:
+    def _start_keyframe(self, stamp_ns: int, images: list[np.ndarray], counts) -> None:
+        """Refine the keyframe's tracks (affine KLT), keep its observations and describe them (ORB)."""
+        if self.cfg.klt_affine and self.cfg.affine_keyframes_only:
+            for st, image in zip(self._cams, images):
+                if len(st.ids):
+                    st.uv = self._refine_affine(st, image, st.uv, counts)
         self._kf_id += 1
         self._kf_stamp = int(stamp_ns)
         self._kf_obs = [(st.ids.copy(), st.uv.copy()) for st in self._cams]
         self._R_S_kf_cur = np.eye(3)
-        if self._orb is None:
-            return
-        ids_all, cams_all, uv_all, desc_all = [], [], [], []
-        for i, (st, img) in enumerate(zip(self._cams, images)):
-            kps = [cv2.KeyPoint(float(u), float(v), 31.0, -1.0, 0.0, 0, k) for k, (u, v) in enumerate(st.uv)]
-            if not kps:
-                continue
-            kps, desc = self._orb.compute(img, kps)
-            if desc is None or not kps:
-                continue
-            idx = np.array([kp.class_id for kp in kps], np.int64)
-            ids_all.append(st.ids[idx])
-            cams_all.append(np.full(len(idx), i, np.int16))
-            uv_all.append(st.uv[idx])
-            desc_all.append(desc)
-        if ids_all:
-            self.keyframe_descriptors.append(KeyframeDescriptors(
-                self._kf_id, int(stamp_ns), np.concatenate(ids_all), np.concatenate(cams_all),
-                np.concatenate(uv_all), np.concatenate(desc_all)))
+        tracks = [(st.ids, st.uv) for st in self._cams]
+        if self._orb is not None and (kd := describe_keyframe(self._orb, self._kf_id, stamp_ns, tracks, images)):
+            self.keyframe_descriptors.append(kd)
