@@ -3,7 +3,6 @@ message (for loop closure)."""
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
 from services.frontend.frames import KeyframeDescriptors
@@ -14,6 +13,8 @@ def describe_keyframe(orb, keyframe_id: int, stamp_ns: int, tracks: list[tuple[n
                       images: list[np.ndarray]) -> KeyframeDescriptors | None:
     """ORB descriptors of each camera's tracked features (``tracks``: per camera (ids, uv)) in its image; None when
     no feature could be described."""
+    import cv2  # here: reading the frontend's process description must not load OpenCV
+
     ids_all, cams_all, uv_all, desc_all = [], [], [], []
     for i, ((ids, uv), img) in enumerate(zip(tracks, images)):
         kps = [cv2.KeyPoint(float(u), float(v), 31.0, -1.0, 0.0, 0, k) for k, (u, v) in enumerate(uv)]
