@@ -13,7 +13,7 @@ import dataclasses
 import numpy as np
 
 from shared.codec import Header, Message, array_field, register, scalar_field
-from shared.occupancy.uncertain_pixels import carve_only_pixels, surface_depth
+from shared.occupancy.uncertain_pixels import surface_depth
 
 __all__ = [
     "Header", "ImuSample", "MultiCameraFrame", "FeatureFrame", "EstimatorState", "Keyframes",
@@ -93,11 +93,6 @@ class DepthFrame(Message):
         "pixels whose sigma exceeds this fraction of their depth are too uncertain to place a surface: a map takes "
         "only the free space well in front of them (depth.max_relative_sigma; learned sigma only); 0: every pixel "
         "places its surface", default=0.0)
-
-    def carve_only(self) -> np.ndarray | None:
-        """Pixels too uncertain to place a surface (``surface_max_relative_sigma``), or None when every pixel places
-        one."""
-        return carve_only_pixels(self.depth, self.sigma, self.surface_max_relative_sigma)
 
     def surface_depth(self) -> np.ndarray:
         """The depth with NaN where it places no surface: the depth points a user of surfaces wants."""

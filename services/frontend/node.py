@@ -74,7 +74,6 @@ class FrontendNode(ProcessNode):
         self.last_stamp: int | None = None
         self.dropped = 0
         self.seq = 0
-        self._pending_seq = 0
 
     def shed(self, pending) -> tuple[list, int]:
         return shed_backlog(pending, self.cfg.max_backlog_frames, is_keyframe=lambda f: False)
@@ -125,7 +124,7 @@ class FrontendNode(ProcessNode):
             return []
         with self.timer("keyframe_after"):
             out = self.tracker.finish_keyframe()
-        return self._tracks(feature_message(out, self._pending_seq))
+        return self._tracks(feature_message(out, self.seq - 1))  # the keyframe is the last frame tracked
 
     def counters(self) -> dict:
         return {"detections_skipped": lambda: self.tracker.totals["detection_skipped"]}
@@ -169,7 +168,6 @@ class FrontendNode(ProcessNode):
             self.gyro.prune_before(self.last_stamp)
         self.last_stamp = stamp
         msg = feature_message(out, self.seq)
-        self._pending_seq = self.seq  # the seq of a keyframe whose complete tracks go out after its state
         self.seq += 1
         return msg
 

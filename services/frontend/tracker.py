@@ -72,7 +72,7 @@ class MultiCameraTracker:
         self._R_SC = [np.asarray(c.T_SC, float)[:3, :3] for c in cameras]
         self._next_id = int(first_landmark_id)
         self._deferred: list[np.ndarray] | None = None  # images of a frame whose detection waits (finish_frame)
-        self._deferred_kf: tuple[int, list[np.ndarray], dict] | None = None  # a keyframe's work waits (finish_keyframe)
+        self._deferred_kf: tuple[int, list[np.ndarray], collections.Counter] | None = None  # a keyframe's work waits (finish_keyframe)
         self._last_stamp: int | None = None
         self._kf_id = -1
         self._kf_stamp: int | None = None
@@ -162,9 +162,8 @@ class MultiCameraTracker:
             return self._output(stamp_ns, False, counts)
         if may_defer_keyframe and decided and is_kf:
             counts["keyframe_deferred"] += 1
-            out = self._output(stamp_ns, True, counts, keyframe_id=self._kf_id + 1)
-            self._deferred_kf = (int(stamp_ns), images, out.counts)
-            return out
+            self._deferred_kf = (int(stamp_ns), images, counts)  # counted once, complete, by finish_keyframe
+            return self._output(stamp_ns, True, counts, keyframe_id=self._kf_id + 1, count=False)
         self._detect_and_match(images, counts)
         if not decided:
             is_kf = self._keyframe_decision(stamp_ns, counts)
@@ -181,13 +180,10 @@ class MultiCameraTracker:
         pending, self._deferred_kf = self._deferred_kf, None
         if pending is None:
             return None
-        stamp_ns, images, early = pending
-        counts: collections.Counter = collections.Counter()
+        stamp_ns, images, counts = pending
         self._detect_and_match(images, counts)
         self._start_keyframe(stamp_ns, images, counts)
-        out = self._output(stamp_ns, True, counts, count=False)
-        self.totals.update(counts - collections.Counter({k: early[k] for k in ("observations", "landmarks")}))
-        return out
+        return self._output(stamp_ns, True, counts)
 
     @property
     def detection_pending(self) -> bool:
