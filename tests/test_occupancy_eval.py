@@ -36,6 +36,8 @@ def test_figures_of_a_good_map(truth):
     assert sorted(per) == [0, 1] and all(s.false_free < 0.005 for s in per.values())
     cells = grid_figures(GridBuilder().build(mapper), cm, truth, np.eye(4), max_cells=300)
     assert cells.false_free < 0.02 and cells.free_recall > 0.5
+    # the cells whose whole band the camera saw are nearly all free: the rest of the gap is coverage
+    assert cells.free_recall_whole_band > 0.9 and cells.free_recall_whole_band > cells.free_recall
 
 
 def test_a_misplaced_submap_raises_false_free(truth):

@@ -70,7 +70,9 @@ def summary_lines(rep: dict) -> list[str]:
         lines += [f"grid false free (cells)             {100 * g['false_free']:.2f} % of free cells checked "
                   f"({g['free_cells']} free of {g['cells']}, {g['resolution_m']} m, band "
                   f"{g['height_band_m'][0]:.2f}..{g['height_band_m'][1]:.2f} m)",
-                  f"grid free recall (cells)            {100 * g['free_recall']:.1f} % of observed free cells"]
+                  f"grid free recall (cells)            {100 * g['free_recall']:.1f} % of observed free cells"
+                  + (f"; {100 * g['free_recall_whole_band']:.1f} % of those whose whole band was observed"
+                     if g.get("free_recall_whole_band") is not None else "")]
     return [ln for ln in lines if ln]
 
 

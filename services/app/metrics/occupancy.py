@@ -13,7 +13,9 @@ meet nothing (outside the room's closed box); the scene's faces point into free 
 - Grid cells: each cell's column over the height band, sampled at the voxel size across it (corners, edges, centre)
   and along it. A cell is ground-truth free when no sample is near a surface or inside an object; observed when some
   sample's voxel was observed. *False free* = the share of free cells that are not ground-truth free; *free recall*
-  = the share of observed ground-truth free cells that are free.
+  = the share of observed ground-truth free cells that are free. Free recall is also given over the cells whose
+  whole band was observed (every sample's voxel): what the camera never saw of a column keeps a cell unknown, so
+  the gap between the two recalls is coverage, not the map's rule.
 
 The map is in the run's world frame W; the mesh is brought into it by the SE(3) alignment of the run's trajectory to
 the ground truth (:func:`shared.metrics.ate.run_alignment`), so the figures include the estimator's error where
@@ -84,6 +86,7 @@ class SafetyFigures:
     free: int  # free answers (points or cells)
     false_free_count: int
     gt_free_observed: int  # observed ground-truth free points or cells
+    free_recall_whole_band: float | None = None  # grid only: free recall over the cells whose whole band was observed
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -147,10 +150,12 @@ def grid_figures(grid: Grid2D, cm: CombinedMap, truth: SceneTruth, T_gt_W: np.nd
     flat = pts.reshape(-1, 3)
     near, inside = truth.classify(flat @ T_gt_W[:3, :3].T + T_gt_W[:3, 3])
     gt_free = ~(near | inside).reshape(pts.shape[:2]).any(axis=1)
-    observed = (cm.log_odds_many(flat)[1] > 0).reshape(pts.shape[:2]).any(axis=1)
+    seen = (cm.log_odds_many(flat)[1] > 0).reshape(pts.shape[:2])
+    observed, whole = seen.any(axis=1), seen.all(axis=1)
     free = grid.cells.ravel()[pick] == FREE_CELL
     ia, ib = where[: len(a)], where[len(a):]
     wrong = int((~gt_free[ia]).sum())
-    base = gt_free[ib] & observed[ib]
+    base, base_whole = gt_free[ib] & observed[ib], gt_free[ib] & whole[ib]
     return SafetyFigures(wrong / max(len(ia), 1), float((free[ib] & base).sum()) / max(int(base.sum()), 1),
-                         int(len(free_cells)), wrong, int(base.sum()))
+                         int(len(free_cells)), wrong, int(base.sum()),
+                         float((free[ib] & base_whole).sum()) / max(int(base_whole.sum()), 1))
