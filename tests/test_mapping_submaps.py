@@ -212,3 +212,34 @@ def test_field_message_round_trip_answers_the_same_queries(mapped):
     assert v0.mean() > 0.9 and np.array_equal(v0, v1)
     assert np.allclose(L0[v0], L1[v1]) and np.allclose(g0[v0], g1[v1])
     assert np.mean(np.abs(L1[v1]) < 1e-3) > 0.999  # the mesh is the L = 0 surface (but for rare interior vertices)
+
+
+def test_mesh_leaves_out_surfaces_the_map_is_unsure_of():
+    """Half of each image is sure (sigma 3 cm), half unsure (30 cm): the published mesh keeps the sure half's wall,
+    with sigma_map near its 3 cm (eq. 7), and leaves the unsure half out; 0 keeps both."""
+    def mapped(limit):
+        mapper = SubmapMapper(SensorModelConfig(), SubmapConfig(eps_vol=0.0, mesh_max_sigma_m=limit))
+        for stamp, d, T_WC in sideways_frames(4, 0.05):
+            s = np.full_like(d, 0.03)
+            s[:, W // 2:] = 0.3
+            mapper.integrate(d, s, K, T_WC, T_SC, stamp)
+        mapper.remesh()
+        return mapper
+
+    sure, every = mapped(0.055), mapped(0.0)
+    v_all, f_all, sig_all = every.mesh(every.submaps[0])
+    v, f, sig = sure.mesh(sure.submaps[0])
+    assert len(f_all) > 1000 and 0 < len(f) < 0.8 * len(f_all)
+    assert f.max() < len(v) and len(sig) == len(v) and np.all(sig <= 0.055)
+    v_W = v @ sure.submaps[0].T_WM[:3, :3].T + sure.submaps[0].T_WM[:3, 3]
+    on_corridor = ((np.abs(v_W[:, 1] - 3.0) < 0.1) | (np.abs(v_W[:, 0]) < 0.1) | (np.abs(v_W[:, 2]) < 0.1)
+                   | (np.abs(v_W[:, 2] - 3.0) < 0.1))  # the far wall, the end wall, floor and ceiling
+    assert on_corridor.mean() > 0.95 and abs(np.median(sig) - 0.03) < 0.01
+    # the unsure half: wall vertices of the unfiltered mesh that the sure mesh has none near
+    vall_W = v_all @ every.submaps[0].T_WM[:3, :3].T + every.submaps[0].T_WM[:3, 3]
+    unsure = vall_W[sig_all > 0.1]
+    assert len(unsure) > 100 and np.median(np.abs(unsure[:, 1] - 3.0)) < 0.2
+    from scipy.spatial import cKDTree
+
+    assert np.median(cKDTree(v_W).query(unsure)[0]) > 0.1
+    assert len(sure.world_mesh()[1]) == len(f)

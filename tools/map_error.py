@@ -22,6 +22,7 @@ depth.flying_radius_px=0`` keeps the flying pixels, whose removal the variant ``
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -43,6 +44,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--variants", default="", help="comma-separated subset of the map variants (default: all)")
     p.add_argument("--reuse", action="store_true", help="use the frames cached in OUT/frames/ (no networks)")
     p.add_argument("--set", action="append", default=[], metavar="depth.KEY=VALUE", help="depth config override")
+    p.add_argument("--sensor", action="append", default=[], metavar="KEY=VALUE",
+                   help="mapping.sensor override of every variant (e.g. sigma_weight_ref_m=0.05)")
 
 
 # ----------------------------------------------------------------------------- ground truth in the depth camera
@@ -224,14 +227,20 @@ VARIANTS = ("gt-heuristic", "gt-net-sigma", "gt-net-noise", "net", "net-no-edges
             "net-edge-filter", "net-flying")
 
 
-def run_variant(name: str, paths: list[Path], source: str, edge_px: int, replica: Path, out: Path) -> dict:
+def run_variant(name: str, paths: list[Path], source: str, edge_px: int, replica: Path, out: Path,
+                sensor_set: tuple[str, ...] = ()) -> dict:
     from services.app.metrics.mesh import evaluate_mesh_files, load_ground_truth
     from services.mapping.config import SensorModelConfig, SubmapConfig
     from services.mapping.io import write_ply
     from services.mapping.submaps import SubmapMapper
 
-    heuristic = SensorModelConfig(sigma_model="quadratic", k_sigma=0.005)
-    mapper = SubmapMapper(heuristic if name == "gt-heuristic" else SensorModelConfig(), SubmapConfig())
+    import yaml
+
+    from shared.config import override
+
+    base = override(SensorModelConfig(), {k: yaml.safe_load(v) for k, v in (kv.split("=", 1) for kv in sensor_set)})
+    heuristic = dataclasses.replace(base, sigma_model="quadratic", k_sigma=0.005)
+    mapper = SubmapMapper(heuristic if name == "gt-heuristic" else base, SubmapConfig())
     rng = np.random.default_rng(0)
     for p in paths:
         f = load_frame(p, source)
@@ -290,12 +299,14 @@ def main(args: argparse.Namespace) -> int:
         print(f"[map_error] no frames ({out / 'frames'} is empty: run without --reuse)")
         return 1
     summary = {"replica": str(args.replica), "source": args.source, "n_frames": len(paths), "depth_set": args.set,
+               "sensor_set": args.sensor,
                "frames": frame_statistics(paths, args.source, args.edge_px, SensorModelConfig().max_depth_m),
                "variants": {}}
     names = [v for v in args.variants.split(",") if v] or list(VARIANTS)
     for name in names:
         t0 = time.monotonic()
-        summary["variants"][name] = run_variant(name, paths, args.source, args.edge_px, Path(args.replica), out)
+        summary["variants"][name] = run_variant(name, paths, args.source, args.edge_px, Path(args.replica), out,
+                                                 tuple(args.sensor))
         r = summary["variants"][name]
         print(f"[map_error] {name:16s} accuracy {r['accuracy_m']:.4f} m completeness {100 * r['completeness']:.1f} % "
               f"({time.monotonic() - t0:.0f} s)", flush=True)

@@ -8,18 +8,20 @@ gets as depth and sigma, all at ground-truth poses on a replica:
 
 The depth comes from :class:`services.depth.pipeline.DepthPipeline` (networks when their weights are
 present, else SGBM, in which case only the heuristic variants are meaningful). Each variant is
-meshed and evaluated against the replica's scene mesh (services/app/metrics/mesh.py).
+meshed and evaluated against the replica's scene mesh (services/app/metrics/mesh.py): the mesh as the mapping service
+writes it (faces the map is unsure of left out: ``mapping.submaps.mesh_max_sigma_m``) and, in the same run, every
+face ("(all faces)").
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 
 import numpy as np
 
-from services.mapping.config import SensorModelConfig, SubmapConfig
 from services.mapping.io import write_ply
 from services.mapping.submaps import SubmapMapper
 
@@ -32,8 +34,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stride", type=int, default=2, help="every n-th camera frame (20 Hz -> 10 Hz)")
     p.add_argument("--keyframe-every", type=int, default=3, help="every n-th used frame becomes an MVS keyframe")
     p.add_argument("--sigma-k", type=float, default=0.005, help="heuristic sigma = k * depth^2 [1/m]")
-    p.add_argument("--set", action="append", default=[], metavar="depth.KEY=VALUE",
-                   help="depth service config override, e.g. depth.stereo_weights=services/depth/weights/stereo_refine.pt")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="depth.*, mapping.sensor.* or mapping.submaps.* override, e.g. depth.stereo_weights=stereo.pt "
+                        "or mapping.submaps.mesh_max_sigma_m=0 (every face)")
     p.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated subset of " + ", ".join(VARIANTS))
     p.add_argument("--out", required=True, metavar="DIR", help="per-variant mesh.ply and the summary ablation.json")
 
@@ -43,16 +46,24 @@ def _images(mav: Path, cam: str) -> dict[int, Path]:
     return {int(r[0]): mav / cam / "data" / r[1].strip() for r in rows}
 
 
-def depth_config(overrides: list[str]):
-    """The depth service's config with ``depth.KEY=VALUE`` overrides, as the system config applies them
-    (ConfigError for other keys: nothing else here reads them)."""
+READ_KEYS = ("depth.", "mapping.sensor.", "mapping.submaps.")
+
+
+def system_config(overrides: list[str]):
+    """The system config with ``depth.*``, ``mapping.sensor.*`` and ``mapping.submaps.*`` overrides, as
+    ``sigmaslam run`` applies them (ConfigError for other keys: nothing else here reads them)."""
     from services.app.system_config import load_system_config
     from shared.config import ConfigError
 
-    other = [o for o in overrides if not o.strip().startswith("depth.")]
+    other = [o for o in overrides if not o.strip().startswith(READ_KEYS)]
     if other:
-        raise ConfigError(f"only depth.* keys can be set here, got {other}")
-    return load_system_config(None, overrides).depth
+        raise ConfigError(f"only {', '.join(k + '*' for k in READ_KEYS)} keys can be set here, got {other}")
+    return load_system_config(None, overrides)
+
+
+def depth_config(overrides: list[str]):
+    """The depth service's config with the overrides (:func:`system_config`)."""
+    return system_config(overrides).depth
 
 
 def main(args: argparse.Namespace) -> int:
@@ -71,11 +82,12 @@ def main(args: argparse.Namespace) -> int:
         return 2
     mav = folder / "mav0"
     rig = {c.name: c for c in load_rig(mav)}
-    pipe = DepthPipeline(depth_config(args.set), rig["cam0"], rig["cam1"])
+    cfg = system_config(args.set)
+    pipe = DepthPipeline(cfg.depth, rig["cam0"], rig["cam1"])
     left, right = _images(mav, "cam0"), _images(mav, "cam1")
-    heuristic = SensorModelConfig(sigma_model="quadratic", k_sigma=args.sigma_k)
-    mappers = {v: SubmapMapper(heuristic if v in ("gt", "stereo-heuristic") else SensorModelConfig(), SubmapConfig())
-               for v in variants}
+    sensor, submaps = cfg.mapping.sensor, cfg.mapping.submaps
+    heuristic = dataclasses.replace(sensor, sigma_model="quadratic", k_sigma=args.sigma_k)
+    mappers = {v: SubmapMapper(heuristic if v in ("gt", "stereo-heuristic") else sensor, submaps) for v in variants}
     kf_stamps: list[int] = []
     kf_T: list[np.ndarray] = []
     for i, (stamp, d_gt, K_gt, T_WC_gt) in enumerate(replica_frames(folder, args.frames, args.stride)):
@@ -103,16 +115,21 @@ def main(args: argparse.Namespace) -> int:
     gt_mesh = mav / "scene" / "mesh.ply"
     for name, mapper in mappers.items():
         mapper.remesh()
-        v, f = mapper.world_mesh()
-        d = out / name
-        write_ply(d / "mesh.ply", v, f)
-        res = evaluate_mesh_files(d / "mesh.ply", gt_mesh, out_dir=d)
-        summary["variants"][name] = {"accuracy_m": res.accuracy_m, "completeness": res.completeness,
-                                     "completeness_5cm": res.completeness_5cm, "submaps": len(mapper.submaps),
-                                     "map_MB": mapper.nbytes() / 2**20}
-        print(f"{name:17s} accuracy {res.accuracy_m:.4f} m  completeness {100 * res.completeness:.1f} % @ 0.2 m, "
-              f"{100 * res.completeness_5cm:.1f} % @ 0.05 m  ({len(mapper.submaps)} submaps, {mapper.nbytes() / 2**20:.1f} MiB)",
-              flush=True)
+        # the mesh as configured and, where the confident mesh leaves faces out, the whole mesh (same depth)
+        for label, limit in ((name, submaps.mesh_max_sigma_m), (f"{name} (all faces)", 0.0)):
+            if label != name and submaps.mesh_max_sigma_m <= 0:
+                continue
+            mapper.cfg = dataclasses.replace(submaps, mesh_max_sigma_m=limit)
+            v, f = mapper.world_mesh()
+            d = out / (name if label == name else f"{name}-all-faces")
+            write_ply(d / "mesh.ply", v, f)
+            res = evaluate_mesh_files(d / "mesh.ply", gt_mesh, out_dir=d)
+            summary["variants"][label] = {"accuracy_m": res.accuracy_m, "completeness": res.completeness,
+                                          "completeness_5cm": res.completeness_5cm, "submaps": len(mapper.submaps),
+                                          "map_MB": mapper.nbytes() / 2**20, "mesh_max_sigma_m": limit}
+            print(f"{label:17s} accuracy {res.accuracy_m:.4f} m  completeness {100 * res.completeness:.1f} % @ 0.2 m, "
+                  f"{100 * res.completeness_5cm:.1f} % @ 0.05 m  ({len(mapper.submaps)} submaps, "
+                  f"{mapper.nbytes() / 2**20:.1f} MiB)", flush=True)
     out.mkdir(parents=True, exist_ok=True)
     (out / "ablation.json").write_text(json.dumps(summary, indent=1))
     return 0

@@ -43,6 +43,10 @@ class SubmapConfig:
     overlap_samples: int = param(512, "points sampled in the depth frustum to estimate the overlap")
     overlap_reference: Literal["anchor", "submap"] = param("anchor", "overlap with 'anchor' (the space seen by the submap's first frame) or 'submap' (everything integrated so far, which keeps growing under smooth motion and then rarely splits)")
     min_frames: int = param(3, "frames integrated into a submap before it may be closed")
+    mesh_max_sigma_m: float = param(0.055, "mesh faces with a vertex whose map uncertainty sigma_map (eq. 7) exceeds "
+                                    "this are left out of the published and written meshes (the occupancy map keeps "
+                                    "what they came from; why 0.055: docs/mapping.md, 'Confident mesh'); 0: keep all",
+                                    "m")
     mesh_chunk_blocks: int = param(4, "blocks per edge of a meshing chunk (only chunks with changed blocks are re-meshed)")
     keyframe_bind_tolerance_s: float = param(1.0, "a submap follows the keyframe nearest its creation time if within this", "s")
 

@@ -213,7 +213,7 @@ class MappingNode(ProcessNode):
             if self.cfg.vertex_colors:
                 v, f, c = self.mapper.colored_mesh(sm)
             else:
-                (v, f), c = sm.mesher.mesh(), np.empty((0, 3), np.uint8)
+                (v, f, _), c = self.mapper.mesh(sm), np.empty((0, 3), np.uint8)
             out.append(Emit(topics.SUBMAP, messages.SubmapMesh(
                 header=Header(stamp_ns=sm.anchor_stamp_ns, frame_id=f"M{sm.id}"), submap_id=sm.id, T_WM=sm.T_WM,
                 vertices_M=v, faces=f, vertex_colors=c)))

@@ -109,7 +109,7 @@ class MapStore:
             v, f = mapper.world_mesh()
             write_ply(out_dir / "mesh.ply", v, f)
             for sm in mapper.submaps:
-                sv, sf = sm.mesher.mesh()
+                sv, sf, _ = mapper.mesh(sm)
                 write_ply(out_dir / "submaps" / f"submap_{sm.id:03d}.ply", sv, sf)
             save_map(mapper, run_map_dir(out_dir) / DENSE_FILE)
         ms = np.array(integrate_ms) if integrate_ms else np.array([np.nan])

@@ -202,25 +202,41 @@ class SubmapMapper:
                 changed.append(sm.id)
         return changed
 
-    def colored_mesh(self, submap: Submap, sigma_lo_m: float = 0.02, sigma_hi_m: float = 0.2
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Mesh of a submap with vertex colours from the map's own uncertainty at each vertex,
-        ``sigma_map = |l_min| / (3 ||grad L||)`` (eq. 7): blue at ``sigma_lo_m`` to red at ``sigma_hi_m``."""
+    def mesh(self, submap: Submap) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """A submap's mesh as published and written (in M): vertices (V, 3) float32, faces (F, 3) int32 and each
+        vertex's map uncertainty ``sigma_map = |l_min| / (3 ||grad L||)`` (eq. 7) [m], inf where the field gives
+        none. Faces with a vertex whose sigma_map exceeds ``mesh_max_sigma_m`` are left out, and the vertices only
+        they used (the occupancy map keeps what they came from; docs/mapping.md, 'Confident mesh')."""
         v, f = submap.mesher.mesh()
         if len(v) == 0:
-            return v, f, np.empty((0, 3), np.uint8)
+            return v, f, np.empty(0, np.float32)
         _, g, valid = interpolate(submap.field(), v)
         with np.errstate(divide="ignore", invalid="ignore"):
             sig = abs(self.sensor.l_min) / (3.0 * np.linalg.norm(g, axis=1))
-        x = np.clip((np.where(valid & np.isfinite(sig), sig, sigma_hi_m) - sigma_lo_m) / (sigma_hi_m - sigma_lo_m), 0.0, 1.0)
+        sig = np.where(valid & np.isfinite(sig), sig, np.inf).astype(np.float32)
+        limit = self.cfg.mesh_max_sigma_m
+        if limit <= 0:
+            return v, f, sig
+        f = f[np.all(sig[f] <= limit, axis=1)]
+        used = np.unique(f)
+        index = np.full(len(v), -1, np.int64)
+        index[used] = np.arange(len(used))
+        return v[used], index[f].astype(np.int32), sig[used]
+
+    def colored_mesh(self, submap: Submap, sigma_lo_m: float = 0.02, sigma_hi_m: float = 0.2
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`mesh` with vertex colours from sigma_map: blue at ``sigma_lo_m`` to red at ``sigma_hi_m``."""
+        v, f, sig = self.mesh(submap)
+        x = np.clip((np.minimum(sig, sigma_hi_m) - sigma_lo_m) / (sigma_hi_m - sigma_lo_m), 0.0, 1.0)
         rgb = np.stack([np.clip(2 * x - 1, 0, 1), 1 - np.abs(2 * x - 1), np.clip(1 - 2 * x, 0, 1)], axis=1)
-        return v, f, np.round(rgb * 255).astype(np.uint8)
+        return v, f, np.round(rgb * 255).astype(np.uint8).reshape(-1, 3)
 
     def world_mesh(self) -> tuple[np.ndarray, np.ndarray]:
-        """All submap meshes in W (vertices float32 [m], faces int32), combined with the submap poses."""
+        """All submap meshes (:meth:`mesh`) in W (vertices float32 [m], faces int32), combined with the submap
+        poses."""
         verts, faces, off = [], [], 0
         for sm in self.submaps:
-            v, f = sm.mesher.mesh()
+            v, f, _ = self.mesh(sm)
             verts.append((v @ sm.T_WM[:3, :3].T + sm.T_WM[:3, 3]).astype(np.float32))
             faces.append(f + off)
             off += len(v)
