@@ -181,3 +181,37 @@ def test_no_shm_pool_where_memory_cannot_be_locked_sends_plain_bytes(monkeypatch
         assert "no shared memory in this process" in caplog.text
         sub.close()
         pub.close()
+
+
+def test_a_handler_knows_when_its_message_was_sent_however_late_it_runs():
+    """Latencies from send times (services/app/metrics/latency.py): each sample carries its publisher's clock at put;
+    a handler held up by the one before it sees its message late, but the send time stays the put's."""
+    from services.app.metrics.latency import ArrivalLog
+    from transport.pubsub import sample_sent_ns
+
+    with router() as cfg, open_session(cfg) as rx, open_session(cfg) as tx:
+        log, put_ns = ArrivalLog(), {}
+        record = log.handler("imu", sent=sample_sent_ns)
+
+        def slow_first(msg):
+            record(msg)
+            if msg.header.seq == 0:
+                time.sleep(0.2)  # the next message waits behind this callback
+
+        sub = Subscriber(rx, cfg.namespace + "/a", ImuSample, handler=slow_first)
+        pub = Publisher(tx, cfg.namespace + "/a", ImuSample, cfg, block=True)
+        assert pub.wait_for_subscribers(5)
+        time.sleep(0.1)
+        for i in range(2):
+            put_ns[i] = time.time_ns()
+            pub.publish(ImuSample(header=Header(stamp_ns=i, seq=i), omega_S=np.zeros(3), acc_S=np.zeros(3)))
+        assert wait_for(lambda: len(log.get("imu")[0]) == 2, 5)
+        stamps, arrived = log.get("imu")
+        _, sent = log.get_sent("imu")
+        for s, a, t in zip(stamps.tolist(), arrived.tolist(), sent.tolist()):
+            assert put_ns[s] - 1_000_000 <= t <= put_ns[s] + 20_000_000  # the put's time, not the callback's
+            assert t <= a + 1_000_000
+        assert arrived[1] - put_ns[1] > 150_000_000 > sent[1] - put_ns[1]
+        assert sample_sent_ns() is None  # outside a handler
+        sub.close()
+        pub.close()

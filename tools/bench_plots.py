@@ -10,7 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-LABELS = {"features": "frontend/frame", "state": "estimator/state", "depth": "depth/fused", "map": "map/submap"}
+LABELS = {"features": "frontend/frame", "state": "estimator/state", "depth": "depth/fused", "map": "map/submap",
+          "state_sent": "estimator/state as sent"}
 
 
 def save_series(path: Path, series: dict) -> None:

@@ -6,7 +6,8 @@ It runs where a consumer of poses would: a program of its own, at the priority o
 the group of depth and mapping, and on one busy core it saw frames seconds late: latencies below zero.
 
 ``python -m tools.bench_probe --config C --set K=V ... --out arrivals.npz`` prints ``ready`` once subscribed and
-writes ``arrivals.npz`` (``<name>_stamp_ns``, ``<name>_arrival_ns`` per topic name) when it gets SIGTERM.
+writes ``arrivals.npz`` (``<name>_stamp_ns``, ``<name>_arrival_ns`` and ``<name>_sent_ns``, the publisher's send time
+or -1, per topic name) when it gets SIGTERM.
 :class:`Probe` starts and reads it.
 """
 
@@ -21,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.app.metrics.latency import ArrivalLog
+from services.app.metrics.latency import NO_TIME, ArrivalLog
 
 NAMES = ("frame", "state", "features", "depth", "map")
 
@@ -64,8 +65,9 @@ class Probe:
         if self.out_npz.is_file():
             with np.load(self.out_npz) as z:
                 for name in NAMES:
-                    for s, t in zip(z[f"{name}_stamp_ns"].tolist(), z[f"{name}_arrival_ns"].tolist()):
-                        self.log.add(name, s, t)
+                    sent = z[f"{name}_sent_ns"].tolist() if f"{name}_sent_ns" in z.files else None
+                    for k, (s, t) in enumerate(zip(z[f"{name}_stamp_ns"].tolist(), z[f"{name}_arrival_ns"].tolist())):
+                        self.log.add(name, s, t, NO_TIME if sent is None else sent[k])
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -77,21 +79,23 @@ def main(argv: list[str] | None = None) -> int:
     from services.app.system_config import load_system_config
     from shared import topics
     from transport.node import Node
+    from transport.pubsub import sample_sent_ns
 
     log, stop = ArrivalLog(), threading.Event()
     signal.signal(signal.SIGTERM, lambda *a: stop.set())
     with Node("bench", load_system_config(args.config, args.set).transport, handle_signals=False) as node:
-        node.subscriber(topics.FRAME, handler=log.handler("frame"))
-        node.subscriber(topics.STATE, policy="all", handler=log.handler("state"))
-        node.subscriber(topics.FEATURES, policy="all", handler=log.handler("features"))
-        node.subscriber(topics.DEPTH_FUSED, handler=log.handler("depth"))
-        node.subscriber(topics.SUBMAP, handler=log.handler("map"))
+        node.subscriber(topics.FRAME, handler=log.handler("frame", sent=sample_sent_ns))
+        node.subscriber(topics.STATE, policy="all", handler=log.handler("state", sent=sample_sent_ns))
+        node.subscriber(topics.FEATURES, policy="all", handler=log.handler("features", sent=sample_sent_ns))
+        node.subscriber(topics.DEPTH_FUSED, handler=log.handler("depth", sent=sample_sent_ns))
+        node.subscriber(topics.SUBMAP, handler=log.handler("map", sent=sample_sent_ns))
         print("ready", flush=True)
         while not stop.wait(0.5):
             pass
     arrays = {}
     for name in NAMES:
         arrays[f"{name}_stamp_ns"], arrays[f"{name}_arrival_ns"] = log.get(name)
+        arrays[f"{name}_sent_ns"] = log.sent_column(name)
     np.savez(args.out, **arrays)
     return 0
 

@@ -34,7 +34,21 @@ from transport.queues import BoundedQueue, Empty
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Publisher", "Subscriber", "Empty", "shm_provider"]
+__all__ = ["Publisher", "Subscriber", "Empty", "shm_provider", "sample_sent_ns"]
+
+_delivering = threading.local()  # the sample a subscriber's handler is being called with, per Zenoh thread
+
+
+def sample_sent_ns() -> int | None:
+    """In a subscriber's handler: when the publisher put the message, wall time [ns] of the publisher's clock
+    (the sample's Zenoh timestamp; transport/session.py turns timestamping on), or None where the sample has none
+    (a publisher without timestamping) or outside a handler."""
+    return getattr(_delivering, "sent_ns", None)
+
+
+def _sent_ns(sample: zenoh.Sample) -> int | None:
+    ts = sample.timestamp
+    return None if ts is None else int(ts.get_time_as_ntp64().as_nanos())
 
 _shm_lock = threading.Lock()
 _shm_providers: dict[int, object] = {}
@@ -241,11 +255,14 @@ class Subscriber:
             self.queue.put(msg)
             return
         self.queue.count_received()
+        _delivering.sent_ns = _sent_ns(sample)
         try:
             self._handler(msg)
         except Exception as exc:  # a faulty handler must not kill the subscription
             self.handler_errors += 1
             self._bad_log.warning("%s: handler raised %s: %s", self.name, type(exc).__name__, exc)
+        finally:
+            _delivering.sent_ns = None
 
     # queue access
     def get(self, timeout: float | None = None) -> Message:

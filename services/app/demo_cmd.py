@@ -154,7 +154,7 @@ def summary_lines(out: Path, mesh: dict | None, viewer_url: str, phases: dict[st
     lat = stats.get("state_latency_ms") or {}
     if lat.get("n"):
         lines.append(f"pose latency (sensor -> state)      p50 {lat['median']:.0f} ms, p99 {lat['p99']:.0f} ms "
-                     f"over {lat['n']} states")
+                     f"over {lat['n']} states (from {stats.get('state_latency_from', 'arrival times')})")
     drops = stats.get("drops") or {}
     if drops:
         lost = {k: v for k, v in drops.items() if k in ESTIMATOR_QUEUES}

@@ -51,8 +51,10 @@ class Collection:
     time_offset_s: float | None = None  # the newest camera-IMU time offset estimate (backend.estimate_time_offset)
 
     def __post_init__(self) -> None:
-        self.on_frame_arrival = self.arrivals.handler("frame")
-        self.on_state_arrival = self.arrivals.handler("state")
+        from transport.pubsub import sample_sent_ns
+
+        self.on_frame_arrival = self.arrivals.handler("frame", sent=sample_sent_ns)
+        self.on_state_arrival = self.arrivals.handler("state", sent=sample_sent_ns)
 
     def on_window(self, msg) -> None:
         if len(msg.T_SC):

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.app.metrics.latency import first_arrivals, matched_latencies, summary
+from services.app.metrics.latency import first_arrivals, matched_latencies, sent_latencies, summary
 from shared.euroc import PoseSeries, read_trajectory, series_from_matrices, write_euroc_csv, write_tum
 from shared.map_folder import UNALIGNED_FRAME
 
@@ -115,9 +115,15 @@ def stats_summary(col) -> dict:
     status = [s.status for s in col.states]
     out["states"] = {k: status.count(k) for k in sorted(set(status))}
     out["frames_sent"] = int(col.end.frames_sent) if col.end is not None else None
+    # sensor publication -> estimator/state per frame, from the publishers' send times (services/app/metrics/latency.py);
+    # the arrival times at this process, which runs behind the path to a pose and sees frames late, only where the
+    # samples carried none
     published = first_arrivals(*col.arrivals.get("frame"))
-    lat = matched_latencies(published, *col.arrivals.get("state"))
-    out["state_latency_ms"] = summary(lat["latency_ms"])  # sensor publication -> estimator/state, per frame
+    arrived = summary(matched_latencies(published, *col.arrivals.get("state"))["latency_ms"])
+    sent = summary(sent_latencies(col.arrivals, "state")["latency_ms"])
+    out["state_latency_ms"] = sent if sent.get("n") else arrived
+    out["state_latency_from"] = "send times" if sent.get("n") else "arrival times"
+    out["state_latency_arrival_ms"] = arrived
     answered = {int(s.header.stamp_ns) for s in col.states}  # any status: the estimator answered the frame
     out["frames_without_state"] = (None if out["frames_sent"] is None
                                    else max(0, out["frames_sent"] - len(answered)))

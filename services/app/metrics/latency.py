@@ -1,7 +1,14 @@
-"""Latency of a live run from arrival times: the wall time [ns] at which each message of a topic arrived at one
-subscriber, keyed by its header stamp. The first arrival of a sensor stamp on ``sensors/frame`` stands for the
-moment the player published it (one host, one clock; the ~1 ms transport to the subscriber is included in neither
-end nor subtracted), so latency(stamp) = arrival(topic, stamp) - arrival(sensors/frame, stamp).
+"""Latency of a live run from arrival and send times: the wall time [ns] at which each message of a topic arrived at
+one subscriber and, where the sample carries it, the time its publisher put it (its Zenoh timestamp,
+transport.pubsub.sample_sent_ns), keyed by its header stamp.
+
+- *As a consumer sees it* (arrival times): the first arrival of a sensor stamp on ``sensors/frame`` stands for the
+  moment the player published it (one host, one clock), so latency(stamp) = arrival(topic, stamp) -
+  arrival(sensors/frame, stamp). Right only for a subscriber that is never kept from its callbacks (the bench's
+  probe, a process at the path to a pose's priority): a busy one sees frames late and reports too little.
+- *As sent* (send times): latency(stamp) = sent(topic, stamp) - sent(sensors/frame, stamp), both from the
+  publishers' clocks: what the pipeline took, whatever the subscriber's priority; without the delivery to a
+  consumer, which the difference of the two measures.
 
 - :class:`ArrivalLog`: (stamp, arrival) per topic name, filled by subscriber callbacks;
 - :func:`matched_latencies`: latency per stamp of a topic whose messages carry the sensor stamp
@@ -32,35 +39,55 @@ def summary(values, unit_scale: float = 1.0) -> dict:
             "p90": float(np.percentile(v, 90)), "p99": float(np.percentile(v, 99)), "max": float(v.max())}
 
 
+NO_TIME = -1  # a message without a send time
+
+
 class ArrivalLog:
-    """Thread-safe record of (header stamp, arrival wall time) per topic name."""
+    """Thread-safe record of (header stamp, arrival wall time, send wall time or NO_TIME) per topic name."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._data: dict[str, list[tuple[int, int]]] = {}
+        self._data: dict[str, list[tuple[int, int, int]]] = {}
 
-    def handler(self, name: str, clock=time.time_ns):
-        """A subscriber callback that logs each message's header stamp under ``name``."""
+    def handler(self, name: str, clock=time.time_ns, sent=lambda: None):
+        """A subscriber callback that logs each message's header stamp under ``name`` with its arrival time
+        (``clock()``) and send time (``sent()`` in the callback: transport.pubsub.sample_sent_ns; None: unknown)."""
         rows = self._data.setdefault(name, [])
 
         def on_msg(msg) -> None:
-            t = clock()
+            t, t_sent = clock(), sent()
             with self._lock:
-                rows.append((int(msg.header.stamp_ns), t))
+                rows.append((int(msg.header.stamp_ns), t, NO_TIME if t_sent is None else int(t_sent)))
         return on_msg
 
-    def add(self, name: str, stamp_ns: int, arrival_ns: int) -> None:
+    def add(self, name: str, stamp_ns: int, arrival_ns: int, sent_ns: int = NO_TIME) -> None:
         with self._lock:
-            self._data.setdefault(name, []).append((int(stamp_ns), int(arrival_ns)))
+            self._data.setdefault(name, []).append((int(stamp_ns), int(arrival_ns), int(sent_ns)))
+
+    def _rows(self, name: str) -> np.ndarray:
+        with self._lock:
+            rows = list(self._data.get(name, []))
+        return np.array(rows, np.int64).reshape(-1, 3)
 
     def get(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         """(stamps_ns, arrivals_ns) in arrival order."""
-        with self._lock:
-            rows = list(self._data.get(name, []))
-        if not rows:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        a = np.array(rows, np.int64)
+        a = self._rows(name)
         return a[:, 0], a[:, 1]
+
+    def sent_column(self, name: str) -> np.ndarray:
+        """The send times (NO_TIME where unknown) in the order of :meth:`get`."""
+        return self._rows(name)[:, 2]
+
+    def get_sent(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """(stamps_ns, sent_ns) in arrival order, of the messages that carried a send time."""
+        a = self._rows(name)
+        a = a[a[:, 2] != NO_TIME]
+        return a[:, 0], a[:, 2]
+
+
+def sent_latencies(log: ArrivalLog, name: str) -> dict:
+    """:func:`matched_latencies` of topic ``name`` from send times: sent(name) - sent(sensors/frame) per stamp."""
+    return matched_latencies(first_arrivals(*log.get_sent("frame")), *log.get_sent(name))
 
 
 def first_arrivals(stamps_ns: np.ndarray, arrivals_ns: np.ndarray) -> dict[int, int]:
