@@ -46,3 +46,27 @@ def test_what_the_planner_refuses(grid_and_truth):
     assert not inside_box.found and "goal" in inside_box.reason
     too_wide = plan(g, np.array([3.3, 2.9]), np.array([5.2, 3.3]), 2.0)
     assert not too_wide.found and len(too_wide.path_xy) == 0
+
+
+def test_a_run_plans_between_the_farthest_poses_that_free_cells_connect(tmp_path):
+    """A wall splits the free space: the trajectory's farthest poses lie on either side, so the run's plan takes the
+    farthest pair on one side and says how far apart the farthest pair overall was."""
+    from services.app.planner import plan_run
+    from services.mapping.grid import FREE_CELL, OCCUPIED_CELL, Grid2D
+    from services.mapping.grid_files import write_grid
+    from shared.euroc import PoseSeries, write_tum
+
+    cells = np.full((40, 100), FREE_CELL, np.uint8)  # 2 m x 5 m at 5 cm
+    cells[:, 60:62] = OCCUPIED_CELL  # a wall at x = 3.0-3.1 m
+    write_grid(Grid2D(cells, 0.05, np.zeros(2), np.array([0.1, 1.5]), 0.0), tmp_path)
+    x = np.array([0.5, 1.0, 2.0, 2.6, 4.5])  # four poses left of the wall, the last (the farthest) right of it
+    p = np.column_stack([x, np.full(5, 1.0), np.full(5, 1.2)])
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (5, 1))
+    write_tum(tmp_path / "trajectory.txt", PoseSeries(np.arange(5, dtype=np.int64) * 10**9, p, q))
+    got = plan_run(tmp_path, radius_m=0.2)
+    assert got["found"] and np.allclose(got["start_xy"], [0.5, 1.0]) and np.allclose(got["goal_xy"], [2.6, 1.0])
+    assert got["straight_m"] == pytest.approx(2.1) and got["farthest_straight_m"] == pytest.approx(4.0)
+    assert max(xy[0] for xy in got["path_xy"]) < 3.0  # never through the wall
+    write_grid(Grid2D(np.full((40, 100), FREE_CELL, np.uint8), 0.05, np.zeros(2), np.array([0.1, 1.5]), 0.0), tmp_path)
+    got = plan_run(tmp_path, radius_m=0.2)  # nothing in the way: the farthest pair
+    assert got["found"] and np.allclose(got["goal_xy"], [4.5, 1.0]) and got["straight_m"] == pytest.approx(4.0)

@@ -116,8 +116,11 @@ def occupancy_lines(figures: dict | None) -> list[str]:
             check = ("" if p["clearance_m"] is None else
                      f", clearance to the scene {p['clearance_m']:.3f} m: "
                      + ("collision-free" if p["collision_free"] else "COLLIDES"))
+            far = p.get("farthest_straight_m", p["straight_m"])
+            note = ("" if p["straight_m"] >= far - 1e-6 else
+                    f" (the poses farthest apart, {far:.2f} m, are not connected through free cells)")
             lines.append(f"planner (A*, radius {p['radius_m']} m)          path {p['length_m']:.2f} m between two "
-                         f"trajectory poses {p['straight_m']:.2f} m apart{check}")
+                         f"trajectory poses {p['straight_m']:.2f} m apart{check}{note}")
         else:
             lines.append(f"planner (A*, radius {p['radius_m']} m)          no path: {p['reason']}")
     return lines

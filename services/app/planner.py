@@ -114,11 +114,31 @@ def path_clearance(path_xy: np.ndarray, z_band_m: np.ndarray, distance_fn, step_
     return float(np.min(distance_fn(p)))
 
 
+def _connected_endpoints(ok: np.ndarray, rc: np.ndarray, usable: np.ndarray, xy: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Of the poses above traversable cells (``usable``, cells ``rc``), in each region of traversable cells that
+    connect (8-neighbours) the first pose and the one farthest from it; the pair farthest apart (None: no region
+    holds two poses)."""
+    from scipy.ndimage import label
+
+    regions, _ = label(ok, structure=np.ones((3, 3), bool))
+    of = regions[rc[usable, 0], rc[usable, 1]]
+    best, best_m = None, 0.0
+    for r in np.unique(of):
+        idx = usable[of == r]
+        d = np.linalg.norm(xy[idx] - xy[idx[0]], axis=1)
+        if len(idx) >= 2 and d.max() > best_m:
+            best, best_m = (xy[idx[0]], xy[idx[int(np.argmax(d))]]), float(d.max())
+    return best
+
+
 def plan_run(run, replica=None, radius_m: float = 0.2) -> dict:
     """Plan on a run's grid (``RUN/occupancy_grid.yaml``) between two poses of its trajectory: the first that lies
     above a cell the robot fits on and the one of those farthest from it (a flying camera's poses are often above
-    unknown or occupied cells), and with ``replica`` check the path's clearance against the scene mesh (brought into the run's W by the
-    trajectory's alignment, only what reaches into the height band). Returns what was found, as a dict."""
+    unknown or occupied cells); where free cells do not connect those two, the two poses farthest apart that free
+    cells do connect (``straight_m`` is then below ``farthest_straight_m``). With ``replica`` the path's clearance is
+    checked against the scene mesh (brought into the run's W by the trajectory's alignment, only what reaches into
+    the height band). Returns what was found, as a dict."""
     from pathlib import Path
 
     from services.mapping.grid_files import read_grid
@@ -138,9 +158,14 @@ def plan_run(run, replica=None, radius_m: float = 0.2) -> dict:
         goal = xy[usable[int(np.argmax(np.linalg.norm(xy[usable] - start, axis=1)))]]
     else:
         start, goal = xy[0], xy[int(np.argmax(np.linalg.norm(xy - xy[0], axis=1)))]
+    farthest_m = float(np.linalg.norm(goal - start))
+    connected = _connected_endpoints(ok, rc, usable, xy)
+    if connected is not None and not np.array_equal(connected[1], goal):
+        start, goal = connected  # the farthest pair is not connected through free cells: the farthest pair that is
     p = plan(grid, start, goal, radius_m)
     out = {"found": p.found, "reason": p.reason, "start_xy": start.tolist(), "goal_xy": goal.tolist(),
-           "straight_m": float(np.linalg.norm(goal - start)), "length_m": p.length_m, "radius_m": radius_m,
+           "straight_m": float(np.linalg.norm(goal - start)), "farthest_straight_m": farthest_m,
+           "length_m": p.length_m, "radius_m": radius_m,
            "expanded": p.expanded, "path_xy": p.path_xy.tolist(), "clearance_m": None, "collision_free": None}
     if replica is not None and p.found:
         from services.app.metrics.occupancy import SceneTruth
