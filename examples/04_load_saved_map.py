@@ -28,9 +28,10 @@ from services.mapping.io import load_map, write_ply
 from shared.occupancy.query import FREE, OCCUPIED, interpolate, state
 
 
-def describe_submap(sm, sensor) -> dict:
+def describe_submap(mapper, sm) -> dict:
     """Facts of one submap, and what its field says at and around its surface."""
-    v_M, faces = sm.mesher.mesh()  # vertices in the submap frame M_j [m]
+    sensor = mapper.sensor
+    v_M, faces, _ = mapper.mesh(sm)  # the mesh as published (faces the map is unsure of left out), in M_j [m]
     row = {"id": sm.id, "frames": sm.n_frames, "blocks": sm.store.n_blocks, "vertices": len(v_M), "faces": len(faces),
            "p_WM": sm.T_WM[:3, 3].tolist(), "keyframe_id": sm.keyframe_id}
     nan = float("nan")
@@ -77,7 +78,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     # 2. Mesh every submap (marching cubes at L = 0, services/mapping/mesh.py), then look at each one.
     mapper.remesh(None)
-    rows = [describe_submap(sm, mapper.sensor) for sm in mapper.submaps]
+    rows = [describe_submap(mapper, sm) for sm in mapper.submaps]
     for r in rows:
         x, y, z = r["p_WM"]
         print(f"submap {r['id']}: {r['frames']} frames, {r['blocks']} blocks, {r['vertices']} vertices; "

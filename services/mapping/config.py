@@ -108,7 +108,8 @@ class MappingConfig:
     mesh_budget_ms: float = param(40.0, "meshing work per loop iteration (the rest waits for the next one)", "ms")
     field_period_s: float = param(2.0, "the current submap's near-surface field goes out on map/field this often (closed submaps once, when closed; <= 0: only closed ones)", "s")
     o2p_points: int = param(0, "> 0: pool this many lowest-sigma depth points per submap and publish them on map/o2p_points when it closes (map-to-map factors of the back end's o2p section); 0: off")
-    vertex_colors: bool = param(True, "colour published mesh vertices by the map's uncertainty sigma_map (eq. 7; blue 2 cm .. red 20 cm)")
+    vertex_colors: bool = param(True, "colour published mesh vertices by the map's uncertainty sigma_map (eq. 7; blue 2 cm .. red at "
+                                "submaps.mesh_max_sigma_m, or 20 cm when every face is kept)")
     output_dir: str = param("", "folder for mesh.ply, submaps/*.ply and map/dense.npz at exit ('' = write nothing)")
     prior_map: str = param("", "a saved map (a run's folder or its map/ folder, shared/map_folder.py) whose dense "
                            "submaps this map starts from, frozen in the saved map's frame ('' = an empty map)")

@@ -223,11 +223,14 @@ class SubmapMapper:
         index[used] = np.arange(len(used))
         return v[used], index[f].astype(np.int32), sig[used]
 
-    def colored_mesh(self, submap: Submap, sigma_lo_m: float = 0.02, sigma_hi_m: float = 0.2
+    def colored_mesh(self, submap: Submap, sigma_lo_m: float = 0.02, sigma_hi_m: float | None = None
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """:meth:`mesh` with vertex colours from sigma_map: blue at ``sigma_lo_m`` to red at ``sigma_hi_m``."""
+        """:meth:`mesh` with vertex colours from sigma_map: blue at ``sigma_lo_m`` to red at ``sigma_hi_m`` (None:
+        ``mesh_max_sigma_m``, the least sure a face of the mesh can be, or 0.2 m when every face is kept)."""
+        hi = sigma_hi_m if sigma_hi_m is not None else (self.cfg.mesh_max_sigma_m if self.cfg.mesh_max_sigma_m > 0
+                                                         else 0.2)
         v, f, sig = self.mesh(submap)
-        x = np.clip((np.minimum(sig, sigma_hi_m) - sigma_lo_m) / (sigma_hi_m - sigma_lo_m), 0.0, 1.0)
+        x = np.clip((np.minimum(sig, hi) - sigma_lo_m) / max(hi - sigma_lo_m, 1e-9), 0.0, 1.0)
         rgb = np.stack([np.clip(2 * x - 1, 0, 1), 1 - np.abs(2 * x - 1), np.clip(1 - 2 * x, 0, 1)], axis=1)
         return v, f, np.round(rgb * 255).astype(np.uint8).reshape(-1, 3)
 
