@@ -3,23 +3,23 @@ configs, other keys and bad values are refused with the config loader's errors."
 import pytest
 
 from shared.config import ConfigError
-from tools.mapping_ablation import depth_config, system_config
+from tools.mapping_ablation import system_config
 
 pytestmark = pytest.mark.unit
 
 
 def test_depth_overrides_are_applied_and_checked():
-    cfg = depth_config(["depth.stereo_weights=w/stereo_refine.pt", "depth.max_relative_sigma=0.2"])
+    cfg = system_config(["depth.stereo_weights=w/stereo_refine.pt", "depth.max_relative_sigma=0.2"]).depth
     assert cfg.stereo_weights == "w/stereo_refine.pt" and cfg.max_relative_sigma == 0.2
-    assert depth_config([]).max_relative_sigma == 0.04  # the service's default
+    assert system_config([]).depth.max_relative_sigma == 0.04  # the service's default
     with pytest.raises(ConfigError, match="only depth"):
-        depth_config(["mapping.voxel_size_m=0.1"])
+        system_config(["mapping.voxel_size_m=0.1"])
     with pytest.raises(ConfigError, match="only depth"):
-        depth_config(["backend.window=3"])
+        system_config(["backend.window=3"])
     with pytest.raises(ConfigError, match="max_relative_sigma"):
-        depth_config(["depth.max_relative_sigma=-1"])
+        system_config(["depth.max_relative_sigma=-1"])
     with pytest.raises(ConfigError):
-        depth_config(["depth.no_such_key=1"])
+        system_config(["depth.no_such_key=1"])
 
 
 def test_mapping_sensor_and_submap_overrides_reach_the_mappers():

@@ -43,9 +43,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--edge-px", type=int, default=2, help="pixels this close to a ground-truth depth edge are 'edge'")
     p.add_argument("--variants", default="", help="comma-separated subset of the map variants (default: all)")
     p.add_argument("--reuse", action="store_true", help="use the frames cached in OUT/frames/ (no networks)")
-    p.add_argument("--set", action="append", default=[], metavar="depth.KEY=VALUE", help="depth config override")
-    p.add_argument("--sensor", action="append", default=[], metavar="KEY=VALUE",
-                   help="mapping.sensor override of every variant (e.g. sigma_weight_ref_m=0.05)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="depth.*, mapping.sensor.* or mapping.submaps.* override (the mapping keys reach every variant)")
 
 
 # ----------------------------------------------------------------------------- ground truth in the depth camera
@@ -98,12 +97,12 @@ def compute_frames(args: argparse.Namespace, out: Path) -> list[Path]:
     from services.depth.pipeline import DepthPipeline
     from shared.camera import load_rig
     from tools.bench_mapping import replica_frames
-    from tools.mapping_ablation import _images, depth_config
+    from tools.mapping_ablation import _images, system_config
 
     folder = Path(args.replica)
     mav = folder / "mav0"
     rig = {c.name: c for c in load_rig(mav)}
-    pipe = DepthPipeline(depth_config(args.set), rig["cam0"], rig["cam1"])
+    pipe = DepthPipeline(system_config(args.set).depth, rig["cam0"], rig["cam1"])
     gt = GroundTruthDepth(mav / "scene" / "mesh.ply", pipe.K, (pipe.cfg.width, pipe.cfg.height))
     left, right = _images(mav, "cam0"), _images(mav, "cam1")
     frames_dir = out / "frames"
@@ -228,19 +227,15 @@ VARIANTS = ("gt-heuristic", "gt-net-sigma", "gt-net-noise", "net", "net-no-edges
 
 
 def run_variant(name: str, paths: list[Path], source: str, edge_px: int, replica: Path, out: Path,
-                sensor_set: tuple[str, ...] = ()) -> dict:
+                overrides: tuple[str, ...] = ()) -> dict:
     from services.app.metrics.mesh import evaluate_mesh_files, load_ground_truth
-    from services.mapping.config import SensorModelConfig, SubmapConfig
     from services.mapping.io import write_ply
     from services.mapping.submaps import SubmapMapper
+    from tools.mapping_ablation import system_config
 
-    import yaml
-
-    from shared.config import override
-
-    base = override(SensorModelConfig(), {k: yaml.safe_load(v) for k, v in (kv.split("=", 1) for kv in sensor_set)})
-    heuristic = dataclasses.replace(base, sigma_model="quadratic", k_sigma=0.005)
-    mapper = SubmapMapper(heuristic if name == "gt-heuristic" else base, SubmapConfig())
+    mapping = system_config(list(overrides)).mapping
+    heuristic = dataclasses.replace(mapping.sensor, sigma_model="quadratic", k_sigma=0.005)
+    mapper = SubmapMapper(heuristic if name == "gt-heuristic" else mapping.sensor, mapping.submaps)
     rng = np.random.default_rng(0)
     for p in paths:
         f = load_frame(p, source)
@@ -299,14 +294,13 @@ def main(args: argparse.Namespace) -> int:
         print(f"[map_error] no frames ({out / 'frames'} is empty: run without --reuse)")
         return 1
     summary = {"replica": str(args.replica), "source": args.source, "n_frames": len(paths), "depth_set": args.set,
-               "sensor_set": args.sensor,
                "frames": frame_statistics(paths, args.source, args.edge_px, SensorModelConfig().max_depth_m),
                "variants": {}}
     names = [v for v in args.variants.split(",") if v] or list(VARIANTS)
     for name in names:
         t0 = time.monotonic()
         summary["variants"][name] = run_variant(name, paths, args.source, args.edge_px, Path(args.replica), out,
-                                                 tuple(args.sensor))
+                                                 tuple(args.set))
         r = summary["variants"][name]
         print(f"[map_error] {name:16s} accuracy {r['accuracy_m']:.4f} m completeness {100 * r['completeness']:.1f} % "
               f"({time.monotonic() - t0:.0f} s)", flush=True)

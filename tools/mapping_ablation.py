@@ -61,11 +61,6 @@ def system_config(overrides: list[str]):
     return load_system_config(None, overrides)
 
 
-def depth_config(overrides: list[str]):
-    """The depth service's config with the overrides (:func:`system_config`)."""
-    return system_config(overrides).depth
-
-
 def main(args: argparse.Namespace) -> int:
     import cv2
 

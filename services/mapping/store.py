@@ -22,7 +22,7 @@ import numpy as np
 
 from services.mapping.config import MappingConfig
 from services.mapping.io import MapFileError, load_map, map_arrays, save_map, write_map_arrays, write_ply
-from services.mapping.submaps import SubmapMapper
+from services.mapping.submaps import SubmapMapper, meshes_in_world
 from shared.map_folder import DENSE_FILE, dense_path, remove_stale_temps, run_map_dir
 
 log = logging.getLogger("sigmaslam.mapping")
@@ -106,10 +106,9 @@ class MapStore:
         self.wait()
         out_dir.mkdir(parents=True, exist_ok=True)
         if not report_only:
-            v, f = mapper.world_mesh()
-            write_ply(out_dir / "mesh.ply", v, f)
-            for sm in mapper.submaps:
-                sv, sf, _ = mapper.mesh(sm)
+            parts = [(sm.T_WM, *mapper.mesh(sm)[:2]) for sm in mapper.submaps]  # each submap meshed once
+            write_ply(out_dir / "mesh.ply", *meshes_in_world(parts))
+            for sm, (_, sv, sf) in zip(mapper.submaps, parts):
                 write_ply(out_dir / "submaps" / f"submap_{sm.id:03d}.ply", sv, sf)
             save_map(mapper, run_map_dir(out_dir) / DENSE_FILE)
         ms = np.array(integrate_ms) if integrate_ms else np.array([np.nan])

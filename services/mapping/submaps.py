@@ -237,18 +237,22 @@ class SubmapMapper:
     def world_mesh(self) -> tuple[np.ndarray, np.ndarray]:
         """All submap meshes (:meth:`mesh`) in W (vertices float32 [m], faces int32), combined with the submap
         poses."""
-        verts, faces, off = [], [], 0
-        for sm in self.submaps:
-            v, f, _ = self.mesh(sm)
-            verts.append((v @ sm.T_WM[:3, :3].T + sm.T_WM[:3, 3]).astype(np.float32))
-            faces.append(f + off)
-            off += len(v)
-        if not verts:
-            return np.empty((0, 3), np.float32), np.empty((0, 3), np.int32)
-        return np.concatenate(verts), np.concatenate(faces).astype(np.int32)
+        return meshes_in_world([(sm.T_WM, *self.mesh(sm)[:2]) for sm in self.submaps])
 
     def nbytes(self) -> int:
         return sum(sm.store.nbytes() for sm in self.submaps)
+
+
+def meshes_in_world(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """One mesh in W (vertices float32 [m], faces int32) from submap meshes ``(T_WM, vertices_M, faces)``."""
+    verts, faces, off = [], [], 0
+    for T_WM, v, f in parts:
+        verts.append((v @ T_WM[:3, :3].T + T_WM[:3, 3]).astype(np.float32))
+        faces.append(f + off)
+        off += len(v)
+    if not verts:
+        return np.empty((0, 3), np.float32), np.empty((0, 3), np.int32)
+    return np.concatenate(verts), np.concatenate(faces).astype(np.int32)
 
 
 def _check_inputs(K: np.ndarray, T_WC: np.ndarray, T_SC: np.ndarray) -> None:
