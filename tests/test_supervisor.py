@@ -181,22 +181,33 @@ def test_children_die_with_a_sigkilled_supervisor(tmp_path):
 
 def test_stop_timeout_per_service(tmp_path):
     """A service with its own stop_timeout_s may take longer than shutdown_timeout_s to exit after SIGTERM
-    (the mapping writes its map then); one without it is SIGKILLed at shutdown_timeout_s."""
-    slow_exit = ("import signal, sys, time\n"
-                 "signal.signal(signal.SIGTERM, lambda *a: (time.sleep(1.5), sys.exit(0)))\n"
+    (the mapping writes its map then); one without it is SIGKILLed at shutdown_timeout_s, after it was asked for
+    its threads' stacks (as every process command registers them: services/app/process_cmd.py), so the log says
+    where it hung."""
+    from services.app.process_cmd import STACKS_SIGNAL
+
+    slow_exit = ("import faulthandler, signal, sys, time\n"
+                 f"faulthandler.register({int(STACKS_SIGNAL)}, all_threads=True)\n"
+                 "def stuck_in_shutdown(*a):\n"
+                 "    time.sleep(1.5)\n"
+                 "    sys.exit(0)\n"
+                 "signal.signal(signal.SIGTERM, stuck_in_shutdown)\n"
                  "print('ready', flush=True)\n"
                  "time.sleep(60)\n")
     sup = Supervisor(SupervisorConfig(start_router=False, shutdown_timeout_s=0.5), tmp_path / "c.yaml", tmp_path)
     patient = Child(ServiceSpec(name="patient", argv=["x"], stop_timeout_s=10.0), [])
     hasty = Child(ServiceSpec(name="hasty", argv=["x"]), [])
     for c in (patient, hasty):
-        c.proc = subprocess.Popen([sys.executable, "-c", slow_exit], stdout=subprocess.PIPE, text=True,
-                                  start_new_session=True)
+        c.proc = subprocess.Popen([sys.executable, "-c", slow_exit], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                  text=True, start_new_session=True)
         assert c.proc.stdout.readline().strip() == "ready"
     sup.children = [patient, hasty]
     sup.shutdown()
     assert patient.proc.returncode == 0  # finished its SIGTERM handler
     assert hasty.proc.returncode == -signal.SIGKILL
+    stacks = hasty.proc.stderr.read()
+    assert "stuck_in_shutdown" in stacks, stacks
+    assert "stuck_in_shutdown" not in patient.proc.stderr.read()
     with pytest.raises(ConfigError, match="stop_timeout_s"):
         validate(SupervisorConfig(services=[ServiceSpec(name="x", argv=["record"], stop_timeout_s=-1.0)]), {"record": None})
 

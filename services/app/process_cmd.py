@@ -5,16 +5,23 @@ The one entry of every process command (``frontend``, ``backend``, ``depth``, ``
 says (shared/process_description.py; a process that cannot start, e.g. a bad calibration or missing weights, exits
 with its message before it joins the bus), warms it up, and runs it over Zenoh (transport.runner.run_node) until
 SIGTERM/SIGINT; a process with a loop of its own (player, recorder) gets the config and its arguments.
+
+Every process writes the stacks of all its threads to stderr on SIGUSR1 (``STACKS_SIGNAL``): the supervisor sends
+it to a process that has not stopped in time after SIGTERM, just before SIGKILL, so its log says where it hung.
 """
 
 from __future__ import annotations
 
 import argparse
+import faulthandler
+import signal
 import sys
 
 from services.app.system_config import load_system_config
 from shared.process_description import ProcessDescription, ProcessStartError, Start
 from services.app.supervision import restart_count
+
+STACKS_SIGNAL = signal.SIGUSR1  # dump every thread's stack to stderr (the supervisor's last word before SIGKILL)
 
 
 def add_arguments(p: argparse.ArgumentParser, d: ProcessDescription) -> None:
@@ -28,6 +35,7 @@ def add_arguments(p: argparse.ArgumentParser, d: ProcessDescription) -> None:
 
 
 def main(args: argparse.Namespace, d: ProcessDescription) -> int:
+    faulthandler.register(STACKS_SIGNAL, all_threads=True)
     cfg = load_system_config(args.config, args.set)
     if d.main is not None:
         return int(d.main(cfg, args) or 0)

@@ -258,7 +258,8 @@ class Supervisor:
                     _signal_group(c.proc, signal.SIGKILL)  # leftovers of its process group, if any
                     waiting.remove(c)
                 elif time.monotonic() - t0 >= (limit := self.cfg.stop_limit_s(c.spec)):
-                    self._status(c, f"pid {c.proc.pid} still running after {limit:g} s: SIGKILL")
+                    self._status(c, f"pid {c.proc.pid} still running after {limit:g} s: its stacks, then SIGKILL")
+                    _dump_stacks(c.proc)
                     _signal_group(c.proc, signal.SIGKILL)
                     c.proc.wait()
                     waiting.remove(c)
@@ -266,6 +267,21 @@ class Supervisor:
         for c in live:
             c.done = True
             self._status(c, f"pid {c.proc.pid} stopped ({describe_exit(c.proc.returncode)})")
+
+
+def _dump_stacks(proc: subprocess.Popen, wait_s: float = 0.5) -> None:
+    """Ask a process that did not stop for the stacks of its threads (services/app/process_cmd.py: STACKS_SIGNAL,
+    written to its stderr, which is the supervisor's log) and give it ``wait_s`` to write them."""
+    from services.app.process_cmd import STACKS_SIGNAL
+
+    try:
+        os.kill(proc.pid, STACKS_SIGNAL)
+    except (ProcessLookupError, PermissionError):
+        return
+    try:
+        proc.wait(wait_s)
+    except subprocess.TimeoutExpired:
+        pass
 
 
 def _signal_group(proc: subprocess.Popen, sig: int) -> None:
