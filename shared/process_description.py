@@ -34,7 +34,7 @@ class Scheduling:
     """How the supervisor runs the process unless its ``supervisor.services`` entry says otherwise."""
 
     nice: int = 0  # niceness added to the process and its scheduling group (-20..19; below 0 where allowed)
-    sched: Literal["normal", "batch", "idle"] = "normal"  # Linux scheduling class
+    sched: Literal["normal", "batch", "idle", "fifo"] = "normal"  # Linux scheduling class ('fifo': real-time)
     stop_timeout_s: float = 0.0  # SIGKILL after SIGTERM after this long [s] (0: supervisor.shutdown_timeout_s)
 
 

@@ -244,3 +244,42 @@ def test_children_get_a_session_nice_class_and_group_nice_of_their_own(tmp_path)
         assert own_session == str(nice < 0) and int(got_nice) == want and int(got_policy) == policy, (sched, nice, out)
         if group != "none":
             assert int(group) == (want if nice < 0 else mine), (sched, nice, out)
+
+
+@pytest.mark.service
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="SCHED_FIFO and RLIMIT_RTPRIO are Linux's")
+def test_a_fifo_child_runs_real_time_where_allowed_and_at_its_nice_where_not(tmp_path):
+    """The frontend's class: SCHED_FIFO at supervisor.realtime_priority where this process may grant it, its threads
+    too; realtime_priority 0, or a priority above what is allowed, gives the normal class at its nice, and the
+    status line says why."""
+    import os
+
+    from services.app.scheduling import highest_rt_priority, resolve_sched
+
+    probe = ("import os, sys, threading\n"
+             "got = []\n"
+             "t = threading.Thread(target=lambda: got.append(os.sched_getscheduler(0)))\n"
+             "t.start(); t.join()\n"
+             "open(sys.argv[1], 'w').write(f'{os.sched_getscheduler(0)} {os.sched_getparam(0).sched_priority} {got[0]}')\n")
+    allowed = highest_rt_priority()
+    for priority in (10, 0):
+        sup = Supervisor(SupervisorConfig(start_router=False, realtime_priority=priority), tmp_path / "c.yaml",
+                         tmp_path)
+        result = tmp_path / f"fifo{priority}.txt"
+        child = Child(ServiceSpec(name="probe", argv=["x"], nice=-10, sched="fifo"),
+                      [sys.executable, "-c", probe, str(result)])
+        sup._start(child)
+        assert child.proc.wait(timeout=30) == 0
+        policy, prio, thread_policy = map(int, result.read_text().split())
+        if 0 < priority <= allowed:
+            assert (policy, prio, thread_policy) == (os.SCHED_FIFO, priority, os.SCHED_FIFO)
+        else:
+            assert (policy, prio) == (os.SCHED_OTHER, 0)
+    # the fallback and its reason, whatever this machine allows
+    assert resolve_sched("fifo", 10, highest=99) == ("fifo", 10, "")
+    sched, prio, why = resolve_sched("fifo", 10, highest=0)
+    assert (sched, prio) == ("normal", 0) and "ulimit -r 10" in why
+    assert resolve_sched("batch", 10, highest=99) == ("batch", 0, "")
+    with pytest.raises(ConfigError, match="realtime_priority"):
+        validate(SupervisorConfig(realtime_priority=100, services=[ServiceSpec(name="x", argv=["record"])]),
+                 {"record": None})

@@ -27,11 +27,13 @@ class ServiceSpec:
                              "that, on a loaded CPU, the path to a pose gets the cores first (null: the process's "
                              "default, its description's scheduling: frontend, back end, player and router -10, "
                              "depth and mapping 19, recorder 10)")
-    sched: Literal["default", "normal", "batch", "idle"] = param(
+    sched: Literal["default", "normal", "batch", "idle", "fifo"] = param(
         "default", "Linux scheduling class of the process: 'idle' (SCHED_IDLE) runs it only on CPU time no normal "
         "process wants, so that on two cores depth, mapping and the viewer never delay a pose; 'batch' (SCHED_BATCH) "
-        "is for long computations; 'default': the process's own (its description's scheduling); ignored elsewhere "
-        "than Linux")
+        "is for long computations; 'fifo' (SCHED_FIFO at supervisor.realtime_priority) runs it the moment it has "
+        "work, ahead of every normal process: the frontend's per-frame work (where real-time scheduling is not "
+        "allowed, the process runs at its nice and the supervisor says so); 'default': the process's own (its "
+        "description's scheduling); ignored elsewhere than Linux")
     stop_timeout_s: float | None = param(None, "after SIGTERM, SIGKILL this service if still alive after this long "
                                          "(0: the supervisor's shutdown_timeout_s; null: the process's default, 60 s "
                                          "for the mapping, which meshes and writes its map when stopped)", "s")
@@ -45,6 +47,10 @@ class SupervisorConfig:
     start_router: bool = param(True, "start 'sigmaslam router' before the services (and stop it last)")
     router_startup_s: float = param(0.5, "wait after starting the router before starting the services", "s")
     shutdown_timeout_s: float = param(5.0, "after SIGTERM, children still alive after this long are SIGKILLed", "s")
+    realtime_priority: int = param(10, "SCHED_FIFO priority (1-99) of the services whose class is 'fifo' (the "
+                                   "frontend); 0: none runs real-time, each runs at its nice instead. A real-time "
+                                   "process that never blocked would keep its core (the kernel leaves others 5 %: "
+                                   "sched_rt_runtime_us); the frontend blocks between frames (docs/reliability.md)")
     run_dir: str = param("runs", "parent folder of each run's folder (resolved config, outputs)")
     poll_period_s: float = param(0.05, "how often the supervisor checks its children", "s")
     malloc_mmap_threshold_mb: int = param(

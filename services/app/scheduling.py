@@ -12,6 +12,15 @@ with two of them on two cores it lost most frames (docs/benchmarks.md). So the s
   they yield to the supervisor's own threads and to each other by their nice, and which as a whole is a peer of the
   other programs: under load they slow down and skip frames (counted), but are not starved outright.
 
+The frontend, whose per-frame work is the pose's latency, runs real-time (SCHED_FIFO at
+``supervisor.realtime_priority``) where that is allowed: a real-time task runs the moment a frame wakes it, ahead of
+every normal task, whatever their nice or group, and is preempted by none of them. Nice alone left it waiting for a
+core behind the back end's optimisations and the depth network: its tracking took 12 ms of CPU at the 99th
+percentile but 35-60 ms of wall time (docs/benchmarks.md). It blocks between frames (about half a core at 20 Hz), so
+the rest of the pipeline keeps the remainder; a real-time task that never blocked would keep its core, less the 5 %
+the kernel's throttling (``sched_rt_runtime_us``) leaves to others. Where real-time scheduling is not allowed (no
+CAP_SYS_NICE and no ``ulimit -r``), :func:`resolve_sched` falls back to the normal class and its nice and says so.
+
 Where autogroups are off, or inside a container's cgroup, the same nice values rank the tasks directly. A nice below
 0 needs CAP_SYS_NICE (root, ``setcap``, compose's ``cap_add: [SYS_NICE]``) or a nice limit (``ulimit -e``,
 limits.conf ``nice``); without either the child runs at the lowest nice allowed, which :func:`resolve_nice` reports so
@@ -65,6 +74,32 @@ def resolve_nice(added: int, base: int | None = None, lowest: int | None = None)
                     f"processes, not ahead of them; allow it with CAP_SYS_NICE or `ulimit -e {20 - wanted}`")
 
 
+def highest_rt_priority() -> int:
+    """The highest SCHED_FIFO priority this process may give its children (99 with CAP_SYS_NICE; else the soft
+    RLIMIT_RTPRIO, 0 where none is allowed)."""
+    if not hasattr(os, "SCHED_FIFO"):
+        return 0
+    if has_cap_sys_nice():
+        return 99
+    soft = resource.getrlimit(resource.RLIMIT_RTPRIO)[0] if hasattr(resource, "RLIMIT_RTPRIO") else 0
+    return 99 if soft == resource.RLIM_INFINITY else max(0, min(99, int(soft)))
+
+
+def resolve_sched(sched: str, priority: int, highest: int | None = None) -> tuple[str, int, str]:
+    """(class, real-time priority, '' or why not the one asked for) a child gets for ``sched`` ('fifo' at
+    ``priority``; the others at 0): 'fifo' where ``priority`` > 0 and allowed (``highest``, default
+    :func:`highest_rt_priority`), else 'normal'."""
+    if sched != "fifo":
+        return sched, 0, ""
+    if priority <= 0:
+        return "normal", 0, "supervisor.realtime_priority is 0: not real-time, at its nice"
+    highest = highest_rt_priority() if highest is None else highest
+    if priority <= highest:
+        return "fifo", priority, ""
+    return "normal", 0, (f"real-time priority {priority} is not permitted here, so the normal class at its nice: "
+                         f"allow it with CAP_SYS_NICE or `ulimit -r {priority}`")
+
+
 def autogroup_nice(path: str = AUTOGROUP) -> int | None:
     """The nice of this process's autogroup, or None where it has none: no such file, autogroups off, or a process
     inside a cgroup of its own (a container, a CI runner), where the kernel prints nothing for it."""
@@ -96,9 +131,9 @@ def set_autogroup_nice(nice: int, path: str = AUTOGROUP, tries: int = 40) -> boo
     return False
 
 
-def apply_in_child(nice: int, sched: str, own_group: bool) -> None:
-    """In a new child before exec: its nice and scheduling class, and with ``own_group`` (a session of its own
-    already) its scheduling group's nice."""
+def apply_in_child(nice: int, sched: str, own_group: bool, rt_priority: int = 0) -> None:
+    """In a new child before exec: its nice and scheduling class (``sched`` as :func:`resolve_sched` resolved it;
+    'fifo' at ``rt_priority``), and with ``own_group`` (a session of its own already) its scheduling group's nice."""
     try:
         os.setpriority(os.PRIO_PROCESS, 0, nice)
     except PermissionError:  # resolve_nice kept it within what is allowed; a limit lowered since keeps the current
@@ -106,5 +141,7 @@ def apply_in_child(nice: int, sched: str, own_group: bool) -> None:
     policy = {"batch": getattr(os, "SCHED_BATCH", None), "idle": getattr(os, "SCHED_IDLE", None)}.get(sched)
     if policy is not None:
         os.sched_setscheduler(0, policy, os.sched_param(0))
+    elif sched == "fifo":  # threads the process starts inherit it (Zenoh's, which deliver its frames, too)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt_priority))
     if own_group:
         set_autogroup_nice(19 if sched == "idle" else nice)  # SCHED_IDLE's counterpart for a group: the lowest weight

@@ -29,7 +29,7 @@ from pathlib import Path
 
 from services.app.config import ServiceSpec, SupervisorConfig
 from services.app.processes import with_defaults
-from services.app.scheduling import apply_in_child, resolve_nice
+from services.app.scheduling import apply_in_child, resolve_nice, resolve_sched
 from shared.config import ConfigError
 from services.app.supervision import RESTARTS_ENV
 
@@ -87,6 +87,8 @@ def validate(cfg: SupervisorConfig, known_commands: dict[str, object] | None = N
         raise ConfigError("supervisor.malloc_mmap_threshold_mb must be 0..32 MiB (glibc ignores larger ones) and "
                           f"malloc_trim_threshold_mb >= 0, got {cfg.malloc_mmap_threshold_mb} and "
                           f"{cfg.malloc_trim_threshold_mb}")
+    if not 0 <= cfg.realtime_priority <= 99:
+        raise ConfigError(f"supervisor.realtime_priority: must be 0..99, got {cfg.realtime_priority}")
     seen = set()
     for i, spec in enumerate(cfg.services):
         where = f"supervisor.services[{i}]"
@@ -110,13 +112,14 @@ def validate(cfg: SupervisorConfig, known_commands: dict[str, object] | None = N
 
 # ----------------------------------------------------------------------------- processes
 
-def _child_setup(parent_pid: int, nice: int = 0, sched: str = "normal", own_group: bool = False) -> None:
+def _child_setup(parent_pid: int, nice: int = 0, sched: str = "normal", own_group: bool = False,
+                 rt_priority: int = 0) -> None:
     """preexec_fn: give the child the nice ``nice`` (resolved by the supervisor:
-    :func:`services.app.scheduling.resolve_nice`) and scheduling class ``sched``, and with ``own_group`` (it is in a
-    session of its own) its scheduling group the same nice (Linux); SIGTERM it when the supervisor dies (Linux prctl
-    PR_SET_PDEATHSIG)."""
+    :func:`services.app.scheduling.resolve_nice`) and scheduling class ``sched`` ('fifo' at ``rt_priority``:
+    :func:`~services.app.scheduling.resolve_sched`), and with ``own_group`` (it is in a session of its own) its
+    scheduling group the same nice (Linux); SIGTERM it when the supervisor dies (Linux prctl PR_SET_PDEATHSIG)."""
     if sys.platform.startswith("linux"):
-        apply_in_child(nice, sched, own_group)
+        apply_in_child(nice, sched, own_group, rt_priority)
         import ctypes
 
         libc = ctypes.CDLL(None, use_errno=True)
@@ -184,10 +187,13 @@ class Supervisor:
         # ranked there by their nice (services/app/scheduling.py)
         own = (child.spec.nice or 0) < 0
         nice, why = resolve_nice(child.spec.nice or 0)
+        sched, rt, why_sched = resolve_sched(child.spec.sched, self.cfg.realtime_priority)
         child.proc = subprocess.Popen(child.argv, env=env, start_new_session=own, process_group=None if own else 0,
-                                      preexec_fn=lambda: _child_setup(parent, nice, child.spec.sched, own))
+                                      preexec_fn=lambda: _child_setup(parent, nice, sched, own, rt))
         child.restart_at = None
-        self._status(child, f"started pid {child.proc.pid}, nice {nice}" + (f" ({why})" if why else ""))
+        why = "; ".join(w for w in (why, why_sched) if w)
+        self._status(child, f"started pid {child.proc.pid}, nice {nice}" + (f", real-time priority {rt}" if rt else "")
+                     + (f" ({why})" if why else ""))
 
     def _status(self, child: Child, text: str) -> None:
         line = f"[sigmaslam up] {child.spec.name}: {text}"

@@ -191,7 +191,7 @@ def _build(cfg, start: Start) -> FrontendNode:
 
 DESCRIPTION = ProcessDescription(
     name="frontend", node=FrontendNode, build=_build, default_pipeline=True, in_process=True,
-    # the path to a pose: ahead of other work where a negative nice is allowed (services/app/scheduling.py)
-    scheduling=Scheduling(nice=-10),
+    # the path to a pose: real-time where allowed, else ahead of other work by its nice (services/app/scheduling.py)
+    scheduling=Scheduling(nice=-10, sched="fifo"),
     help="feature tracker and per-frame fast path: sensors/frame + sensors/imu + estimator/window -> "
          "estimator/state, frontend/frame")
