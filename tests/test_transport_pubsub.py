@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import sys
 import time
 
 import numpy as np
@@ -217,3 +218,59 @@ def test_a_handler_knows_when_its_message_was_sent_however_late_it_runs():
         assert sample_sent_ns() is None  # outside a handler
         sub.close()
         pub.close()
+
+
+# child process: counts the samples of one key until told to stop (a line on stdin), then prints the count
+COUNTING_CHILD = r"""
+import json, sys, time
+from transport.config import TransportConfig
+from transport.session import open_session
+
+cfg = TransportConfig(**json.loads(sys.argv[1]))
+count = [0]
+with open_session(cfg) as s:
+    sub = s.declare_subscriber(cfg.namespace + "/depth", lambda _s: count.__setitem__(0, count[0] + 1))
+    print("ready", flush=True)
+    sys.stdin.readline()
+    print(count[0], flush=True)
+"""
+
+
+@pytest.mark.parametrize("mode", ["client", "peer"])
+def test_large_latest_messages_wait_for_room_rather_than_vanish(mode):
+    """A burst of 1.5 MB messages of a topic that may drop, over TCP without shared memory (as between containers),
+    to a subscriber process that gets no CPU for 0.3 s (SIGSTOP: a starved container): with Zenoh's 1 ms
+    wait_before_drop most of them vanish, uncounted; with transport.drop_wait_ms 2000 every one arrives
+    (configs/docker.yaml sets 20 ms, enough for the frames there)."""
+    import signal
+    import subprocess
+    import threading
+
+    from helpers_zenoh import REPO, child_env
+
+    n = 30
+    got = {}
+    for wait_ms in (1.0, 2000.0):
+        with router(mode=mode, shared_memory=False, drop_wait_ms=wait_ms) as cfg, open_session(cfg) as a:
+            fields = {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(cfg).items()}
+            child = subprocess.Popen([sys.executable, "-c", COUNTING_CHILD, json.dumps(fields)], cwd=REPO,
+                                     env=child_env(), stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+            try:
+                assert child.stdout.readline().strip() == "ready"
+                pub = Publisher(a, cfg.namespace + "/depth", DepthFrame, cfg)
+                assert pub.wait_for_subscribers(10)
+                time.sleep(0.3)
+                d = np.ones((384, 512), np.float32)
+                child.send_signal(signal.SIGSTOP)
+                threading.Timer(0.3, lambda: child.send_signal(signal.SIGCONT)).start()
+                for i in range(n):
+                    pub.publish(DepthFrame(header=Header(stamp_ns=i, seq=i, frame_id="C"), depth=d, sigma=d,
+                                           K=np.eye(3), T_WC=np.eye(4), source="stereo"))
+                time.sleep(1.0)
+                out, _ = child.communicate("stop\n", timeout=20)
+                got[wait_ms] = int(out.split()[-1])
+            finally:
+                child.send_signal(signal.SIGCONT)
+                child.kill()
+    assert got[2000.0] == n, got
+    assert got[1.0] < n, got

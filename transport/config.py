@@ -27,6 +27,9 @@ class TransportConfig:
     shared_memory: bool = param(True, "use Zenoh shared memory for large payloads between processes on one host")
     shm_threshold_bytes: int = param(65536, "payloads at least this large go through shared memory", "B")
     shm_pool_bytes: int = param(64 * 1024 * 1024, "size of each publisher process's shared-memory pool", "B")
+    drop_wait_ms: float = param(1.0, "how long a sample of a topic that may drop (queue policy 'latest': frames, "
+                                "depth, states) waits for room in Zenoh's transmission queue before Zenoh drops it, "
+                                "uncounted (Zenoh's wait_before_drop; 1 ms is Zenoh's default)", "ms")
     zenoh_json5: str = param("", "optional Zenoh JSON5 config file whose settings are applied first (TLS, auth, ACL)")
     heartbeat_period_s: float = param(1.0, "period of each service's heartbeat", "s")
     stats_period_s: float = param(1.0, "period of each service's stats message", "s")

@@ -30,6 +30,8 @@ def zenoh_config(cfg: TransportConfig, role: str = "service") -> zenoh.Config:
             zc.insert_json5("listen/endpoints", json.dumps(list(cfg.listen)))
     zc.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
     zc.insert_json5("transport/shared_memory/enabled", json.dumps(cfg.shared_memory))
+    zc.insert_json5("transport/link/tx/queue/congestion_control/drop/wait_before_drop",
+                    json.dumps(max(1, int(round(cfg.drop_wait_ms * 1000)))))  # [us]
     # every sample carries its publisher's clock at put (transport.pubsub.sample_sent_ns): latencies from send times
     # do not depend on how soon a busy subscriber ran its callback
     zc.insert_json5("timestamping/enabled", json.dumps({"router": True, "peer": True, "client": True}))

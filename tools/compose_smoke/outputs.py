@@ -33,7 +33,12 @@ def recording_figures(path: Path, namespace: str = NAMESPACE) -> dict:
         for _schema, channel, _message in make_reader(f).iter_messages(topics=list(wanted)):
             counts[wanted[channel.topic]] += 1
     final = [m for _, _, m in read_recording(path, [f"{namespace}/estimator/trajectory_final"])]
+    stats = [m for _, _, m in read_recording(path, [f"{namespace}/stats/frontend"])]
+    dropped = None  # the frames the frontend left out (its queue's drops and catch-up skips), from its last stats
+    if stats and "sensors/frame" in stats[-1].queue_names:
+        dropped = int(stats[-1].queue_dropped[list(stats[-1].queue_names).index("sensors/frame")])
     return {"frames_recorded": counts["sensors/frame"], "states_recorded": counts["estimator/state"],
+            "frontend_frames_dropped": dropped,
             "depth_frames": counts["depth/stereo"], "submap_messages": counts["map/submap"],
             "final_trajectory_poses": len(final[-1].stamps_ns) if final else 0,
             "final_keyframes": int(final[-1].keyframes) if final else 0}
