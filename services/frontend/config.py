@@ -49,6 +49,10 @@ class FrontendConfig:
                                              "takes a frame leaves out that frame's deferred detection (keyframes "
                                              "always detect; the window sees keyframes only), so it catches up "
                                              "instead of skipping frames; lockstep runs are never behind")
+    opencv_threads: int = param(1, "OpenCV threads of the frontend process (its KLT, remap and FAST split each call "
+                                "across them). 1: the frontend runs real-time (services/app/scheduling.py), and "
+                                "OpenCV's workers, real-time too, would take every core at once and stall the back "
+                                "end; 0: OpenCV's default, one per core")
     use_gyro_prior: bool = param(True, "start KLT at the position predicted by the gyro-integrated rotation")
     match_gain: bool = param(False, "before each KLT (frame to frame, camera to camera) scale the brighter image "
                              "of the pair to the darker one's mean grey level: KLT assumes constant brightness, "

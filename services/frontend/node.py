@@ -183,6 +183,10 @@ def make_node(cfg, cameras, first_landmark_id: int = 0) -> FrontendNode:
 
 
 def _build(cfg, start: Start) -> FrontendNode:
+    if cfg.frontend.opencv_threads > 0:  # a process of its own: the setting is the process's
+        import cv2
+
+        cv2.setNumThreads(cfg.frontend.opencv_threads)
     # after a supervisor restart, landmark ids continue in a range of their own (2^40 ids per life)
     node = make_node(cfg, start.rig(cfg), first_landmark_id=start.restarts << 40)
     log.info("frontend: %d cameras %s", len(node.names), node.names)
