@@ -102,3 +102,28 @@ def test_a_keyframe_state_goes_out_before_its_tracks_and_new_features(stereo_seq
     assert len(seen[True]) >= 1 and [t for t, _ in seen[True]] == [t for t, _ in seen[False]]
     for (_, a), (_, b) in zip(seen[True], seen[False]):
         assert np.array_equal(a, b)  # the same tracks, new features included
+
+
+def test_the_frontend_process_sets_its_opencv_threads_and_in_process_runs_keep_theirs():
+    """frontend.opencv_threads is the frontend process's (its description's warm-up, which only a process of its own
+    runs): building the node, as the in-process runner does beside depth's OpenCV, leaves OpenCV's threads alone."""
+    import cv2
+
+    from services.app.system_config import load_system_config
+    from services.frontend.node import DESCRIPTION
+    from shared.process_description import Start
+
+    before = cv2.getNumThreads()
+    try:
+        cv2.setNumThreads(3)
+        cfg = load_system_config(None, ["frontend.opencv_threads=1"])
+        node = DESCRIPTION.build(cfg, Start(cameras=fs.rig()))
+        assert cv2.getNumThreads() == 3
+        DESCRIPTION.warm_up(node)
+        assert cv2.getNumThreads() == 1
+        cv2.setNumThreads(3)
+        DESCRIPTION.warm_up(DESCRIPTION.build(load_system_config(None, ["frontend.opencv_threads=0"]),
+                                              Start(cameras=fs.rig())))
+        assert cv2.getNumThreads() == 3  # 0: OpenCV's own
+    finally:
+        cv2.setNumThreads(before)

@@ -183,18 +183,23 @@ def make_node(cfg, cameras, first_landmark_id: int = 0) -> FrontendNode:
 
 
 def _build(cfg, start: Start) -> FrontendNode:
-    if cfg.frontend.opencv_threads > 0:  # a process of its own: the setting is the process's
-        import cv2
-
-        cv2.setNumThreads(cfg.frontend.opencv_threads)
     # after a supervisor restart, landmark ids continue in a range of their own (2^40 ids per life)
     node = make_node(cfg, start.rig(cfg), first_landmark_id=start.restarts << 40)
     log.info("frontend: %d cameras %s", len(node.names), node.names)
     return node
 
 
+def _warm_up(node: FrontendNode) -> None:
+    """The frontend's own process only (never the in-process runner's, whose other nodes share OpenCV): its OpenCV
+    threads (frontend.opencv_threads)."""
+    if node.cfg.opencv_threads > 0:
+        import cv2
+
+        cv2.setNumThreads(node.cfg.opencv_threads)
+
+
 DESCRIPTION = ProcessDescription(
-    name="frontend", node=FrontendNode, build=_build, default_pipeline=True, in_process=True,
+    name="frontend", node=FrontendNode, build=_build, warm_up=_warm_up, default_pipeline=True, in_process=True,
     # the path to a pose: real-time where allowed, else ahead of other work by its nice (services/app/scheduling.py)
     scheduling=Scheduling(nice=-10, sched="fifo"),
     help="feature tracker and per-frame fast path: sensors/frame + sensors/imu + estimator/window -> "
