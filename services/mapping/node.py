@@ -95,10 +95,11 @@ class MappingNode(ProcessNode):
         self.inputs = tuple(dataclasses.replace(i, depth=cfg.state_buffer) if i.handler == "on_state" else i
                             for i in type(self).inputs if i.handler != "on_depth" or i.topic == depth)
         now = clock()
-        self.last_mesh = self.last_field = self.last_checkpoint = now
+        # when each periodic job last fell due (not when it ran: ticks come between integrations, so "ran + period"
+        # would drift late by up to one integration each time; the live grid went out at 0.7-0.84 Hz for 1 s)
+        self.due = {"mesh": now, "field": now, "grid": now, "checkpoint": now}
         self.final_pending = False
         self.newest_stamp_ns = 0  # of the newest depth frame integrated
-        self.last_grid = now
         self.grids = None  # services.mapping.grid.GridBuilder, made at the first grid
 
     def on_query(self, msg: messages.OccupancyQuery) -> messages.OccupancyAnswer:
@@ -263,23 +264,28 @@ class MappingNode(ProcessNode):
         if self.final_pending:
             self.final_pending = False
             out += self.flush()
-        if now - self.last_mesh >= cfg.mesh_period_s:
-            self.last_mesh = now
+        if cfg.mesh_period_s <= 0 or self._due("mesh", cfg.mesh_period_s, now):  # 0: every tick
             with self.timer("mesh"):
                 self.remesh(cfg.mesh_budget_ms / 1e3)
             out += self.submap_messages()
-        if cfg.field_period_s > 0 and self.mapper.submaps and now - self.last_field >= cfg.field_period_s:
-            self.last_field = now
+        if self.mapper.submaps and self._due("field", cfg.field_period_s, now):
             self.fields_to_publish.add(self.mapper.current.id)
         out += self.field_messages()
         out += self.points_messages()  # after the field: the back end pairs them by submap id
-        if cfg.grid.period_s > 0 and now - self.last_grid >= cfg.grid.period_s:
-            self.last_grid = now
+        if self._due("grid", cfg.grid.period_s, now):
             out += self.grid_messages()
-        if self.store.out_dir and cfg.checkpoint_period_s > 0 and now - self.last_checkpoint >= cfg.checkpoint_period_s:
-            self.last_checkpoint = now
+        if self.store.out_dir and self._due("checkpoint", cfg.checkpoint_period_s, now):
             self.checkpoint()
         return out
+
+    def _due(self, job: str, period_s: float, now: float) -> bool:
+        """Whether ``job`` (every ``period_s``; <= 0: never) falls due at ``now``; the next time it falls due is one
+        period after this one was due, so that it keeps its rate, unless it is a whole period late (then one period
+        from now: no burst to catch up)."""
+        if period_s <= 0 or now - self.due[job] < period_s:
+            return False
+        self.due[job] = self.due[job] + period_s if now - self.due[job] < 2 * period_s else now
+        return True
 
     def checkpoint(self) -> None:
         """Snapshot the map here (the timed part) and write it in the store's thread; a checkpoint falling due while
