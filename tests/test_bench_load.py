@@ -59,7 +59,8 @@ def test_busy_load_spins_at_normal_priority_in_sessions_of_their_own_and_stops()
 def _res(**health):
     stages = {"mapping.integrate": {"n": 70}}
     latency = {"state": {"n": 500, "median": 20.0, "p99": 48.5}, "depth": {"n": 80, "rate_hz": 3.2},
-               "state_sent": {"n": 500, "median": 19.0, "p99": 45.5}}
+               "state_sent": {"n": 500, "median": 19.0, "p99": 45.5},
+               "state_sensor": {"n": 500, "median": 19.5, "p99": 61.0}}
     run_stats = {"frames_sent": 501, "frames_without_state": 0,
                  "services": {"mapping": {"counters": {"dropped_no_pose": 2, "dropped_waiting_full": 0,
                                                        "skipped_no_estimate": 3},
@@ -72,7 +73,8 @@ def test_run_health_counts_what_the_machine_cost():
     res, run_stats = _res()
     h = run_health(res, run_stats, {"ate_rmse_m": 0.0123})
     assert h == {"frames_sent": 501, "frames_without_state": 0, "pose_latency_p50_ms": 20.0, "pose_latency_p99_ms": 48.5,
-                 "pose_latency_sent_p50_ms": 19.0, "pose_latency_sent_p99_ms": 45.5, "depth_frames": 80, "depth_rate_hz": 3.2, "mapping_integrated": 70,
+                 "pose_latency_sent_p50_ms": 19.0, "pose_latency_sent_p99_ms": 45.5,
+                 "pose_latency_sensor_p50_ms": 19.5, "pose_latency_sensor_p99_ms": 61.0, "depth_frames": 80, "depth_rate_hz": 3.2, "mapping_integrated": 70,
                  "mapping_dropped": {"dropped_no_pose": 2, "queue depth/stereo": 1}, "keyframes_skipped": 4,
                  "causal_ate_m": 0.0123}
     res.update(health=h, machine={"cpus": [0], "load": 2, "loadavg_before": [1.0, 0.5, 0.25],
@@ -80,7 +82,7 @@ def test_run_health_counts_what_the_machine_cost():
     line = format_health(res)
     assert line.startswith("on cores 0 with 2 busy process(es) (load average before 1.00 0.50 0.25, after 3.00")
     assert "0 of 501 frames without a state" in line and "p50 20.0 / p99 48.5 ms" in line and "(3.2 Hz)" in line
-    assert "as sent 19.0 / 45.5" in line
+    assert "as sent 19.0 / 45.5; from the sensor clock 19.5 / 61.0" in line
     assert "causal ATE 0.0123 m" in line
     assert "causal ATE -" in format_health({**res, "health": run_health(res, run_stats, None)})
 

@@ -50,6 +50,22 @@ def test_arrival_log_and_matched_latencies():
     assert lat["latency_ms"].tolist() == [70.0] and lat["unmatched"] == 1
 
 
+def test_latency_from_the_sensor_clock_counts_a_late_source():
+    """Frames 50 ms apart, the third put 30 ms late; every state put 10 ms after its frame: as sent each state took
+    10 ms, from the sensor's clock the late frame's took 40 ms (the player's delay is the pose's too)."""
+    from services.app.metrics.latency import sensor_clock_latencies, sent_latencies
+
+    log = ArrivalLog()
+    t0 = 1_000_000_000_000
+    for i in range(5):
+        stamp = 1_000 + i * 50_000_000
+        put = t0 + i * 50_000_000 + (30_000_000 if i == 2 else 0)
+        log.add("frame", stamp, put + 1_000_000, put)
+        log.add("state", stamp, put + 12_000_000, put + 10_000_000)
+    np.testing.assert_allclose(sent_latencies(log, "state")["latency_ms"], [10, 10, 10, 10, 10])
+    np.testing.assert_allclose(sensor_clock_latencies(log, "state")["latency_ms"], [10, 10, 40, 10, 10])
+
+
 def test_map_latency_is_first_submap_after_the_depth_frame():
     pub = {10: 0, 20: 100 * MS, 30: 200 * MS}
     depth_stamps = np.array([10, 20, 30])

@@ -36,7 +36,7 @@ from tools.bench_probe import Probe
 from services.app.metrics.stages import stage_items
 from services.app.run_pipeline import frames_within
 from services.app.metrics.latency import (ArrivalLog, first_arrivals, map_latencies, matched_latencies,
-                                          sent_latencies, summary)
+                                          sensor_clock_latencies, sent_latencies, summary)
 from transport.session import free_local_port
 
 SERVICES = ("frontend", "backend", "depth", "mapping")
@@ -126,6 +126,7 @@ def latency_series(log: ArrivalLog) -> dict[str, dict]:
     ds, da = log.get("depth")
     out["map"] = map_latencies(published, ds, da, log.get("map")[1])
     out["state_sent"] = sent_latencies(log, "state")  # frontend put - player put: without the delivery to the probe
+    out["state_sensor"] = sensor_clock_latencies(log, "state")  # frontend put - the frame's time: the player's lateness too
     return out
 
 
@@ -140,7 +141,7 @@ def summarise(raw: dict, budgets) -> tuple[dict, dict]:
     published = first_arrivals(fs, fa)
     span = (max(published.values()) - min(published.values())) / 1e9 if len(published) > 1 else 0.0
     latency = {}
-    for name in (*LATENCY_TOPICS, "state_sent"):
+    for name in (*LATENCY_TOPICS, "state_sent", "state_sensor"):
         s = summary(lat[name]["latency_ms"])
         s["unmatched"] = lat[name]["unmatched"]
         stamps = lat[name]["stamp_ns"]
@@ -176,9 +177,11 @@ def run_health(res: dict, run_stats: dict, ate: dict | None) -> dict:
     map_dropped.update({f"queue {q}": v["dropped"] for q, v in mapping.get("queues", {}).items() if v.get("dropped")})
     state, depth = res["latency_ms"]["state"], res["latency_ms"]["depth"]
     sent = res["latency_ms"].get("state_sent", {})
+    clock = res["latency_ms"].get("state_sensor", {})
     return {"frames_sent": run_stats.get("frames_sent"), "frames_without_state": run_stats.get("frames_without_state"),
             "pose_latency_p50_ms": state.get("median"), "pose_latency_p99_ms": state.get("p99"),
             "pose_latency_sent_p50_ms": sent.get("median"), "pose_latency_sent_p99_ms": sent.get("p99"),
+            "pose_latency_sensor_p50_ms": clock.get("median"), "pose_latency_sensor_p99_ms": clock.get("p99"),
             "depth_frames": depth.get("n"), "depth_rate_hz": depth.get("rate_hz"),
             "mapping_integrated": res["stages"].get("mapping.integrate", {}).get("n", 0),
             "mapping_dropped": map_dropped,
@@ -195,7 +198,8 @@ def format_health(res: dict) -> str:
             f"{before[1]:.2f} {before[2]:.2f}, after {after[0]:.2f} {after[1]:.2f} {after[2]:.2f}): "
             f"{h['frames_without_state']} of {h['frames_sent']} frames without a state; pose latency p50 "
             f"{_f(h['pose_latency_p50_ms'])} / p99 {_f(h['pose_latency_p99_ms'])} ms (at the probe; as sent "
-            f"{_f(h.get('pose_latency_sent_p50_ms'))} / {_f(h.get('pose_latency_sent_p99_ms'))}); depth {h['depth_frames']} "
+            f"{_f(h.get('pose_latency_sent_p50_ms'))} / {_f(h.get('pose_latency_sent_p99_ms'))}; from the sensor clock "
+            f"{_f(h.get('pose_latency_sensor_p50_ms'))} / {_f(h.get('pose_latency_sensor_p99_ms'))}); depth {h['depth_frames']} "
             f"frames ({_f(h['depth_rate_hz'])} Hz); mapping integrated {h['mapping_integrated']}, dropped "
             f"{h['mapping_dropped'] or 'none'}; keyframes skipped {h['keyframes_skipped']}; causal ATE {ate}")
 
@@ -220,7 +224,8 @@ def format_report(res: dict) -> str:
               "|---|---:|---:|---:|---:|---:|---:|"]
     names = {"features": "frontend/frame (the tracks, sent after the state)", "state": "estimator/state",
              "depth": "depth/fused", "map": "map/submap (first update after)",
-             "state_sent": "estimator/state as sent (publishers' clocks: no delivery to the probe)"}
+             "state_sent": "estimator/state as sent (publishers' clocks: no delivery to the probe)",
+             "state_sensor": "estimator/state from the sensor clock (as sent, plus the player's own lateness)"}
     for k, s in res["latency_ms"].items():
         lines.append(f"| {names[k]} | {s['n']} | {_f(s.get('rate_hz'))} | {_f(s.get('median'))} | {_f(s.get('p90'))} | "
                      f"{_f(s.get('p99'))} | {_f(s.get('max'))} |")
