@@ -31,7 +31,7 @@ class ServiceSpec:
         "default", "Linux scheduling class of the process: 'idle' (SCHED_IDLE) runs it only on CPU time no normal "
         "process wants, so that on two cores depth, mapping and the viewer never delay a pose; 'batch' (SCHED_BATCH) "
         "is for long computations; 'fifo' (SCHED_FIFO at supervisor.realtime_priority) runs it the moment it has "
-        "work, ahead of every normal process: the frontend's per-frame work (where real-time scheduling is not "
+        "work, ahead of every normal process: the frontend's per-frame work and the sensor input (where real-time scheduling is not "
         "allowed, the process runs at its nice and the supervisor says so); 'default': the process's own (its "
         "description's scheduling); ignored elsewhere than Linux")
     stop_timeout_s: float | None = param(None, "after SIGTERM, SIGKILL this service if still alive after this long "
@@ -48,7 +48,7 @@ class SupervisorConfig:
     router_startup_s: float = param(0.5, "wait after starting the router before starting the services", "s")
     shutdown_timeout_s: float = param(5.0, "after SIGTERM, children still alive after this long are SIGKILLed", "s")
     realtime_priority: int = param(10, "SCHED_FIFO priority (1-99) of the services whose class is 'fifo' (the "
-                                   "frontend); 0: none runs real-time, each runs at its nice instead. A real-time "
+                                   "frontend and the sensor input: player, ros2_input); 0: none runs real-time, each runs at its nice instead. A real-time "
                                    "process that never blocked would keep its core (the kernel leaves others 5 %: "
                                    "sched_rt_runtime_us); the frontend blocks between frames (docs/reliability.md)")
     run_dir: str = param("runs", "parent folder of each run's folder (resolved config, outputs)")

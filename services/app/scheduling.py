@@ -12,12 +12,14 @@ with two of them on two cores it lost most frames (docs/benchmarks.md). So the s
   they yield to the supervisor's own threads and to each other by their nice, and which as a whole is a peer of the
   other programs: under load they slow down and skip frames (counted), but are not starved outright.
 
-The frontend, whose per-frame work is the pose's latency, runs real-time (SCHED_FIFO at
-``supervisor.realtime_priority``) where that is allowed: a real-time task runs the moment a frame wakes it, ahead of
+The frontend, whose per-frame work is the pose's latency, and the sensor input (player, ros2_input) run real-time
+(SCHED_FIFO at ``supervisor.realtime_priority``, all three at the same priority, so none preempts another) where that
+is allowed: a real-time task runs the moment a frame wakes it, ahead of
 every normal task, whatever their nice or group, and is preempted by none of them. Nice alone left it waiting for a
 core behind the back end's optimisations and the depth network: its tracking took 12 ms of CPU at the 99th
-percentile but 35-60 ms of wall time (docs/benchmarks.md). It blocks between frames (about half a core at 20 Hz), so
-the rest of the pipeline keeps the remainder; a real-time task that never blocked would keep its core, less the 5 %
+percentile but 35-60 ms of wall time, and the player put frames up to 30 ms late (docs/benchmarks.md). They block
+between frames (the frontend about half a core at 20 Hz, the player a sixth), so the rest of the pipeline keeps the
+remainder; a real-time task that never blocked would keep its core, less the 5 %
 the kernel's throttling (``sched_rt_runtime_us``) leaves to others. Where real-time scheduling is not allowed (no
 CAP_SYS_NICE and no ``ulimit -r``), :func:`resolve_sched` falls back to the normal class and its nice and says so.
 

@@ -37,5 +37,5 @@ def _play(cfg, args: argparse.Namespace) -> int:
 
 DESCRIPTION = ProcessDescription(
     name="player", node=PlayerNode, main=_play, arguments=_arguments, config_positional=False,
-    scheduling=Scheduling(nice=-10),  # the sensor input: the path to a pose starts here
+    scheduling=Scheduling(nice=-10, sched="fifo"),  # the sensor input: the path to a pose starts here (real-time where allowed)
     help="replay an EuRoC ASL folder or an MCAP recording onto the sensor topics (--lockstep, --realtime, --rate)")

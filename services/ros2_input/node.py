@@ -89,5 +89,5 @@ def _run(cfg, args: argparse.Namespace) -> int:
 
 DESCRIPTION = ProcessDescription(
     name="ros2_input", node=Ros2InputNode, main=_run, switch="ros2.input.enabled",
-    scheduling=Scheduling(nice=-10),  # the sensor input, as the player: the path to a pose starts here
+    scheduling=Scheduling(nice=-10, sched="fifo"),  # the sensor input, as the player: the path to a pose starts here
     help="live ROS 2 input: a robot's camera and IMU topics (rmw_zenoh on Zenoh) as sensors/frame and sensors/imu")
