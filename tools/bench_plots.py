@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 LABELS = {"features": "frontend/frame", "state": "estimator/state", "depth": "depth/fused", "map": "map/submap",
-          "state_sent": "estimator/state as sent"}
+          "state_sent": "estimator/state as sent", "state_sensor": "estimator/state from the sensor clock"}
 
 
 def save_series(path: Path, series: dict) -> None:

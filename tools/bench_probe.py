@@ -2,8 +2,10 @@
 arrived (wall time, per header stamp), for the latencies of tools/bench_pipeline.py.
 
 It runs where a consumer of poses would: a program of its own, at the priority of the path to a pose
-(services/app/scheduling.py: nice -10 in a scheduling group of its own where allowed). In the bench's process it shared
-the group of depth and mapping, and on one busy core it saw frames seconds late: latencies below zero.
+(services/app/scheduling.py: real-time at ``supervisor.realtime_priority`` as the frontend and the player, else nice
+-10 in a scheduling group of its own, where allowed). In the bench's process it shared the group of depth and
+mapping, and on one busy core it saw frames seconds late: latencies below zero; at nice -10 beside a real-time
+frontend and player it took frames and states together on one core (2026-12-08).
 
 ``python -m tools.bench_probe --config C --set K=V ... --out arrivals.npz`` prints ``ready`` once subscribed and
 writes ``arrivals.npz`` (``<name>_stamp_ns``, ``<name>_arrival_ns`` and ``<name>_sent_ns``, the publisher's send time
@@ -35,18 +37,22 @@ class Probe:
         self.argv = [sys.executable, "-m", "tools.bench_probe", "--out", str(out_npz),
                      *(["--config", config] if config else []), *(a for s in sets for a in ("--set", s))]
         self.out_npz, self.ready_timeout_s = Path(out_npz), ready_timeout_s
+        self.config, self.sets = config, list(sets)
         self.log = ArrivalLog()
         self.proc: subprocess.Popen | None = None
 
     def __enter__(self) -> "Probe":
-        from services.app.scheduling import apply_in_child, resolve_nice
+        from services.app.scheduling import apply_in_child, resolve_nice, resolve_sched
+        from services.app.system_config import load_system_config
 
         nice, why = resolve_nice(-10)
-        if why:
-            print(f"[bench pipeline] probe: {why}", flush=True)
+        sched, rt, why_rt = resolve_sched("fifo", load_system_config(self.config, self.sets).supervisor.realtime_priority)
+        for w in (why, why_rt):
+            if w:
+                print(f"[bench pipeline] probe: {w}", flush=True)
         self.out_npz.unlink(missing_ok=True)
         self.proc = subprocess.Popen(self.argv, stdout=subprocess.PIPE, text=True, start_new_session=True,
-                                     preexec_fn=lambda: apply_in_child(nice, "normal", True))
+                                     preexec_fn=lambda: apply_in_child(nice, sched, True, rt))
         ready = threading.Event()
         threading.Thread(target=lambda: self.proc.stdout.readline().strip() == "ready" and ready.set(),
                          daemon=True).start()
