@@ -48,10 +48,10 @@ def child_env() -> dict[str, str]:
     return env
 
 
-def spawn_python(code: str, *args: str, stdout=subprocess.PIPE) -> subprocess.Popen:
+def spawn_python(code: str, *args: str, stdout=subprocess.PIPE, stdin=None) -> subprocess.Popen:
     """Start ``python -c code args...`` in the repository root (text-mode pipes)."""
     return subprocess.Popen([sys.executable, "-c", code, *args], cwd=REPO, env=child_env(),
-                            stdout=stdout, stderr=subprocess.PIPE, text=True)
+                            stdin=stdin, stdout=stdout, stderr=subprocess.PIPE, text=True)
 
 
 def wait_for(predicate: Callable[[], bool], timeout: float = 5.0, interval: float = 0.01) -> bool:

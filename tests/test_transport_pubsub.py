@@ -2,7 +2,6 @@
 
 import dataclasses
 import json
-import sys
 import time
 
 import numpy as np
@@ -246,15 +245,11 @@ def test_large_latest_messages_wait_for_room_rather_than_vanish(mode):
     import subprocess
     import threading
 
-    from helpers_zenoh import REPO, child_env
-
     n = 30
     got = {}
     for wait_ms in (1.0, 2000.0):
         with router(mode=mode, shared_memory=False, drop_wait_ms=wait_ms) as cfg, open_session(cfg) as a:
-            fields = {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(cfg).items()}
-            child = subprocess.Popen([sys.executable, "-c", COUNTING_CHILD, json.dumps(fields)], cwd=REPO,
-                                     env=child_env(), stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+            child = spawn_python(COUNTING_CHILD, json.dumps(dataclasses.asdict(cfg)), stdin=subprocess.PIPE)
             try:
                 assert child.stdout.readline().strip() == "ready"
                 pub = Publisher(a, cfg.namespace + "/depth", DepthFrame, cfg)

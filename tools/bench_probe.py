@@ -42,14 +42,13 @@ class Probe:
         self.proc: subprocess.Popen | None = None
 
     def __enter__(self) -> "Probe":
-        from services.app.scheduling import apply_in_child, resolve_nice, resolve_sched
+        from services.app.scheduling import apply_in_child, resolve_scheduling
         from services.app.system_config import load_system_config
 
-        nice, why = resolve_nice(-10)
-        sched, rt, why_rt = resolve_sched("fifo", load_system_config(self.config, self.sets).supervisor.realtime_priority)
-        for w in (why, why_rt):
-            if w:
-                print(f"[bench pipeline] probe: {w}", flush=True)
+        priority = load_system_config(self.config, self.sets).supervisor.realtime_priority
+        nice, sched, rt, why = resolve_scheduling(-10, "fifo", priority)
+        if why:
+            print(f"[bench pipeline] probe: {why}", flush=True)
         self.out_npz.unlink(missing_ok=True)
         self.proc = subprocess.Popen(self.argv, stdout=subprocess.PIPE, text=True, start_new_session=True,
                                      preexec_fn=lambda: apply_in_child(nice, sched, True, rt))

@@ -14,13 +14,12 @@ with two of them on two cores it lost most frames (docs/benchmarks.md). So the s
 
 The frontend, whose per-frame work is the pose's latency, and the sensor input (player, ros2_input) run real-time
 (SCHED_FIFO at ``supervisor.realtime_priority``, all three at the same priority, so none preempts another) where that
-is allowed: a real-time task runs the moment a frame wakes it, ahead of
-every normal task, whatever their nice or group, and is preempted by none of them. Nice alone left it waiting for a
-core behind the back end's optimisations and the depth network: its tracking took 12 ms of CPU at the 99th
-percentile but 35-60 ms of wall time, and the player put frames up to 30 ms late (docs/benchmarks.md). They block
-between frames (the frontend about half a core at 20 Hz, the player a sixth), so the rest of the pipeline keeps the
-remainder; a real-time task that never blocked would keep its core, less the 5 %
-the kernel's throttling (``sched_rt_runtime_us``) leaves to others. Where real-time scheduling is not allowed (no
+is allowed: a real-time task runs the moment a frame wakes it, ahead of every normal task, whatever their nice or
+group, and is preempted by none of them. Nice alone left the frontend waiting for a core behind the back end's
+optimisations and the depth network: its tracking took 12 ms of CPU at the 99th percentile but 35-60 ms of wall
+time, and the player put frames up to 30 ms late (docs/benchmarks.md). They block between frames (the frontend about
+half a core at 20 Hz, the player a sixth), so the rest of the pipeline keeps the remainder; a real-time task that
+never blocked would keep its core, less the 5 % the kernel's throttling (``sched_rt_runtime_us``) leaves to others. Where real-time scheduling is not allowed (no
 CAP_SYS_NICE and no ``ulimit -r``), :func:`resolve_sched` falls back to the normal class and its nice and says so.
 
 Where autogroups are off, or inside a container's cgroup, the same nice values rank the tasks directly. A nice below
@@ -100,6 +99,14 @@ def resolve_sched(sched: str, priority: int, highest: int | None = None) -> tupl
         return "fifo", priority, ""
     return "normal", 0, (f"real-time priority {priority} is not permitted here, so the normal class at its nice: "
                          f"allow it with CAP_SYS_NICE or `ulimit -r {priority}`")
+
+
+def resolve_scheduling(added_nice: int, sched: str, rt_priority: int) -> tuple[int, str, int, str]:
+    """(nice, class, real-time priority, '' or why not what was asked) of a child asked for ``added_nice`` and
+    ``sched`` (:func:`resolve_nice`, :func:`resolve_sched`): what :func:`apply_in_child` takes."""
+    nice, why_nice = resolve_nice(added_nice)
+    sched, rt, why_sched = resolve_sched(sched, rt_priority)
+    return nice, sched, rt, "; ".join(w for w in (why_nice, why_sched) if w)
 
 
 def autogroup_nice(path: str = AUTOGROUP) -> int | None:

@@ -29,7 +29,7 @@ from pathlib import Path
 
 from services.app.config import ServiceSpec, SupervisorConfig
 from services.app.processes import with_defaults
-from services.app.scheduling import apply_in_child, resolve_nice, resolve_sched
+from services.app.scheduling import apply_in_child, resolve_scheduling
 from shared.config import ConfigError
 from services.app.supervision import RESTARTS_ENV
 
@@ -186,12 +186,10 @@ class Supervisor:
         # own, so a scheduler autogroup of its own (Linux) with its nice, the others in the supervisor's group,
         # ranked there by their nice (services/app/scheduling.py)
         own = (child.spec.nice or 0) < 0
-        nice, why = resolve_nice(child.spec.nice or 0)
-        sched, rt, why_sched = resolve_sched(child.spec.sched, self.cfg.realtime_priority)
+        nice, sched, rt, why = resolve_scheduling(child.spec.nice or 0, child.spec.sched, self.cfg.realtime_priority)
         child.proc = subprocess.Popen(child.argv, env=env, start_new_session=own, process_group=None if own else 0,
                                       preexec_fn=lambda: _child_setup(parent, nice, sched, own, rt))
         child.restart_at = None
-        why = "; ".join(w for w in (why, why_sched) if w)
         self._status(child, f"started pid {child.proc.pid}, nice {nice}" + (f", real-time priority {rt}" if rt else "")
                      + (f" ({why})" if why else ""))
 

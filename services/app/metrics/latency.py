@@ -95,11 +95,8 @@ def sensor_clock_latencies(log: ArrivalLog, name: str) -> dict:
     the publisher's wall clock by the smallest (put - stamp) of any frame, so that a source that publishes a frame
     late (a busy player or driver) counts against the latency, which the figure from send times does not see."""
     stamps, sent = log.get_sent("frame")
-    ok = sent > 0
-    if not ok.any():
-        return matched_latencies({}, *log.get_sent(name))
-    offset = int(np.min(sent[ok].astype(np.int64) - stamps[ok].astype(np.int64)))
-    return matched_latencies({int(s): int(s) + offset for s in stamps[ok].tolist()}, *log.get_sent(name))
+    offset = int(np.min(sent - stamps)) if len(stamps) else 0
+    return matched_latencies({s: s + offset for s in stamps.tolist()}, *log.get_sent(name))
 
 
 def first_arrivals(stamps_ns: np.ndarray, arrivals_ns: np.ndarray) -> dict[int, int]:
